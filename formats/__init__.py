@@ -1,0 +1,1 @@
+"""File formats: C3D, video, OpenPose/COCO JSON, CHI3D JSON, MCAP."""
