@@ -1,0 +1,202 @@
+"""One CasADi function ``f(x, p) -> (residuals, Jacobian nonzeros)``, compiled to C once and cached.
+
+The LM loop (``fitting/lm.py``) calls this function a few times per frame, so its evaluation
+cost is the fitting speed. What DESIGN.md measured and this module follows:
+
+- The Jacobian is emitted sparse and read through the function's buffer interface into a
+  preallocated nonzero vector; the caller scatters it with the sparsity triplets. Never
+  ``DM.full()`` (13 ms on a 1,738 x 159 Jacobian, more than the whole solve).
+- Observations, masks and model arrays are *parameters* ``p``: the symbolic graph depends only
+  on the model topology and the term set, so one compiled library serves every frame,
+  sequence and subject.
+- Compiled with ``gcc -O1`` (``-O2`` builds much slower for little gain on generated code);
+  the library is cached on disk under ``assets/cache/casadi/`` keyed by a hash of the
+  generated C source, the compiler and its flags, like any artifact (write to a temporary
+  file, then ``os.replace``). No compiler: the interpreted function is used instead (same
+  results, ~2x slower).
+
+Shapes: ``x (n,) float64``, ``p (q,) float64``, residuals ``r (m,)``, Jacobian nonzeros
+``(nnz,)`` in CasADi's column-major order with triplets ``rows (nnz,)``, ``cols (nnz,)``.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import casadi as ca
+import numpy as np
+
+# constants
+DEFAULT_CACHE = Path(__file__).resolve().parents[1] / "assets" / "cache" / "casadi"
+CACHE_ENV = "CASADI_CACHE_DIR"  # overrides the cache folder when set
+KEY_CHARS = 20
+
+
+@dataclass(frozen=True)
+class CompileOptions:
+    """How to turn a CasADi function into something fast.
+
+    mode : ``auto`` compiles when a C compiler is found, else interprets; ``compiled`` raises
+        when compiling is impossible; ``interpreted`` never compiles.
+    cache_dir : where compiled libraries live; None: ``$CASADI_CACHE_DIR`` or
+        ``assets/cache/casadi``.
+    compiler, flags : the C compiler command and its optimisation flags.
+    """
+
+    mode: Literal["auto", "compiled", "interpreted"] = "auto"
+    cache_dir: Path | None = None
+    compiler: str = "gcc"
+    flags: tuple[str, ...] = ("-O1",)
+
+
+def cache_dir(opts: CompileOptions) -> Path:
+    """The folder holding compiled libraries for these options."""
+    if opts.cache_dir is not None:
+        return Path(opts.cache_dir)
+    env = os.environ.get(CACHE_ENV)
+    return Path(env) if env else DEFAULT_CACHE
+
+
+class ResidualFunction:
+    """Evaluate ``f(x, p) -> (r, jnz)`` with minimal overhead.
+
+    Attributes
+    ----------
+    name : str
+    n_x, n_p, n_r : sizes of x, p and r.
+    rows, cols : (nnz,) int64, the Jacobian sparsity triplets (nonzero order).
+    compiled : bool, True when running generated C.
+    library : Path | None, the shared library in use.
+
+    ``__call__`` returns views of internal buffers that the next call overwrites: copy what
+    you keep. The Jacobian ``J (n_r, n_x)`` is ``J[rows[k], cols[k]] = jnz[k]``.
+    """
+
+    def __init__(self, func: ca.Function, rows, cols, compiled: bool, library: Path | None):
+        self.func = func
+        self.name = func.name()
+        self.n_x = func.size1_in(0)
+        self.n_p = func.size1_in(1)
+        self.n_r = func.size1_out(0)
+        self.rows = np.asarray(rows, dtype=np.int64)
+        self.cols = np.asarray(cols, dtype=np.int64)
+        self.compiled = compiled
+        self.library = library
+        self._x = np.zeros(self.n_x)
+        self._p = np.zeros(self.n_p)
+        self._r = np.zeros(self.n_r)
+        self._j = np.zeros(len(self.rows))
+        self._flat = self.rows * self.n_x + self.cols
+        buf, self._eval = func.buffer()
+        buf.set_arg(0, memoryview(self._x))
+        buf.set_arg(1, memoryview(self._p))
+        buf.set_res(0, memoryview(self._r))
+        buf.set_res(1, memoryview(self._j))
+        self._buf = buf  # keeps the buffer (and our arrays' views) alive
+
+    @property
+    def nnz(self) -> int:
+        return len(self.rows)
+
+    def __call__(self, x: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """x (n_x,), p (n_p,) -> (r (n_r,), jnz (nnz,)), views into internal buffers."""
+        self._x[:] = x
+        self._p[:] = p
+        self._eval()
+        return self._r, self._j
+
+    def dense(self, x: np.ndarray, p: np.ndarray, out: np.ndarray | None = None):
+        """x, p -> (r (n_r,) copy, J (n_r, n_x) dense); ``out`` is reused when given."""
+        r, jnz = self(x, p)
+        if out is None:
+            out = np.zeros((self.n_r, self.n_x))
+        else:
+            out[...] = 0.0
+        out.ravel()[self._flat] = jnz
+        return r.copy(), out
+
+
+def find_compiler(opts: CompileOptions) -> str | None:
+    """Path of the C compiler, or None."""
+    return shutil.which(opts.compiler)
+
+
+def _generate_source(func: ca.Function, workdir: Path) -> str:
+    cg = ca.CodeGenerator(f"{func.name()}.c", {"with_header": False, "casadi_real": "double"})
+    cg.add(func)
+    cg.generate(str(workdir) + os.sep)
+    return (workdir / f"{func.name()}.c").read_text()
+
+
+def _compile(src_path: Path, lib_path: Path, compiler: str, flags: tuple[str, ...]) -> None:
+    tmp = lib_path.with_name(f".{lib_path.name}.{os.getpid()}.tmp")
+    cmd = [compiler, *flags, "-shared", "-fPIC", "-o", str(tmp), str(src_path), "-lm"]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        tmp.unlink(missing_ok=True)
+        raise RuntimeError(f"compiling {src_path.name} failed: {proc.stderr[-2000:]}")
+    os.replace(tmp, lib_path)
+
+
+def library_key(source: str, compiler: str, flags: tuple[str, ...]) -> str:
+    """Cache key of a compiled library: hash of the C source, compiler name, flags, CasADi."""
+    h = hashlib.sha256()
+    for part in (source, Path(compiler).name, " ".join(flags), ca.__version__):
+        h.update(part.encode())
+        h.update(b"\0")
+    return h.hexdigest()[:KEY_CHARS]
+
+
+def build(
+    name: str,
+    x: ca.SX,
+    p: ca.SX,
+    r: ca.SX,
+    opts: CompileOptions = CompileOptions(),
+    log=None,
+) -> ResidualFunction:
+    """Make ``f(x, p) -> (r, dr/dx)`` and compile it (or load it from the cache).
+
+    name : a C identifier (letters, digits, underscore).
+    x : (n, 1) SX, the unknowns; p : (q, 1) SX, everything else (observations, masks, model).
+    r : (m, 1) SX, the residual vector as a function of x and p.
+    log : optional ``log(str)`` for "compiling ..." messages.
+    """
+    if not name.isidentifier():
+        raise ValueError(f"function name {name!r} is not a C identifier")
+    jac = ca.jacobian(r, x)
+    rows, cols = jac.sparsity().get_triplet()
+    func = ca.Function(name, [x, p], [r, jac], ["x", "p"], ["r", "jnz"])
+    if opts.mode == "interpreted":
+        return ResidualFunction(func, rows, cols, compiled=False, library=None)
+    compiler = find_compiler(opts)
+    if compiler is None:
+        if opts.mode == "compiled":
+            raise RuntimeError(f"no C compiler {opts.compiler!r} found to compile {name}")
+        if log:
+            log(f"{name}: no C compiler, using the interpreted function")
+        return ResidualFunction(func, rows, cols, compiled=False, library=None)
+    folder = cache_dir(opts)
+    folder.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=folder, prefix=".gen-") as tmpd:
+        work = Path(tmpd)
+        source = _generate_source(func, work)
+        key = library_key(source, compiler, opts.flags)
+        lib = folder / f"{name}_{key}.so"
+        if not lib.exists():
+            if log:
+                log(f"{name}: compiling {len(source) // 1024} kB of C with {opts.compiler} "
+                    f"{' '.join(opts.flags)} (once; cached in {folder})")
+            _compile(work / f"{name}.c", lib, compiler, opts.flags)
+    try:
+        ext = ca.external(name, str(lib))
+    except RuntimeError:  # a corrupt cache entry: delete and rebuild once
+        lib.unlink(missing_ok=True)
+        return build(name, x, p, r, opts, log)
+    return ResidualFunction(ext, rows, cols, compiled=True, library=lib)
