@@ -57,6 +57,10 @@ class Registry:
     upstream_units(recipe, stage, unit, upstream) -> list[str]: which units of an upstream stage
         a unit reads (e.g. a sequence reads the shape_fit of the two subjects in it).
     stage_params(recipe, stage) -> dict: the raw recipe section for a stage (may be empty).
+    prepare(recipe_path) -> None, optional: called before the recipe is loaded by the commands
+        that run stages (``demo``, ``sequence``, ``release``; not ``status``), e.g. to generate
+        the synthetic demo data when it is missing. Must be idempotent and cheap when there is
+        nothing to do.
     """
 
     stages: tuple[Stage, ...]
@@ -65,6 +69,7 @@ class Registry:
     units: Callable[[Any, Granularity], list[str]]
     upstream_units: Callable[[Any, str, str, str], list[str]]
     stage_params: Callable[[Any, str], dict]
+    prepare: Callable[[Path], None] | None = None
 
 
 class Artifact(Protocol):
@@ -97,8 +102,10 @@ class ArtifactWriter(Protocol):
 class StageContext:
     """Everything a stage function gets.
 
-    inputs : ``{upstream_stage: Artifact}`` when the upstream maps to one unit, else
-        ``{upstream_stage: {unit: Artifact}}``.
+    inputs : ``{upstream_stage: Artifact}`` when the upstream stage has the same granularity
+        (it maps to this very unit), else ``{upstream_stage: {unit: Artifact}}`` in the order
+        ``upstream_units`` gives (a sequence reading a per-subject stage gets
+        ``{markers_on: ..., partner: ...}``), even when that dict has a single entry.
     raw : the raw input files of this unit, ``{name: Path}``.
     progress : ``progress(iterable, total=None, desc="")`` wraps per-frame loops in a bar
         that is quiet when stderr is not a terminal.

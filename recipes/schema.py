@@ -77,6 +77,14 @@ class SequenceSpec(_Strict):
     keypoints_format: Literal["openpose", "coco"] | None = None
 
 
+def _folder_name(kind: str, name: str) -> str:
+    """Names that become folders under ``outputs/``: no '/', no leading '.', not empty."""
+    if not name or "/" in name or name.startswith(".") or name != name.strip():
+        raise ValueError(f"{kind} {name!r}: must be a non-empty name without '/', "
+                         "leading '.' or surrounding spaces")
+    return name
+
+
 class Session(_Strict):
     """A whole capture session."""
 
@@ -89,12 +97,35 @@ class Session(_Strict):
     stages: dict[str, dict[str, Any]] = Field(default_factory=dict)
     source: Path | None = None  # the recipe file it was read from (set by load_recipe)
 
+    @field_validator("session")
+    @classmethod
+    def _session_name(cls, v: str) -> str:
+        return _folder_name("session", v)
+
+    @field_validator("cameras")
+    @classmethod
+    def _camera_ids(cls, v: list[str]) -> list[str]:
+        if not v:
+            raise ValueError("at least one camera is needed")
+        if len(set(v)) != len(v):
+            raise ValueError(f"camera ids repeat: {v}")
+        return v
+
+    @field_validator("subjects")
+    @classmethod
+    def _subject_ids(cls, v: dict[str, SubjectSpec]) -> dict[str, SubjectSpec]:
+        for sid in v:
+            _folder_name("subject id", sid)
+        return v
+
     @field_validator("sequences")
     @classmethod
     def _seq_ids(cls, v: dict[str, SequenceSpec]) -> dict[str, SequenceSpec]:
         for sid in v:
-            if sid.count("/") != 1 or not all(sid.split("/")):
+            if sid.count("/") != 1:
                 raise ValueError(f"sequence id {sid!r}: expected '<group>/<action>'")
+            for part in sid.split("/"):
+                _folder_name(f"sequence id {sid!r}: part", part)
         return v
 
     def sequence(self, seq_id: str) -> SequenceSpec:
@@ -104,11 +135,18 @@ class Session(_Strict):
             )
         return self.sequences[seq_id]
 
+    def sequences_of(self, subject: str) -> list[str]:
+        """Ids of the sequences a subject takes part in (wearing markers or as partner)."""
+        return [q for q, s in self.sequences.items() if subject in (s.markers_on, s.partner)]
+
 
 def _resolve_paths(obj: Any, base: Path) -> Any:
-    """Return a copy of a parsed model with every relative Path made absolute against base."""
+    """Return a copy of a parsed model with every relative Path made absolute against base
+    (and a marker-set given as a ``.json`` path)."""
     if isinstance(obj, Path):
         return obj if obj.is_absolute() else (base / obj).resolve()
+    if isinstance(obj, SubjectSpec) and obj.markerset.endswith(".json"):
+        obj = obj.model_copy(update={"markerset": str(_resolve_paths(Path(obj.markerset), base))})
     if isinstance(obj, BaseModel):
         upd = {k: _resolve_paths(getattr(obj, k), base) for k in type(obj).model_fields}
         return obj.model_copy(update=upd)
@@ -121,10 +159,14 @@ def _resolve_paths(obj: Any, base: Path) -> Any:
 
 def _check_refs(s: Session, src: Path) -> None:
     for sid, seq in s.sequences.items():
+        if seq.markers_on == seq.partner:
+            raise RecipeError(f"{src}: sequences.{sid}.partner: the same subject as markers_on "
+                              f"({seq.partner!r})")
         for role in ("markers_on", "partner"):
             who = getattr(seq, role)
             if who not in s.subjects:
-                raise RecipeError(f"{src}: sequences.{sid}.{role}: unknown subject {who!r}")
+                raise RecipeError(f"{src}: sequences.{sid}.{role}: unknown subject {who!r} "
+                                  f"(subjects: {', '.join(s.subjects)})")
         for field_name in ("videos", "calibration"):
             cams = set(getattr(seq, field_name))
             if cams != set(s.cameras):
@@ -132,10 +174,69 @@ def _check_refs(s: Session, src: Path) -> None:
                     f"{src}: sequences.{sid}.{field_name}: cameras {sorted(cams)} "
                     f"do not match cameras {sorted(s.cameras)}"
                 )
+        if seq.keypoints is not None:
+            extra = set(seq.keypoints) - set(s.cameras)
+            if extra:
+                raise RecipeError(f"{src}: sequences.{sid}.keypoints: unknown cameras {sorted(extra)}")
+            if seq.keypoints_format is None:
+                raise RecipeError(f"{src}: sequences.{sid}.keypoints_format: required when "
+                                  "keypoints are given (openpose or coco)")
 
 
-def load_recipe(path: str | Path) -> Session:
-    """Read, validate and resolve a recipe. Raises RecipeError naming the file and field."""
+def input_files(s: Session) -> list[tuple[str, Path]]:
+    """Every file or folder the recipe names, as ``(field, path)``, e.g.
+    ``("sequences.s02/Grab 4.videos.50591643", Path(...))``."""
+    out: list[tuple[str, Path]] = []
+    for sid, sub in s.subjects.items():
+        if sub.scan is not None:
+            out.append((f"subjects.{sid}.scan", sub.scan))
+        if sub.markerset.endswith(".json"):
+            out.append((f"subjects.{sid}.markerset", Path(sub.markerset)))
+    if s.body_model.path is not None:
+        out.append(("body_model.path", s.body_model.path))
+    for q, seq in s.sequences.items():
+        out.append((f"sequences.{q}.c3d", seq.c3d))
+        for cam, p in seq.videos.items():
+            out.append((f"sequences.{q}.videos.{cam}", p))
+        for cam, p in seq.calibration.items():
+            out.append((f"sequences.{q}.calibration.{cam}", p))
+        if seq.contact is not None:
+            out.append((f"sequences.{q}.contact", seq.contact))
+        for cam, p in (seq.keypoints or {}).items():
+            out.append((f"sequences.{q}.keypoints.{cam}", p))
+    return out
+
+
+def missing_files(s: Session) -> list[tuple[str, Path]]:
+    """The ``(field, path)`` of :func:`input_files` that do not exist."""
+    return [(f, p) for f, p in input_files(s) if not p.exists()]
+
+
+_MSG = {
+    "extra_forbidden": "unknown key",
+    "missing": "missing required field",
+}
+
+
+def _describe(e: ValidationError, path: Path) -> str:
+    lines = []
+    for err in e.errors():
+        loc = ".".join(str(p) for p in err["loc"])
+        msg = _MSG.get(err["type"], err["msg"])
+        got = err.get("input")
+        got_s = "" if err["type"] == "missing" or isinstance(got, (dict, list)) else f", got {got!r}"
+        lines.append(f"{path}: {loc}: {msg}{got_s}")
+    return "\n".join(lines)
+
+
+def load_recipe(path: str | Path, check_files: bool = True) -> Session:
+    """Read, validate and resolve a recipe (relative paths against the recipe's folder).
+
+    check_files : also require every file the recipe names to exist.
+    Raises RecipeError naming the file and the field (one line per problem found by the
+    schema, e.g. ``recipes/x.yaml: sequences.s02/Grab 4.fps: Input should be a valid number,
+    got 'fast'``).
+    """
     path = Path(path)
     if not path.is_file():
         raise RecipeError(f"{path}: recipe not found")
@@ -148,11 +249,12 @@ def load_recipe(path: str | Path) -> Session:
     try:
         s = Session.model_validate(raw)
     except ValidationError as e:
-        err = e.errors()[0]
-        loc = ".".join(str(p) for p in err["loc"])
-        got = err.get("input")
-        got_s = "" if isinstance(got, (dict, list)) else f", got {got!r}"
-        raise RecipeError(f"{path}: {loc}: {err['msg']}{got_s}") from None
+        raise RecipeError(_describe(e, path)) from None
     _check_refs(s, path)
     s = _resolve_paths(s, path.resolve().parent)
-    return s.model_copy(update={"source": path})
+    s = s.model_copy(update={"source": path})
+    if check_files:
+        missing = missing_files(s)
+        if missing:
+            raise RecipeError("\n".join(f"{path}: {f}: file not found: {p}" for f, p in missing))
+    return s

@@ -1,0 +1,303 @@
+"""The engine: run a plan against the artifact store, or report its status.
+
+One log line per node::
+
+    14:02:11  marker_fit   s02/Grab 4    miss   12.31 s
+    14:02:11  shape_fit    s02           hit     0.00 s
+
+A node is a cache *hit* when a complete artifact with the same key is on disk. Otherwise the
+engine takes the artifact's lock, looks again (another process may have just built it: then
+it is a hit too), and builds it into a temporary folder that is renamed into place.
+"""
+from __future__ import annotations
+
+import platform
+import socket
+import sys
+import time
+import traceback
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Callable, Iterable, Mapping
+
+from pipeline.executors import Executor, Outcome, SerialExecutor
+from pipeline.hashing import FileHasher
+from pipeline.plan import Node, NodeId, Plan, PlanError, build_plan, check_registry
+from pipeline.spec import Registry, StageContext
+from pipeline.store import Store
+
+
+def stderr_log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def make_progress(label: str) -> Callable[..., Any]:
+    """``progress(iterable, total=None, desc="")``: a tqdm bar on stderr, disabled (a plain
+    pass-through) when stderr is not a terminal."""
+
+    def progress(iterable: Iterable | None = None, total: int | None = None, desc: str = "", **kw):
+        from tqdm import tqdm
+
+        return tqdm(iterable, total=total, desc=f"{label} {desc}".strip(), leave=False,
+                    disable=not sys.stderr.isatty(), file=sys.stderr, **kw)
+
+    return progress
+
+
+def package_versions() -> dict[str, str]:
+    """Versions of the installed distributions whose modules are imported right now, plus
+    Python's (so the manifest lists what the stage could have used)."""
+    import importlib.metadata as md
+
+    dists = md.packages_distributions()
+    out: dict[str, str] = {"python": platform.python_version()}
+    for mod in list(sys.modules):
+        for d in dists.get(mod.partition(".")[0], ()):
+            if d not in out:
+                try:
+                    out[d] = md.version(d)
+                except md.PackageNotFoundError:
+                    pass
+    return dict(sorted(out.items()))
+
+
+def host_info() -> dict[str, Any]:
+    import os
+
+    return {"hostname": socket.gethostname(), "platform": platform.platform(),
+            "machine": platform.machine(), "cpus": os.cpu_count(), "pid": os.getpid()}
+
+
+@dataclass
+class RunReport:
+    plan: Plan
+    outcomes: dict[NodeId, Outcome]
+
+    def count(self, status: str) -> int:
+        return sum(o.status == status for o in self.outcomes.values())
+
+    @property
+    def failed(self) -> bool:
+        return self.count("failed") > 0
+
+    def planned_stages(self) -> list[str]:
+        seen: dict[str, None] = {}
+        for (s, _), o in self.outcomes.items():
+            if o.status == "planned":
+                seen[s] = None
+        return list(seen)
+
+    def summary(self) -> str:
+        parts = [f"{self.count('computed')} computed", f"{self.count('hit')} cached"]
+        if self.count("failed"):
+            parts.append(f"{self.count('failed')} FAILED")
+        if self.count("skipped"):
+            parts.append(f"{self.count('skipped')} skipped (an upstream is unavailable)")
+        planned = self.planned_stages()
+        if planned:
+            parts.append(f"{self.count('planned')} not implemented yet ({', '.join(planned)})")
+        return ", ".join(parts)
+
+
+@dataclass(frozen=True)
+class StatusRow:
+    stage: str
+    unit: str
+    state: str  # cached | stale | missing | not implemented | error
+    detail: str = ""
+
+
+class Engine:
+    """Runs stages of ``registry`` for one recipe, storing artifacts under
+    ``outputs/<session>/``.
+
+    recipe : the object ``registry.load_recipe`` returned; ``recipe_path`` names it in errors.
+    log : one-line messages (default: stderr).
+    """
+
+    def __init__(self, registry: Registry, recipe: Any, recipe_path: Path, outputs: Path,
+                 executor: Executor | None = None, log: Callable[[str], None] = stderr_log):
+        check_registry(registry)
+        self.registry = registry
+        self.recipe = recipe
+        self.recipe_path = Path(recipe_path)
+        self.session = registry.session_name(recipe)
+        self.store = Store(Path(outputs) / self.session)
+        self.executor = executor or SerialExecutor()
+        self.log = log
+        self.hasher = FileHasher(self.store.root / ".filehashes.json")
+        self._packages: dict[str, str] | None = None
+        self.stage_names = [s.name for s in registry.stages]
+
+    # -- planning ---------------------------------------------------------------------------
+    def plan(self, command: str, sequences: list[str] | None = None,
+             until: str | None = None) -> Plan:
+        """Plan for ``sequence`` (one or more sequence ids), ``demo`` (every sequence),
+        ``release`` or ``status`` (every stage of every unit)."""
+        from pipeline.plan import targets_for
+
+        if sequences is not None:
+            known = list(self.registry.units(self.recipe, "sequence"))
+            for q in sequences:
+                if q not in known:
+                    raise PlanError(f"{self.recipe_path}: sequences: no sequence {q!r} "
+                                    f"(known: {', '.join(known)})")
+        targets = targets_for(self.registry, self.recipe, command, sequences)
+        return build_plan(self.registry, self.recipe, self.recipe_path, targets, until,
+                          self.hasher)
+
+    # -- running ----------------------------------------------------------------------------
+    def run(self, plan: Plan, force: Iterable[str] = ()) -> RunReport:
+        """Run every node of ``plan``. ``force``: stage names (or ``"all"``) to recompute even
+        when cached; their descendants in the plan are recomputed too."""
+        errors = [n for n in plan.nodes if n.error]
+        if errors:
+            raise PlanError("\n".join(dict.fromkeys(n.error for n in errors)))
+        force = set(force)
+        for f in force - {"all"}:
+            if f not in self.stage_names:
+                raise PlanError(f"--force {f}: no such stage (known: {', '.join(self.stage_names)})")
+        seeds = {n.id for n in plan.nodes if "all" in force or n.stage.name in force}
+        forced = plan.descendants(seeds)
+        outcomes = self.executor.run(
+            plan.nodes, lambda node, done: self._run_logged(node, done, node.id in forced))
+        return RunReport(plan, outcomes)
+
+    def _run_logged(self, node: Node, done: Mapping[NodeId, Outcome], force: bool) -> Outcome:
+        t0 = time.perf_counter()
+        o = self._run_node(node, done, force)
+        o = Outcome(o.status, time.perf_counter() - t0, o.detail)
+        word = {"hit": "hit", "computed": "miss", "failed": "FAILED", "skipped": "skipped",
+                "planned": "not implemented"}[o.status]
+        line = f"{datetime.now():%H:%M:%S}  {node.stage.name:<12} {node.unit:<16} {word:<6}"
+        if o.ok or o.status == "failed":
+            line += f" {o.seconds:7.2f} s"
+        if o.status == "skipped":
+            line += f" ({o.detail})"
+        self.log(line)
+        if o.status == "failed":
+            self.log(o.detail.rstrip())
+        return o
+
+    def _run_node(self, node: Node, done: Mapping[NodeId, Outcome], force: bool) -> Outcome:
+        st = node.stage
+        if not st.implemented:
+            return Outcome("planned", detail="not implemented yet")
+        for uid in node.upstream_ids():
+            up = done.get(uid)
+            if up is None or not up.ok:
+                why = {None: "not run", "planned": "not implemented", "failed": "failed",
+                       "skipped": "skipped"}[up.status if up else None]
+                return Outcome("skipped", detail=f"needs {uid[0]} [{uid[1]}]: {why}")
+        if not force:
+            e = self.store.entry(node.unit, st.name)
+            if e.state == "complete" and e.manifest["key"] == node.key:
+                return Outcome("hit")
+
+        def waiting() -> None:
+            self.log(f"{datetime.now():%H:%M:%S}  {st.name:<12} {node.unit:<16} waiting "
+                     "(another process holds the lock)")
+
+        with self.store.lock(node.unit, st.name, on_wait=waiting):
+            self.store.clean_leftovers(node.unit, st.name)
+            e = self.store.entry(node.unit, st.name)
+            if e.state == "corrupt":
+                self.log(f"WARNING: {self.store.dir(node.unit, st.name)}: corrupt artifact "
+                         f"({e.problem}); deleting it and recomputing")
+                self.store.remove(node.unit, st.name)
+            elif not force and e.state == "complete" and e.manifest["key"] == node.key:
+                return Outcome("hit", detail="built by another process")
+            return self._build(node)
+
+    def _build(self, node: Node) -> Outcome:
+        st = node.stage
+        inputs: dict[str, Any] = {}
+        upstream_keys: dict[str, dict[str, str]] = {}
+        for up, units in node.upstream.items():
+            arts = {}
+            for u in units:
+                e = self.store.entry(u, up)
+                if e.state != "complete":
+                    return Outcome("failed", detail=f"upstream {up} [{u}] vanished: {e.state} {e.problem}")
+                arts[u] = self.store.open(u, up, e.manifest)
+            same = self.registry_per(up) == st.per
+            inputs[up] = arts[node.unit] if same else arts
+            upstream_keys[up] = {u: a.key for u, a in arts.items()}
+        writer = self.store.begin(node.unit, st.name)
+        label = f"{st.name} [{node.unit}]"
+        ctx = StageContext(
+            stage=st.name, unit=node.unit, recipe=self.recipe, params=node.params,
+            inputs=inputs, raw=dict(node.raw), out=writer, progress=make_progress(label),
+            log=lambda msg: self.log(f"          {label}: {msg}"),
+            extras={"key": node.key, "session": self.session, "outputs": self.store.root},
+        )
+        started = datetime.now(timezone.utc)
+        t0 = time.perf_counter()
+        try:
+            st.func(ctx)
+        except BaseException as exc:  # noqa: BLE001 - the temp folder must go in every case
+            self.store.abort(writer)
+            if not isinstance(exc, Exception):
+                raise
+            return Outcome("failed", detail=traceback.format_exc())
+        seconds = time.perf_counter() - t0
+        if self._packages is None:
+            self._packages = package_versions()
+        manifest = {
+            "key": node.key,
+            "version": st.version,
+            "inputs": {
+                "upstream": upstream_keys,
+                "raw": {n: {"path": str(p), "sha256": node.raw_hashes[n]}
+                        for n, p in node.raw.items()},
+            },
+            "parameters": node.params_canon,
+            "timings": {"started": started.isoformat(timespec="seconds"),
+                        "finished": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                        "seconds": round(seconds, 4)},
+            "packages": self._packages,
+            "host": host_info(),
+            "recipe": str(self.recipe_path.resolve()),
+        }
+        try:
+            self.store.commit(writer, node.unit, st.name, manifest)
+        except BaseException:
+            self.store.abort(writer)
+            raise
+        return Outcome("computed")
+
+    def registry_per(self, stage: str) -> str:
+        return next(s.per for s in self.registry.stages if s.name == stage)
+
+    # -- status -----------------------------------------------------------------------------
+    def status(self, plan: Plan) -> list[StatusRow]:
+        """Each node's state: ``cached`` (complete artifact, same key), ``stale`` (complete
+        artifact, other key), ``missing`` (none, or a corrupt one), ``not implemented``, or
+        ``error`` (its key can't be computed: missing input file, bad parameter)."""
+        rows = []
+        blocked: dict[NodeId, str] = {}  # node -> the unimplemented stage it waits for
+        for n in plan.nodes:
+            if not n.stage.implemented:
+                rows.append(StatusRow(n.stage.name, n.unit, "not implemented"))
+                blocked[n.id] = n.stage.name
+                continue
+            why = next((blocked[u] for u in n.upstream_ids() if u in blocked), None)
+            if why is not None:
+                blocked[n.id] = why
+            if n.error:
+                rows.append(StatusRow(n.stage.name, n.unit, "error", n.error))
+                continue
+            e = self.store.entry(n.unit, n.stage.name)
+            if e.state == "complete":
+                same = e.manifest["key"] == n.key
+                rows.append(StatusRow(n.stage.name, n.unit, "cached" if same else "stale",
+                                      "" if same else f"stored key {e.manifest['key'][:12]}, "
+                                      f"now {n.key[:12]}"))
+            elif e.state == "corrupt":
+                rows.append(StatusRow(n.stage.name, n.unit, "missing", f"corrupt: {e.problem}"))
+            else:
+                rows.append(StatusRow(n.stage.name, n.unit, "missing",
+                                      f"can't run: needs {why} (not implemented)" if why else ""))
+        return rows
+

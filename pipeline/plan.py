@@ -1,0 +1,288 @@
+"""From a registry and a recipe to a plan: the (stage, unit) nodes to run, in DAG order, each
+with its artifact key.
+
+Key of a node = sha256 of the canonical JSON of::
+
+    {"stage": name, "version": Stage.version, "source": sha256 of the module source of func,
+     "params": validated parameters, "upstream": {stage: {unit: key}},
+     "raw": {name: sha256 of the file or folder}}
+
+Keys depend only on code, recipe and raw files, never on what is on disk, so ``status`` can
+compare them with the stored manifests without running anything.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import inspect
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pipeline.hashing import FileHasher, UnhashableError, canonical, digest
+from pipeline.spec import Registry, Stage
+
+GRANULARITIES = ("subject", "sequence", "session")
+NodeId = tuple[str, str]  # (stage, unit)
+
+
+class PlanError(ValueError):
+    """The registry, the recipe or the command can't be turned into a plan; the message names
+    the file and field where it can."""
+
+
+@dataclass
+class Node:
+    """One (stage, unit) of the plan. ``upstream``: ``{stage: [units]}`` it reads.
+    ``key`` is None when it could not be computed (``error`` says why)."""
+
+    stage: Stage
+    unit: str
+    upstream: dict[str, list[str]]
+    params: Any = None
+    params_canon: Any = None
+    raw: dict[str, Path] = field(default_factory=dict)
+    raw_hashes: dict[str, str] = field(default_factory=dict)
+    key: str | None = None
+    error: str = ""
+
+    @property
+    def id(self) -> NodeId:
+        return (self.stage.name, self.unit)
+
+    def upstream_ids(self) -> list[NodeId]:
+        return [(s, u) for s, us in self.upstream.items() for u in us]
+
+
+@dataclass
+class Plan:
+    """Nodes in an order where every node comes after its upstream nodes."""
+
+    nodes: list[Node]
+    session: str
+
+    def __post_init__(self):
+        self.by_id = {n.id: n for n in self.nodes}
+
+    def descendants(self, ids: set[NodeId]) -> set[NodeId]:
+        """``ids`` and every node of the plan downstream of them."""
+        out = set(ids)
+        for n in self.nodes:  # topological order: one pass suffices
+            if any(u in out for u in n.upstream_ids()):
+                out.add(n.id)
+        return out
+
+
+def check_registry(reg: Registry) -> list[Stage]:
+    """Validate the stage declarations; return the stages in a topological order (the
+    registry's own order when it already is one)."""
+    names = [s.name for s in reg.stages]
+    dup = {n for n in names if names.count(n) > 1}
+    if dup:
+        raise PlanError(f"registry: stages declared twice: {sorted(dup)}")
+    by = {s.name: s for s in reg.stages}
+    for s in reg.stages:
+        if s.per not in GRANULARITIES:
+            raise PlanError(f"registry: stage {s.name}: per={s.per!r}, expected one of {GRANULARITIES}")
+        for u in s.upstream:
+            if u not in by:
+                raise PlanError(f"registry: stage {s.name}: unknown upstream stage {u!r}")
+        if s.implemented and s.func is None:
+            raise PlanError(f"registry: stage {s.name}: implemented but has no func")
+    order: list[Stage] = []
+    state: dict[str, int] = {}
+
+    def visit(name: str, path: tuple[str, ...]) -> None:
+        if state.get(name) == 2:
+            return
+        if state.get(name) == 1:
+            raise PlanError(f"registry: cycle through stages {' -> '.join(path + (name,))}")
+        state[name] = 1
+        for u in by[name].upstream:
+            visit(u, path + (name,))
+        state[name] = 2
+        order.append(by[name])
+
+    for s in reg.stages:
+        visit(s.name, ())
+    return order
+
+
+def source_hash(stage: Stage) -> str:
+    """sha256 of the source file of the module defining ``stage.func`` ("" for placeholders).
+    A function whose source can't be found can't be keyed: PlanError."""
+    if stage.func is None:
+        return ""
+    try:
+        src = inspect.getsourcefile(stage.func)
+    except TypeError:
+        src = None
+    if src is None or not Path(src).is_file():
+        raise PlanError(f"stage {stage.name}: can't find the source of {stage.func!r} to hash it")
+    return hashlib.sha256(Path(src).read_bytes()).hexdigest()
+
+
+def validate_params(stage: Stage, raw: dict, where: str) -> tuple[Any, Any]:
+    """Validate the recipe section of a stage with its ``params`` class.
+
+    Returns ``(params object, canonical form for the key)``. Raises PlanError naming
+    ``where`` (``<recipe>: stages.<name>``) and the parameter.
+    """
+    if raw is None:
+        raw = {}
+    if not isinstance(raw, dict):
+        raise PlanError(f"{where}: expected a mapping of parameters, got {type(raw).__name__}")
+    cls = stage.params
+    if not stage.implemented:
+        return raw, _canon(raw, where)
+    if cls is None:
+        if raw:
+            raise PlanError(f"{where}: stage {stage.name} takes no parameters, got {sorted(raw)}")
+        return None, None
+    if dataclasses.is_dataclass(cls):
+        known = [f.name for f in dataclasses.fields(cls) if f.init]
+    elif hasattr(cls, "model_fields"):
+        known = list(cls.model_fields)
+    else:
+        known = None
+    if known is not None:
+        for k in raw:
+            if k not in known:
+                raise PlanError(f"{where}.{k}: unknown parameter (known: {', '.join(known)})")
+    obj = _construct(cls, raw, where)
+    return obj, _canon(obj, where)
+
+
+def _canon(obj: Any, where: str) -> Any:
+    try:
+        return canonical(obj, where)
+    except UnhashableError as e:
+        raise PlanError(str(e)) from None
+
+
+def _construct(cls: type, raw: dict, where: str) -> Any:
+    import pydantic
+
+    try:
+        if hasattr(cls, "model_validate"):
+            return cls.model_validate(raw)
+        try:
+            adapter = pydantic.TypeAdapter(cls)
+        except (pydantic.PydanticSchemaGenerationError, NameError, TypeError):
+            adapter = None  # types pydantic can't check: fall back to the constructor
+        if adapter is not None:
+            return adapter.validate_python(raw)
+        return cls(**raw)
+    except pydantic.ValidationError as e:
+        err = e.errors()[0]
+        loc = ".".join(str(p) for p in err["loc"])
+        got = err.get("input")
+        got_s = "" if isinstance(got, (dict, list)) else f", got {got!r}"
+        raise PlanError(f"{where}.{loc}: {err['msg']}{got_s}") from None
+    except (TypeError, ValueError) as e:
+        raise PlanError(f"{where}: {e}") from None
+
+
+def closure(reg: Registry, recipe: Any, targets: list[NodeId]) -> dict[NodeId, dict[str, list[str]]]:
+    """Every node needed for ``targets``: ``{(stage, unit): {upstream stage: [units]}}``."""
+    by = {s.name: s for s in reg.stages}
+    found: dict[NodeId, dict[str, list[str]]] = {}
+    todo = list(targets)
+    while todo:
+        nid = todo.pop()
+        if nid in found:
+            continue
+        stage, unit = nid
+        ups: dict[str, list[str]] = {}
+        for up in by[stage].upstream:
+            if by[up].per == by[stage].per:
+                units = [unit]
+            else:
+                units = list(reg.upstream_units(recipe, stage, unit, up))
+            ups[up] = units
+            todo.extend((up, u) for u in units)
+        found[nid] = ups
+    return found
+
+
+def targets_for(reg: Registry, recipe: Any, command: str, sequences: list[str] | None = None
+                ) -> list[NodeId]:
+    """The target nodes of a command. ``sequence``/``demo``: every per-sequence stage of the
+    given sequences (their per-subject upstreams follow by closure); ``release``/``status``:
+    every stage of every unit."""
+    if command in ("release", "status"):
+        return [(s.name, u) for s in reg.stages for u in reg.units(recipe, s.per)]
+    seqs = sequences if sequences is not None else list(reg.units(recipe, "sequence"))
+    return [(s.name, q) for q in seqs for s in reg.stages if s.per == "sequence"]
+
+
+def build_plan(reg: Registry, recipe: Any, recipe_path: Path, targets: list[NodeId],
+               until: str | None = None, hasher: FileHasher | None = None) -> Plan:
+    """Nodes for ``targets`` (restricted to ``until`` and its ancestors), ordered, keyed.
+
+    Errors that concern one node (missing raw file, bad parameter) are recorded in
+    ``node.error`` (and the key of it and its descendants left None) so that ``status`` can
+    still show the rest; ``run`` refuses a plan with errors.
+    """
+    order = check_registry(reg)
+    by = {s.name: s for s in order}
+    if until is not None and until not in by:
+        raise PlanError(f"--until {until}: no such stage (known: {', '.join(by)})")
+    graph = closure(reg, recipe, targets)
+    if until is not None:
+        keep = {nid for nid in graph if nid[0] == until}
+        if not keep:
+            raise PlanError(f"--until {until}: that stage is not part of this run")
+        todo = list(keep)
+        while todo:
+            for s, us in graph[todo.pop()].items():
+                for u in us:
+                    if (s, u) not in keep:
+                        keep.add((s, u))
+                        todo.append((s, u))
+        graph = {k: v for k, v in graph.items() if k in keep}
+    hasher = hasher or FileHasher()
+    rank = {s.name: i for i, s in enumerate(order)}
+    ids = sorted(graph, key=lambda nid: (rank[nid[0]], nid[1]))
+    nodes: dict[NodeId, Node] = {}
+    sources: dict[str, str] = {}
+    params: dict[str, tuple[Any, Any, str]] = {}
+    for nid in ids:
+        st = by[nid[0]]
+        node = Node(stage=st, unit=nid[1], upstream=graph[nid])
+        nodes[nid] = node
+        if st.name not in params:
+            where = f"{recipe_path}: stages.{st.name}"
+            try:
+                params[st.name] = (*validate_params(st, reg.stage_params(recipe, st.name), where), "")
+            except PlanError as e:
+                params[st.name] = (None, None, str(e))
+        node.params, node.params_canon, perr = params[st.name]
+        if perr:
+            node.error = perr
+            continue
+        bad_up = [u for u in node.upstream_ids() if nodes[u].key is None]
+        if bad_up:
+            node.error = f"upstream {bad_up[0][0]} [{bad_up[0][1]}] has no key"
+            continue
+        try:
+            node.raw = dict(st.raw_inputs(recipe, node.unit)) if st.raw_inputs else {}
+            for name, p in node.raw.items():
+                p = Path(p)
+                if not p.exists():
+                    raise PlanError(f"{p}: not found (raw input {name!r} of stage "
+                                    f"{st.name}, unit {node.unit})")
+                node.raw_hashes[name] = hasher(p)
+            if st.name not in sources:
+                sources[st.name] = source_hash(st)
+        except (PlanError, ValueError, OSError) as e:
+            node.error = str(e)
+            continue
+        node.key = digest({
+            "stage": st.name, "version": st.version, "source": sources[st.name],
+            "params": node.params_canon,
+            "upstream": {s: {u: nodes[(s, u)].key for u in us} for s, us in node.upstream.items()},
+            "raw": node.raw_hashes,
+        })
+    hasher.save()
+    return Plan([nodes[i] for i in ids], reg.session_name(recipe))

@@ -1,0 +1,247 @@
+"""The on-disk artifact store: ``<root>/<unit>/<stage>/`` folders with a ``manifest.json``.
+
+``root`` is ``outputs/<session>``. A unit may contain one ``/`` (sequences are
+``"<group>/<action>"``), which nests the folder.
+
+Life of an artifact:
+
+1. the engine takes the artifact's lock (``<root>/<unit>/.<stage>.lock``, ``fcntl.flock``;
+   the kernel drops it when the holder dies, even by ``kill -9``);
+2. leftovers of earlier crashes (``.tmp-<stage>-*``, ``.trash-<stage>-*``) are removed;
+3. the stage writes into a fresh ``<root>/<unit>/.tmp-<stage>-<pid>-<rand>/``;
+4. the engine writes ``manifest.json`` last (with each file's size), fsyncs it, and renames
+   the folder to ``<stage>`` (an old artifact is first renamed to ``.trash-...``, then
+   deleted).
+
+So a folder named ``<stage>`` always had a complete manifest when it was renamed; a killed
+stage leaves only a ``.tmp-`` folder, which never looks complete. On read, an entry whose
+manifest is unreadable or whose files are missing or of the wrong size is *corrupt*: the
+engine warns, deletes it and recomputes.
+"""
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import secrets
+import shutil
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+MANIFEST = "manifest.json"
+
+
+class StoreError(ValueError):
+    """A unit or stage name that can't be turned into a folder."""
+
+
+def _check_part(kind: str, name: str) -> None:
+    parts = name.split("/")
+    if (not name or name.startswith("/") or "\0" in name
+            or any(p in ("", ".", "..") or p.startswith(".") for p in parts)):
+        raise StoreError(f"{kind} {name!r} can't be used as a folder name")
+
+
+def json_default(o: Any) -> Any:
+    """``json.dump`` fallback: numpy scalars/arrays, paths, sets."""
+    if hasattr(o, "tolist"):
+        return o.tolist()
+    if isinstance(o, (set, frozenset)):
+        return sorted(o)
+    if isinstance(o, os.PathLike):
+        return os.fspath(o)
+    raise TypeError(f"{type(o).__name__} is not JSON serialisable")
+
+
+@dataclass(frozen=True)
+class StoredArtifact:
+    """A completed, read-only artifact (implements ``pipeline.spec.Artifact``)."""
+
+    dir: Path
+    key: str
+    unit: str
+    stage: str
+    manifest: dict
+
+    def arrays(self, name: str) -> dict:
+        """The arrays of ``<name>.npz`` as a dict of read-only numpy arrays."""
+        import numpy as np
+
+        with np.load(self.path(f"{name}.npz"), allow_pickle=False) as z:
+            out = {k: z[k] for k in z.files}
+        for a in out.values():
+            a.flags.writeable = False
+        return out
+
+    def json(self, name: str) -> Any:
+        """The content of ``<name>.json``."""
+        return json.loads(self.path(f"{name}.json").read_text())
+
+    def path(self, filename: str) -> Path:
+        """Path of a file of this artifact; FileNotFoundError naming the artifact if absent."""
+        p = self.dir / filename
+        if not p.exists():
+            raise FileNotFoundError(f"{self.stage} [{self.unit}]: no file {filename!r} in {self.dir}")
+        return p
+
+
+@dataclass(frozen=True)
+class Writer:
+    """Writes into the temporary folder of the artifact being built
+    (implements ``pipeline.spec.ArtifactWriter``)."""
+
+    dir: Path
+
+    def path(self, filename: str) -> Path:
+        """A path inside the artifact to write any other file to (parent folders created)."""
+        p = (self.dir / filename).resolve()
+        if self.dir.resolve() not in p.parents:
+            raise StoreError(f"{filename!r} is outside the artifact folder")
+        if p.name == MANIFEST:
+            raise StoreError(f"{MANIFEST} is written by the engine")
+        p.parent.mkdir(parents=True, exist_ok=True)
+        return p
+
+    def save_arrays(self, name: str, **arrays) -> Path:
+        """Write ``<name>.npz`` (uncompressed, no pickles)."""
+        import numpy as np
+
+        p = self.path(f"{name}.npz")
+        with open(p, "wb") as f:
+            np.savez(f, **arrays)
+        return p
+
+    def save_json(self, name: str, obj: Any) -> Path:
+        """Write ``<name>.json`` (numpy values converted)."""
+        p = self.path(f"{name}.json")
+        p.write_text(json.dumps(obj, indent=1, default=json_default))
+        return p
+
+
+@dataclass(frozen=True)
+class Entry:
+    """What is on disk for one (unit, stage): ``state`` is ``complete``, ``absent`` or
+    ``corrupt`` (``problem`` says why)."""
+
+    state: str
+    manifest: dict | None = None
+    problem: str = ""
+
+
+class Store:
+    """The artifacts of one session under ``root`` (``outputs/<session>``)."""
+
+    def __init__(self, root: Path):
+        self.root = Path(root)
+
+    def dir(self, unit: str, stage: str) -> Path:
+        _check_part("unit", unit)
+        _check_part("stage", stage)
+        if "/" in stage:
+            raise StoreError(f"stage {stage!r} can't contain '/'")
+        return self.root / unit / stage
+
+    def entry(self, unit: str, stage: str) -> Entry:
+        """Inspect the folder of (unit, stage) without changing anything."""
+        d = self.dir(unit, stage)
+        if not d.exists():
+            return Entry("absent")
+        mf = d / MANIFEST
+        try:
+            m = json.loads(mf.read_text())
+        except FileNotFoundError:
+            return Entry("corrupt", problem=f"no {MANIFEST}")
+        except (OSError, ValueError) as e:
+            return Entry("corrupt", problem=f"unreadable {MANIFEST}: {e}")
+        if not isinstance(m, dict) or not isinstance(m.get("key"), str) \
+                or not isinstance(m.get("files"), dict):
+            return Entry("corrupt", problem=f"{MANIFEST} lacks key/files")
+        if m.get("stage") != stage or m.get("unit") != unit:
+            return Entry("corrupt", problem=f"{MANIFEST} names {m.get('stage')}/{m.get('unit')}")
+        for name, size in m["files"].items():
+            f = d / name
+            try:
+                actual = f.stat().st_size
+            except OSError:
+                return Entry("corrupt", m, f"missing file {name}")
+            if actual != size:
+                return Entry("corrupt", m, f"{name}: {actual} bytes, manifest says {size}")
+        return Entry("complete", m)
+
+    def open(self, unit: str, stage: str, manifest: dict) -> StoredArtifact:
+        return StoredArtifact(self.dir(unit, stage), manifest["key"], unit, stage, manifest)
+
+    @contextmanager
+    def lock(self, unit: str, stage: str, on_wait: Callable[[], None] | None = None
+             ) -> Iterator[None]:
+        """Hold the exclusive lock of (unit, stage) for the ``with`` block. If another
+        process holds it, call ``on_wait()`` once and block until it is released."""
+        d = self.dir(unit, stage)
+        d.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(d.parent / f".{stage}.lock", os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                if on_wait is not None:
+                    on_wait()
+                fcntl.flock(fd, fcntl.LOCK_EX)
+            yield
+        finally:
+            os.close(fd)  # closing drops the flock
+
+    # The methods below must be called with the lock held.
+
+    def clean_leftovers(self, unit: str, stage: str) -> list[Path]:
+        """Remove ``.tmp-<stage>-*`` and ``.trash-<stage>-*`` left by killed runs."""
+        parent = self.dir(unit, stage).parent
+        gone = []
+        if parent.is_dir():
+            for p in parent.iterdir():
+                if p.name.startswith((f".tmp-{stage}-", f".trash-{stage}-")):
+                    shutil.rmtree(p, ignore_errors=True)
+                    gone.append(p)
+        return gone
+
+    def begin(self, unit: str, stage: str) -> Writer:
+        """A fresh temporary folder for building (unit, stage)."""
+        parent = self.dir(unit, stage).parent
+        parent.mkdir(parents=True, exist_ok=True)
+        tmp = parent / f".tmp-{stage}-{os.getpid()}-{secrets.token_hex(4)}"
+        tmp.mkdir()
+        return Writer(tmp)
+
+    def abort(self, writer: Writer) -> None:
+        shutil.rmtree(writer.dir, ignore_errors=True)
+
+    def remove(self, unit: str, stage: str) -> None:
+        """Delete the artifact folder of (unit, stage) if present."""
+        d = self.dir(unit, stage)
+        if d.exists():
+            trash = d.parent / f".trash-{stage}-{os.getpid()}-{secrets.token_hex(4)}"
+            os.rename(d, trash)
+            shutil.rmtree(trash, ignore_errors=True)
+
+    def commit(self, writer: Writer, unit: str, stage: str, manifest: dict) -> dict:
+        """Write the manifest (with every file's size) into the temporary folder and rename
+        it into place, replacing any older artifact. Returns the manifest written."""
+        files = {}
+        for p in sorted(writer.dir.rglob("*")):
+            if p.is_file():
+                files[p.relative_to(writer.dir).as_posix()] = p.stat().st_size
+        manifest = {**manifest, "stage": stage, "unit": unit, "files": files}
+        mf = writer.dir / MANIFEST
+        with open(mf, "w") as f:
+            json.dump(manifest, f, indent=1, default=json_default)
+            f.flush()
+            os.fsync(f.fileno())
+        self.remove(unit, stage)
+        os.rename(writer.dir, self.dir(unit, stage))
+        dfd = os.open(self.dir(unit, stage).parent, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+        return manifest

@@ -1,0 +1,136 @@
+"""The registry of stages handed to the engine (``python -m pipeline ... --registry stages``).
+
+``PLANNED`` lists every stage in DAG order with its granularity and upstream stages as in
+``docs/ARCHITECTURE.md``. When ``stages/<name>.py`` exists its ``STAGE`` is used (the module's
+declaration is the truth for ``per``/``upstream``); otherwise the stage is a placeholder with
+``implemented=False`` and the CLI says plainly that it is not implemented.
+
+This module also interprets the recipe for the engine: which units exist, which units of an
+upstream stage a unit reads, where a stage's parameters are, and ``prepare`` (generate the
+synthetic demo session when ``recipes/demo.yaml`` or its data are missing).
+"""
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from pipeline.spec import Granularity, Registry, Stage
+from recipes import RecipeError, Session, load_recipe, missing_files
+
+REPO = Path(__file__).resolve().parents[1]
+DEMO_RECIPE = REPO / "recipes" / "demo.yaml"
+
+# (name, per, upstream, what it makes) in DAG order.
+PLANNED: tuple[tuple[str, Granularity, tuple[str, ...], str], ...] = (
+    ("shape_fit", "subject", (), "body shape and marker placement per subject"),
+    ("keypoints", "sequence", (), "2D body and hand keypoints per camera and frame"),
+    ("marker_fit", "sequence", ("shape_fit", "keypoints"), "pose of the subject wearing markers"),
+    ("partner_fit", "sequence", ("shape_fit", "keypoints", "marker_fit"),
+     "pose of the unmarked partner (2D keypoints, contact, collisions)"),
+    ("convert", "sequence", ("marker_fit", "partner_fit"), "SMPL-X parameters of both"),
+    ("export", "sequence", ("shape_fit", "keypoints", "marker_fit", "partner_fit", "convert"),
+     "CHI3D-layout files"),
+)
+
+
+def _stage(name: str, per: Granularity, upstream: tuple[str, ...], doc: str) -> Stage:
+    """The module's STAGE if ``stages/<name>.py`` exists, else a placeholder."""
+    if importlib.util.find_spec(f"stages.{name}") is None:
+        return Stage(name=name, func=None, per=per, upstream=upstream, implemented=False, doc=doc)
+    mod = importlib.import_module(f"stages.{name}")
+    st = getattr(mod, "STAGE", None)
+    if not isinstance(st, Stage):
+        raise ImportError(f"stages/{name}.py defines no STAGE = Stage(...)")
+    if st.name != name:
+        raise ImportError(f"stages/{name}.py: STAGE.name is {st.name!r}, expected {name!r}")
+    return st
+
+
+def stages() -> tuple[Stage, ...]:
+    """Every planned stage: implemented ones from their modules, the rest as placeholders."""
+    return tuple(_stage(*p) for p in PLANNED)
+
+
+def units(recipe: Session, per: Granularity) -> list[str]:
+    """Subject ids, sequence ids (``"<group>/<action>"``) or ``["session"]``."""
+    if per == "subject":
+        return list(recipe.subjects)
+    if per == "sequence":
+        return list(recipe.sequences)
+    return ["session"]
+
+
+def make_upstream_units(all_stages: tuple[Stage, ...]):
+    per = {s.name: s.per for s in all_stages}
+
+    def upstream_units(recipe: Session, stage: str, unit: str, upstream: str) -> list[str]:
+        """Which units of ``upstream`` the ``unit`` of ``stage`` reads: a sequence reads the
+        per-subject artifacts of its ``markers_on`` subject, then its ``partner``; a subject
+        reads the sequences it takes part in; the session reads every unit."""
+        mine, theirs = per[stage], per[upstream]
+        if mine == theirs:
+            return [unit]
+        if mine == "session":
+            return units(recipe, theirs)
+        if theirs == "session":
+            return ["session"]
+        if mine == "sequence":  # theirs == "subject"
+            seq = recipe.sequence(unit)
+            return [seq.markers_on, seq.partner]
+        return recipe.sequences_of(unit)  # a subject reading sequences
+
+    return upstream_units
+
+
+def stage_params(recipe: Session, stage: str) -> dict:
+    """The recipe's ``stages.<stage>`` section (empty when absent)."""
+    return dict(recipe.stages.get(stage) or {})
+
+
+def load(path: Path) -> Session:
+    """``recipes.load_recipe`` plus: every ``stages.<name>`` section names a planned stage."""
+    r = load_recipe(path)
+    known = [p[0] for p in PLANNED]
+    for name in r.stages:
+        if name not in known:
+            raise RecipeError(f"{path}: stages.{name}: unknown stage (known: {', '.join(known)})")
+    return r
+
+
+def prepare(recipe_path: Path) -> None:
+    """Generate the synthetic demo session when ``recipe_path`` is ``recipes/demo.yaml`` and it
+    or any file it names is missing (runs ``python -m studio --recipe-preset demo``). Any
+    other recipe: nothing to do."""
+    if Path(recipe_path).resolve() != DEMO_RECIPE:
+        return
+    if DEMO_RECIPE.is_file():
+        try:
+            missing = missing_files(load_recipe(DEMO_RECIPE, check_files=False))
+        except RecipeError:
+            missing = ["(unreadable)"]
+        if not missing:
+            return
+    if not (REPO / "studio" / "__main__.py").is_file():
+        print("[demo] the demo data is missing and the synthetic studio (python -m studio) is "
+              "not written yet, so it can't be generated", file=sys.stderr, flush=True)
+        return
+    cmd = [sys.executable, "-m", "studio", "--recipe-preset", "demo"]
+    print(f"[demo] generating the synthetic demo session: {' '.join(cmd[1:])}", file=sys.stderr,
+          flush=True)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(REPO)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p])}
+    done = subprocess.run(cmd, cwd=REPO, env=env)
+    if done.returncode != 0:
+        raise RuntimeError(f"`{' '.join(cmd[1:])}` failed with exit code {done.returncode}")
+
+
+def registry() -> Registry:
+    """The registry the engine loads by name."""
+    st = stages()
+    return Registry(stages=st, load_recipe=load, session_name=lambda r: r.session, units=units,
+                    upstream_units=make_upstream_units(st), stage_params=stage_params,
+                    prepare=prepare)
