@@ -1,0 +1,84 @@
+"""The one detector interface: an image (or a box in it) in, candidate people out.
+
+Every detector returns :class:`Detections`: ``kp (N, 65, 3)`` candidates in the canonical
+KP65 layout, in full-image pixels, whatever it looked at (a crop, the whole image, or a
+precomputed file). Confidence 0 means "this keypoint was not found".
+
+``kind="body"`` asks for whole people (body keypoints, and hand keypoints if the detector
+gives them together); ``kind="hands"`` asks for hands: each candidate then has one of its two
+hand blocks filled (left or right as the detector labelled it, in the person's anatomical
+sense) and everything else 0.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, Protocol
+
+import numpy as np
+
+from detect.constants import N_KP
+
+Kind = Literal["body", "hands"]
+
+
+@dataclass(frozen=True)
+class Detections:
+    """Candidate people found in one image.
+
+    kp : (N, 65, 3) float32: x, y in pixels of the full image (OpenCV convention: the centre
+        of pixel (i, j) is at (j, i)), confidence in [0, 1]; 0 = not found.
+    """
+
+    kp: np.ndarray
+
+    def __post_init__(self):
+        kp = np.asarray(self.kp, dtype=np.float32)
+        if kp.ndim != 3 or kp.shape[1:] != (N_KP, 3):
+            raise ValueError(f"Detections.kp: expected (N, {N_KP}, 3), got {kp.shape}")
+        object.__setattr__(self, "kp", kp)
+
+    def __len__(self) -> int:
+        return len(self.kp)
+
+    @staticmethod
+    def empty() -> "Detections":
+        return Detections(np.zeros((0, N_KP, 3), np.float32))
+
+    @staticmethod
+    def concat(parts: "list[Detections]") -> "Detections":
+        if not parts:
+            return Detections.empty()
+        return Detections(np.concatenate([p.kp for p in parts], axis=0))
+
+
+class Detector(Protocol):
+    """What the keypoints stage needs from a detector.
+
+    needs_pixels : False for precomputed files (the stage then skips decoding video).
+    """
+
+    name: str
+    needs_pixels: bool
+
+    def detect(
+        self,
+        image: np.ndarray | None,
+        *,
+        kind: Kind,
+        box: np.ndarray | None = None,
+        cam: int = 0,
+        frame: int = 0,
+    ) -> Detections:
+        """Candidates in ``image`` (H, W, 3) uint8 RGB, restricted to ``box`` (x0, y0, x1, y1)
+        pixels when given (None: the whole image). ``cam`` (index into the recipe's camera
+        list) and ``frame`` (video frame index) identify the image for precomputed detectors.
+        Returned keypoints are in full-image pixels."""
+        ...
+
+    def close(self) -> None: ...
+
+
+class DetectorFactory(Protocol):
+    """A picklable recipe for a detector: each worker process builds its own instance."""
+
+    def build(self) -> Detector: ...

@@ -1,0 +1,62 @@
+"""Tolerances and magic numbers of the detect package (one place, see ARCHITECTURE.md)."""
+
+#: Keypoints per person in the canonical KP65 layout (body 23, left hand 21, right hand 21).
+N_KP = 65
+
+#: Margin added on every side of the marker wearer's projected-marker box, as a fraction of
+#: the box's larger side (markers sit on the skin; fingers, hair and shoes stick out).
+BODY_MARGIN = 0.15
+
+#: Hand crop: radius (metres) of the sphere around the hand centre whose projection sets the
+#: hand box half-size. An adult hand is ~0.19 m long wrist to fingertip; 0.14 m leaves room
+#: for spread fingers and marker-placement error.
+HAND_RADIUS_M = 0.14
+
+#: Hand centre = wrist + HAND_CENTRE_ALONG * (knuckles - wrist): the FIN marker (and the pose
+#: detector's index/pinky points) sit on the knuckles, ~0.08 m from the wrist; the middle of
+#: the hand with its fingers is ~0.1 m from the wrist.
+HAND_CENTRE_ALONG = 1.2
+
+#: Hand crop from 2D body keypoints (no markers): the hand centre is HAND_ALONG_FOREARM x
+#: the elbow-to-wrist vector past the wrist (forearm ~0.26 m, hand centre ~0.09 m past the
+#: wrist); half-side HAND_BOX_FROM_FOREARM x the forearm (0.14 m / 0.26 m), at least
+#: HAND_BOX_FROM_HEIGHT x the person's box height (0.14 m / ~2 m box incl. margin), and at
+#: least MIN_HAND_BOX_PX / 2.
+HAND_ALONG_FOREARM = 0.35
+HAND_BOX_FROM_FOREARM = 0.55
+HAND_BOX_FROM_HEIGHT = 0.07
+MIN_HAND_BOX_PX = 32.0
+
+#: Smallest body crop side (pixels); below it the detector sees too few pixels anyway.
+MIN_BODY_BOX_PX = 48.0
+
+#: The paper's rule: a partner candidate keypoint is "close" to the marker wearer's keypoint
+#: of the same type when nearer than NEAR_FRAC x the wearer's box height (pixels).
+NEAR_FRAC = 0.04
+
+#: A whole candidate is taken to be the marker wearer re-detected when at least this fraction
+#: of its confident keypoints are "close" (above) to the wearer's keypoints of the same type.
+SAME_PERSON_FRAC = 0.5
+
+#: Keypoints with a confidence below this are treated as missing by the selection rules.
+MIN_CONF = 0.1
+
+#: Silhouette mask of the marker wearer: capsule radius along its bones and disc radius at its
+#: markers and keypoints, as a fraction of the wearer's box height.
+MASK_RADIUS_FRAC = 0.05
+
+#: Partner search: margin around the previous frame's partner box (fraction of its larger side).
+TRACK_MARGIN = 0.25
+
+#: A hand candidate is accepted when its wrist lies within HAND_ANCHOR_FRAC x the hand box side
+#: of the expected wrist (projected wrist markers or pose wrist).
+HAND_ANCHOR_FRAC = 0.6
+
+#: The person found in the wearer's crop is accepted as the wearer when its keypoints lie
+#: within ANCHOR_FRAC x the wearer's box height (median) of where the markers put them.
+ANCHOR_FRAC = 0.1
+
+#: The partner counts as found when at least MIN_PARTNER_KP body keypoints have a confidence
+#: of at least ACCEPT_CONF; otherwise the tracked search falls back to the whole image.
+MIN_PARTNER_KP = 8
+ACCEPT_CONF = 0.5

@@ -1,0 +1,153 @@
+"""mediapipe 0.10.21 legacy solutions (pose at model_complexity=1, hands) behind the
+:class:`detect.base.Detector` interface.
+
+- Single person: ``solutions.pose`` returns at most one person per image, so callers run it on
+  crops (the marker wearer's box, the partner's search box) or on an image with the other
+  person painted out (:mod:`detect.mask`).
+- Weights ship inside the wheel (``mediapipe/modules/*/*.tflite``); nothing is downloaded.
+  Only ``model_complexity=1`` is shipped for pose (0 and 2 would download), so it is fixed.
+- Handedness: the hand classifier assumes a mirrored (selfie) image, so its label "Left" is
+  the person's right hand in our camera images. :func:`hand_side` does the flip.
+- Confidence: pose keypoints use the landmark's ``visibility``; hand keypoints all get the
+  handedness score (the legacy API exposes no per-landmark confidence).
+- The native code logs to stderr (TFLite, absl); :func:`quiet_native_logs` silences it around
+  graph construction and every call.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+
+from detect import layout
+from detect.base import Detections, Kind
+from detect.constants import N_KP
+from detect.crops import crop_to_image, crop_window
+
+
+@contextlib.contextmanager
+def quiet_native_logs():
+    """Send file descriptor 2 (native stderr) to /dev/null inside the block. Python-level
+    exceptions still propagate; only C++ logging is lost."""
+    try:
+        sys.stderr.flush()
+    except (AttributeError, ValueError):
+        pass
+    saved = os.dup(2)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        yield
+    finally:
+        try:
+            sys.stderr.flush()
+        except (AttributeError, ValueError):
+            pass
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
+
+
+def hand_side(label: str) -> int:
+    """Anatomical side (0 left, 1 right) of a mediapipe handedness label on an unmirrored
+    image: the classifier assumes a mirrored selfie, so "Left" means the right hand."""
+    if label == "Left":
+        return 1
+    if label == "Right":
+        return 0
+    raise ValueError(f"mediapipe handedness label: expected 'Left' or 'Right', got {label!r}")
+
+
+@dataclass(frozen=True)
+class MediapipeOptions:
+    """Thresholds of the two mediapipe solutions (both run in static-image mode: every crop
+    is detected afresh, so results do not depend on frame order or on the worker split).
+
+    pose_min_conf : pose detector's minimum person score.
+    hand_min_conf : palm detector's minimum score.
+    max_hands : hands returned per hand crop (2: in a handshake both people's hands are in the
+        crop and the caller picks the one at the expected wrist).
+    """
+
+    pose_min_conf: float = 0.3
+    hand_min_conf: float = 0.3
+    max_hands: int = 2
+
+    def build(self) -> "MediapipeDetector":
+        return MediapipeDetector(self)
+
+
+class MediapipeDetector:
+    """One process's mediapipe graphs (not picklable; build one per worker from
+    :class:`MediapipeOptions`)."""
+
+    name = "mediapipe"
+    needs_pixels = True
+
+    def __init__(self, opts: MediapipeOptions = MediapipeOptions()):
+        self.opts = opts
+        with quiet_native_logs():
+            from mediapipe.python.solutions import hands as mp_hands
+            from mediapipe.python.solutions import pose as mp_pose
+
+            self._pose = mp_pose.Pose(
+                static_image_mode=True, model_complexity=1, enable_segmentation=False,
+                min_detection_confidence=opts.pose_min_conf)
+            self._hands = mp_hands.Hands(
+                static_image_mode=True, max_num_hands=opts.max_hands, model_complexity=1,
+                min_detection_confidence=opts.hand_min_conf)
+
+    def close(self) -> None:
+        with quiet_native_logs():
+            self._pose.close()
+            self._hands.close()
+
+    def detect(self, image: np.ndarray | None, *, kind: Kind, box: np.ndarray | None = None,
+               cam: int = 0, frame: int = 0) -> Detections:  # noqa: ARG002 (interface)
+        """See :meth:`detect.base.Detector.detect`. image : (H, W, 3) uint8 RGB."""
+        if image is None:
+            raise ValueError("MediapipeDetector.detect: needs the image pixels")
+        h, w = image.shape[:2]
+        win = (0, 0, w, h) if box is None else crop_window(box, w, h)
+        if win is None:
+            return Detections.empty()
+        x0, y0, x1, y1 = win
+        crop = np.ascontiguousarray(image[y0:y1, x0:x1])
+        if kind == "body":
+            return self._body(crop, win)
+        if kind == "hands":
+            return self._hand_list(crop, win)
+        raise ValueError(f"MediapipeDetector.detect: kind must be 'body' or 'hands', got {kind!r}")
+
+    def _body(self, crop: np.ndarray, win) -> Detections:
+        with quiet_native_logs():
+            res = self._pose.process(crop)
+        if res.pose_landmarks is None:
+            return Detections.empty()
+        lm = res.pose_landmarks.landmark
+        xyv = np.array([(p.x, p.y, p.visibility) for p in lm], dtype=np.float64)  # (33, 3)
+        kp = np.zeros((1, N_KP, 3), np.float32)
+        src, dst = layout.POSE33_SRC, layout.POSE33_DST
+        kp[0, dst, :2] = crop_to_image(xyv[src, :2], win)
+        kp[0, dst, 2] = np.clip(xyv[src, 2], 0.0, 1.0)
+        return Detections(kp)
+
+    def _hand_list(self, crop: np.ndarray, win) -> Detections:
+        with quiet_native_logs():
+            res = self._hands.process(crop)
+        if not res.multi_hand_landmarks:
+            return Detections.empty()
+        out = []
+        for lms, hd in zip(res.multi_hand_landmarks, res.multi_handedness, strict=True):
+            cls = hd.classification[0]
+            side = hand_side(cls.label)
+            xy = np.array([(p.x, p.y) for p in lms.landmark], dtype=np.float64)  # (21, 2)
+            kp = np.zeros((N_KP, 3), np.float32)
+            sl = layout.HANDS[side]
+            kp[sl, :2] = crop_to_image(xy, win)
+            kp[sl, 2] = float(np.clip(cls.score, 0.0, 1.0))
+            out.append(kp)
+        return Detections(np.stack(out))

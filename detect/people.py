@@ -1,0 +1,229 @@
+"""Both people in one view of one frame: the marker wearer from its crops, the partner by the
+paper's rule.
+
+The marker wearer (person 0): body from a tight crop around its projected markers
+(:class:`detect.hints.WearerHints`), hands from crops around its projected hand markers.
+The detection is checked against where the markers put some keypoints; if the detector
+locked onto the partner standing in the crop (hugs), the crop is retried with everything far
+from the wearer's markers painted out.
+
+The partner (person 1): the paper runs a multi-person detector on the whole image and, per
+keypoint type, drops candidates close to the wearer's keypoint and keeps the most confident
+(:func:`detect.rule.select_partner`). mediapipe is single-person, so we first paint the
+wearer out (:mod:`detect.mask`) — otherwise it would often return the wearer again — and
+then search:
+
+1. around the partner's box from the previous frame (when there is one) — a crop gives the
+   detector more pixels than the whole image, and the previous box is nearly always right at
+   video rates;
+2. otherwise over the whole (painted) image, then once more in a crop around what it found.
+
+Painting out alone would work on the whole image but at lower resolution; tracking alone
+could not start or recover. Precomputed multi-person detections go through the same code:
+painting changes nothing for them and the rule does the separating, exactly as in the paper.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from detect import constants as K
+from detect import layout
+from detect.base import Detector
+from detect.crops import box_from_points, expand_box, hand_box_from_arm
+from detect.hints import WearerHints
+from detect.mask import paint_out, silhouette_mask
+from detect.rule import (
+    anchor_error,
+    box_support,
+    is_same_person,
+    pick_hand,
+    select_partner,
+)
+
+
+@dataclass(frozen=True)
+class PeopleOptions:
+    """Knobs of :func:`find_people` (defaults in detect/constants.py, documented there).
+
+    track : search around the previous frame's partner box first.
+    mask_wearer : paint the wearer out before looking for the partner (pixel detectors).
+    hands : run the hand detector (False: body keypoints only).
+    """
+
+    near_frac: float = K.NEAR_FRAC
+    mask_radius_frac: float = K.MASK_RADIUS_FRAC
+    track_margin: float = K.TRACK_MARGIN
+    body_margin: float = K.BODY_MARGIN
+    anchor_frac: float = K.ANCHOR_FRAC
+    hand_anchor_frac: float = K.HAND_ANCHOR_FRAC
+    min_partner_kp: int = K.MIN_PARTNER_KP
+    accept_conf: float = K.ACCEPT_CONF
+    track: bool = True
+    mask_wearer: bool = True
+    hands: bool = True
+
+
+@dataclass(frozen=True)
+class ViewPeople:
+    """Result for one view and frame (pixels of the full image; NaN box = none).
+
+    kp : (2, 65, 3) float32, person 0 = marker wearer, 1 = partner.
+    boxes : (2, 4) the body crops used (partner: the search box, or the whole image).
+    hand_boxes : (2, 2, 4) hand crops (person, side).
+    partner_box : (4,) the partner's keypoint box + margin (the next frame's search box).
+    wearer_retry : the first wearer detection failed the marker check and was retried.
+    partner_mode : 0 not found, 1 found by tracking, 2 found over the whole image.
+    """
+
+    kp: np.ndarray
+    boxes: np.ndarray
+    hand_boxes: np.ndarray
+    partner_box: np.ndarray
+    wearer_retry: bool
+    partner_mode: int
+
+
+def _height(box: np.ndarray) -> float:
+    return float(box[3] - box[1]) if np.all(np.isfinite(box)) else np.nan
+
+
+def _n_good(kp: np.ndarray, conf: float) -> int:
+    return int((kp[layout.BODY, 2] >= conf).sum())
+
+
+def _person_box(kp: np.ndarray, conf: float, margin: float) -> np.ndarray:
+    ok = kp[layout.BODY, 2] >= conf
+    return expand_box(box_from_points(kp[layout.BODY, :2], ok), margin,
+                      min_side=K.MIN_BODY_BOX_PX, square=True)
+
+
+def _find_wearer(image, hints: WearerHints, det: Detector, o: PeopleOptions, cam: int, frame: int):
+    """(kp (65, 3), retried)."""
+    kp = np.zeros((layout.N, 3), np.float32)
+    if not np.all(np.isfinite(hints.box)):
+        return kp, False
+    h = _height(hints.box)
+    tol = o.anchor_frac * h
+
+    def best(cands):
+        if len(cands) == 0:
+            return None, np.inf
+        err = anchor_error(cands.kp, hints.anchors)
+        if np.any(np.isfinite(err)):
+            i = int(np.nanargmin(err))
+            return cands.kp[i], float(err[i])
+        i = int(np.argmax(box_support(cands.kp, hints.box)))
+        return cands.kp[i], np.nan  # no anchors to check against: accept
+
+    cand, err = best(det.detect(image, kind="body", box=hints.box, cam=cam, frame=frame))
+    retried = False
+    if det.needs_pixels and (cand is None or (np.isfinite(err) and err > tol)):
+        # Keep only the neighbourhood of the wearer's markers: the partner in the crop goes.
+        near = silhouette_mask(image.shape[:2], np.zeros((layout.N, 3)), layout.EDGES,
+                               2.5 * o.mask_radius_frac * h, points=hints.markers)
+        cand2, err2 = best(det.detect(paint_out(image, ~near), kind="body", box=hints.box,
+                                      cam=cam, frame=frame))
+        retried = True
+        if cand2 is not None and (cand is None or not err2 > err):
+            cand, err = cand2, err2
+    if cand is not None:
+        kp[layout.BODY] = cand[layout.BODY]
+    return kp, retried
+
+
+def _hands(image, person_kp: np.ndarray, boxes: np.ndarray, anchors: np.ndarray, det: Detector,
+           o: PeopleOptions, cam: int, frame: int, avoid: np.ndarray | None, radius: float):
+    """Fill person_kp's hand blocks from the hand crops ``boxes`` (2, 4) whose wrists are
+    expected at ``anchors`` (2, 2); drop hands matching ``avoid`` (the wearer) first."""
+    for side in (0, 1):
+        box = boxes[side]
+        if not np.all(np.isfinite(box)) or not np.all(np.isfinite(anchors[side])):
+            continue
+        cands = det.detect(image, kind="hands", box=box, cam=cam, frame=frame).kp
+        if avoid is not None and len(cands):
+            cands = cands[~is_same_person(cands, avoid, radius)]
+        hand = pick_hand(cands, side, anchors[side], o.hand_anchor_frac * _height(box), layout.HANDS)
+        if hand is not None:
+            person_kp[layout.HANDS[side]] = hand
+
+
+def _partner_hand_boxes(kp: np.ndarray, conf: float) -> tuple[np.ndarray, np.ndarray]:
+    """(boxes (2, 4), wrist anchors (2, 2)) from a person's body keypoints."""
+    boxes = np.full((2, 4), np.nan)
+    wrists = np.full((2, 2), np.nan)
+    ok = kp[layout.BODY, 2] >= conf
+    h = _height(box_from_points(kp[layout.BODY, :2], ok))
+    for side, (e, w) in enumerate(((layout.IDX["l_elbow"], layout.IDX["l_wrist"]),
+                                   (layout.IDX["r_elbow"], layout.IDX["r_wrist"]))):
+        if kp[w, 2] >= conf and kp[e, 2] >= conf and np.isfinite(h):
+            boxes[side] = hand_box_from_arm(kp[e, :2], kp[w, :2], h)
+            wrists[side] = kp[w, :2]
+    return boxes, wrists
+
+
+def find_people(image: np.ndarray | None, hints: WearerHints, prev_partner_box: np.ndarray | None,
+                det: Detector, o: PeopleOptions = PeopleOptions(), cam: int = 0,
+                frame: int = 0) -> ViewPeople:
+    """Both people in one view.
+
+    image : (H, W, 3) uint8 RGB (None for detectors that don't need pixels; then H, W come
+        from nowhere and the whole-image box is NaN). hints : one view's
+        :meth:`WearerHints.view`. prev_partner_box : (4,) or None.
+    """
+    kp = np.zeros((2, layout.N, 3), np.float32)
+    boxes = np.full((2, 4), np.nan)
+    hand_boxes = np.full((2, 2, 4), np.nan)
+    boxes[0] = hints.box
+
+    # -- person 0: the marker wearer
+    kp[0], retried = _find_wearer(image, hints, det, o, cam, frame)
+    hw = _height(hints.box)
+    radius = o.near_frac * hw if np.isfinite(hw) else 0.0
+    if o.hands:
+        hand_boxes[0] = hints.hand_boxes
+        anchors = np.where(np.isfinite(hints.wrists), hints.wrists,
+                           kp[0, [layout.IDX["l_wrist"], layout.IDX["r_wrist"]], :2])
+        _hands(image, kp[0], hints.hand_boxes, anchors, det, o, cam, frame, None, radius)
+
+    # -- person 1: the partner
+    search = image
+    if det.needs_pixels and o.mask_wearer and image is not None and np.isfinite(hw):
+        m = silhouette_mask(image.shape[:2], kp[0], layout.EDGES, o.mask_radius_frac * hw,
+                            points=hints.markers)
+        search = paint_out(image, m)
+
+    def look(box):
+        cands = det.detect(search, kind="body", box=box, cam=cam, frame=frame)
+        p, _ = select_partner(cands.kp, kp[0], radius)
+        p[layout.HANDS[0]] = 0.0  # hands come from the hand detector below
+        p[layout.HANDS[1]] = 0.0
+        return p
+
+    partner, mode = np.zeros((layout.N, 3), np.float32), 0
+    if o.track and prev_partner_box is not None and np.all(np.isfinite(prev_partner_box)):
+        sb = expand_box(prev_partner_box, o.track_margin, min_side=K.MIN_BODY_BOX_PX, square=True)
+        p = look(sb)
+        if _n_good(p, o.accept_conf) >= o.min_partner_kp:
+            partner, mode, boxes[1] = p, 1, sb
+    if mode == 0:
+        p = look(None)
+        if image is not None:
+            boxes[1] = (0.0, 0.0, float(image.shape[1]), float(image.shape[0]))
+        if _n_good(p, o.accept_conf) >= o.min_partner_kp:
+            partner, mode = p, 2
+            if det.needs_pixels:  # refine in a crop around what the whole image gave
+                rb = _person_box(p, o.accept_conf, o.body_margin)
+                p2 = look(rb)
+                if _n_good(p2, o.accept_conf) >= _n_good(p, o.accept_conf):
+                    partner, boxes[1] = p2, rb
+        elif _n_good(p, o.accept_conf) > 0:
+            partner = p  # weak: keep what there is, but don't track from it
+    kp[1] = partner
+    if o.hands and mode:
+        hb, wr = _partner_hand_boxes(kp[1], o.accept_conf)
+        hand_boxes[1] = hb
+        _hands(search, kp[1], hb, wr, det, o, cam, frame, kp[0], radius)
+    pbox = _person_box(kp[1], o.accept_conf, o.body_margin) if mode else np.full(4, np.nan)
+    return ViewPeople(kp, boxes, hand_boxes, pbox, retried, mode)

@@ -1,0 +1,158 @@
+"""A whole sequence: frames split into contiguous chunks, chunks run in worker processes,
+each with its own detector instance (mediapipe graphs are per process and not picklable).
+
+Within a chunk frames run in order, so the partner's box from the previous frame seeds the
+next search (:func:`detect.people.find_people`); each chunk starts fresh with a whole-image
+search, which costs two extra detections per view per chunk. Chunks have a fixed length, so
+results do not depend on the number of workers.
+"""
+from __future__ import annotations
+
+import concurrent.futures as cf
+import multiprocessing as mp
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Protocol
+
+import numpy as np
+
+from detect import layout
+from detect.base import DetectorFactory
+from detect.hints import WearerHints
+from detect.people import PeopleOptions, find_people
+
+
+class FrameReader(Protocol):
+    def read(self, cam: int, frame: int) -> np.ndarray: ...  # (H, W, 3) uint8 RGB
+
+    def close(self) -> None: ...
+
+
+class FrameSource(Protocol):
+    """Picklable description of where frames come from; each worker opens its own reader."""
+
+    def open(self) -> FrameReader: ...
+
+
+@dataclass(frozen=True)
+class ArraySource:
+    """Frames held in memory: images (C, F, H, W, 3) uint8 RGB, indexed by ``frames`` (F,)
+    video frame numbers (tests, renders)."""
+
+    images: np.ndarray
+    frames: tuple[int, ...]
+
+    def open(self) -> "ArraySource":
+        return self
+
+    def read(self, cam: int, frame: int) -> np.ndarray:
+        return self.images[cam, self.frames.index(int(frame))]
+
+    def close(self) -> None:
+        pass
+
+
+@dataclass(frozen=True)
+class SequenceKeypoints:
+    """Everything the stage saves. Pixels of the full image; NaN box = none.
+
+    kp : (C, F, 2, 65, 3) float32 (x, y, confidence; 0 = missing); person 0 = marker wearer.
+    boxes : (C, F, 2, 4) body crop boxes (x0, y0, x1, y1). hand_boxes : (C, F, 2, 2, 4).
+    frames : (F,) video frame indices. wearer_retry : (C, F) bool. partner_mode : (C, F) int8
+    (0 not found, 1 tracked, 2 whole image). cpu_s : CPU seconds spent in the workers
+    (all their threads); wall_s : wall-clock seconds.
+    """
+
+    kp: np.ndarray
+    boxes: np.ndarray
+    hand_boxes: np.ndarray
+    frames: np.ndarray
+    wearer_retry: np.ndarray
+    partner_mode: np.ndarray
+    cpu_s: float
+    wall_s: float
+
+
+def _run_chunk(source: FrameSource, factory: DetectorFactory, hints: WearerHints,
+               frames: np.ndarray, n_cam: int, opts: PeopleOptions) -> tuple[dict[str, np.ndarray], float]:
+    """Detect one chunk of frames (in a worker). hints cover exactly ``frames``."""
+    t0 = time.process_time()
+    det = factory.build()
+    reader = source.open() if det.needs_pixels else None
+    n = len(frames)
+    kp = np.zeros((n_cam, n, 2, layout.N, 3), np.float32)
+    boxes = np.full((n_cam, n, 2, 4), np.nan)
+    hand_boxes = np.full((n_cam, n, 2, 2, 4), np.nan)
+    retry = np.zeros((n_cam, n), bool)
+    mode = np.zeros((n_cam, n), np.int8)
+    try:
+        prev = [None] * n_cam
+        for i, fr in enumerate(frames):
+            for c in range(n_cam):
+                img = reader.read(c, int(fr)) if reader is not None else None
+                r = find_people(img, hints.view(c, i), prev[c], det, opts, cam=c, frame=int(fr))
+                kp[c, i], boxes[c, i], hand_boxes[c, i] = r.kp, r.boxes, r.hand_boxes
+                retry[c, i], mode[c, i] = r.wearer_retry, r.partner_mode
+                prev[c] = r.partner_box if r.partner_mode else None
+    finally:
+        if reader is not None:
+            reader.close()
+        det.close()
+    out = dict(kp=kp, boxes=boxes, hand_boxes=hand_boxes, wearer_retry=retry, partner_mode=mode)
+    return out, time.process_time() - t0
+
+
+def chunks(n: int, chunk: int) -> list[slice]:
+    """Split range(n) into contiguous slices of at most ``chunk`` frames, as even as possible
+    (the count depends only on n and chunk, never on the number of workers)."""
+    if n == 0:
+        return []
+    k = -(-n // max(chunk, 1))
+    edges = np.linspace(0, n, k + 1).round().astype(int)
+    return [slice(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True) if b > a]
+
+
+def detect_sequence(source: FrameSource, factory: DetectorFactory, hints: WearerHints,
+                    frames: np.ndarray, opts: PeopleOptions | None = None, workers: int = 1,
+                    chunk: int = 32,
+                    progress: Callable[..., Any] = lambda it, **_: it) -> SequenceKeypoints:
+    """Keypoints of both people in every view and frame.
+
+    hints : (C, F, ...) for exactly ``frames`` (F,) video frame indices. workers : processes
+    (<= 1: run in this process; > 1: a "spawn" pool, each worker building its own detector
+    from ``factory``). chunk : frames per task; each task starts the partner search afresh.
+    progress : ``progress(iterable, total=, desc=)`` wrapper.
+    """
+    opts = PeopleOptions() if opts is None else opts
+    frames = np.asarray(frames, dtype=np.int64)
+    n_cam, n = hints.box.shape[:2]
+    if n != len(frames):
+        raise ValueError(f"detect_sequence: hints cover {n} frames, got {len(frames)} frame indices")
+    parts = chunks(n, chunk)
+    t0 = time.perf_counter()
+    results: dict[int, tuple[dict, float]] = {}
+    if workers <= 1:
+        for j, sl in enumerate(progress(parts, total=len(parts), desc="keypoints")):
+            results[j] = _run_chunk(source, factory, hints.frames(sl), frames[sl], n_cam, opts)
+    else:
+        ctx = mp.get_context("spawn")
+        with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+            futs = {pool.submit(_run_chunk, source, factory, hints.frames(sl), frames[sl], n_cam,
+                                opts): j for j, sl in enumerate(parts)}
+            for fut in progress(cf.as_completed(futs), total=len(futs), desc="keypoints"):
+                results[futs[fut]] = fut.result()
+    wall = time.perf_counter() - t0
+
+    def cat(key, axis=1):
+        if not parts:
+            return None
+        return np.concatenate([results[j][0][key] for j in range(len(parts))], axis=axis)
+
+    if not parts:
+        z = np.zeros((n_cam, 0), bool)
+        return SequenceKeypoints(np.zeros((n_cam, 0, 2, layout.N, 3), np.float32),
+                                 np.zeros((n_cam, 0, 2, 4)), np.zeros((n_cam, 0, 2, 2, 4)),
+                                 frames, z, z.astype(np.int8), 0.0, wall)
+    return SequenceKeypoints(cat("kp"), cat("boxes"), cat("hand_boxes"), frames,
+                             cat("wearer_retry"), cat("partner_mode"),
+                             float(sum(r[1] for r in results.values())), wall)

@@ -1,0 +1,232 @@
+"""Finding both people in a view with a stand-in single-person detector, and the worker pool.
+
+The stand-in behaves like mediapipe where it matters for the logic: it sees only pixels (a
+person is drawn as coloured discs at its keypoints; painting them over hides it), and it
+returns ONE person per image or crop: the one with the most visible keypoints in it. A
+multi-person variant stands for precomputed detections.
+"""
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import pytest
+
+from detect import layout
+from detect.base import Detections
+from detect.crops import box_from_points, crop_window, expand_box
+from detect.hints import PIG_ANCHORS, WearerHints
+from detect.people import PeopleOptions, find_people
+from detect.run import ArraySource, chunks, detect_sequence
+
+BG = (200, 200, 200)
+COLOURS = ((200, 40, 40), (40, 40, 200))
+R = 3
+
+
+def stick(centre, scale=1.0):
+    """(65, 3) a person in pixels: body on a 23-point frame, hands as 21-point fans."""
+    body = np.array([
+        [0, -110], [-6, -115], [6, -115], [-12, -112], [12, -112],  # head
+        [-30, -85], [30, -85], [-45, -45], [45, -45], [-55, -5], [55, -5],  # arms
+        [-18, 0], [18, 0], [-20, 55], [20, 55], [-22, 110], [22, 110],  # legs
+        [-26, 122], [-34, 118], [-18, 114], [26, 122], [34, 118], [18, 114],  # feet
+    ], float)
+    kp = np.zeros((layout.N, 3))
+    kp[layout.BODY, :2] = body * scale + centre
+    for side, wrist in ((0, 9), (1, 10)):
+        ang = np.linspace(-0.8, 0.8, 21)
+        rad = np.linspace(0, 18, 21) * scale
+        kp[layout.HANDS[side], :2] = kp[wrist, :2] + np.stack([np.sin(ang) * rad, np.cos(ang) * rad], 1)
+    kp[:, 2] = 1.0
+    return kp
+
+
+def draw(shape, people):
+    img = np.full((*shape, 3), BG, np.uint8)
+    for p, col in zip(people, COLOURS, strict=False):
+        for x, y, _ in p:
+            cv2.circle(img, (int(round(x)), int(round(y))), R, col, -1)
+    return img
+
+
+def hints_for(wearer, margin=0.15, markers_frac=1.0):
+    """WearerHints built from the wearer's true keypoints (markers = its body keypoints)."""
+    box = expand_box(box_from_points(wearer[layout.BODY, :2]), margin, square=True)
+    anchors = np.full((layout.N, 2), np.nan)
+    for name in PIG_ANCHORS:
+        anchors[layout.IDX[name]] = wearer[layout.IDX[name], :2]
+    hb = np.stack([expand_box(box_from_points(wearer[s, :2]), 0.3, square=True) for s in layout.HANDS])
+    wr = wearer[[layout.HANDS[0].start, layout.HANDS[1].start], :2]
+    n = int(round(23 * markers_frac))
+    return WearerHints(box, hb, wr, anchors, wearer[:n, :2].copy())
+
+
+@dataclass(frozen=True)
+class Painted:
+    """Stand-in detector over images drawn by ``draw``; truth (C, F, P, 65, 3) tells it where
+    each person's discs are. single: one person per call (the most visible); else all."""
+
+    truth: np.ndarray
+    frames: tuple[int, ...]
+    single: bool = True
+    name: str = "painted"
+
+    @property
+    def needs_pixels(self):
+        return True
+
+    def build(self):
+        return self
+
+    def close(self):
+        pass
+
+    def _visible(self, image, p_kp, colour, win):
+        x0, y0, x1, y1 = win
+        xy = np.round(p_kp[:, :2]).astype(int)
+        inside = (xy[:, 0] >= x0) & (xy[:, 0] < x1) & (xy[:, 1] >= y0) & (xy[:, 1] < y1)
+        vis = np.zeros(len(p_kp), bool)
+        vis[inside] = np.all(image[xy[inside, 1], xy[inside, 0]] == colour, axis=1)
+        return vis
+
+    def detect(self, image, *, kind, box=None, cam=0, frame=0):
+        h, w = image.shape[:2]
+        win = (0, 0, w, h) if box is None else crop_window(box, w, h)
+        if win is None:
+            return Detections.empty()
+        people = self.truth[cam, self.frames.index(frame)]
+        out = []
+        for p, col in zip(people, COLOURS, strict=False):
+            vis = self._visible(image, p, col, win)
+            if kind == "body":
+                if vis[layout.BODY].sum() >= 5:
+                    kp = np.zeros((layout.N, 3))
+                    kp[layout.BODY] = p[layout.BODY]
+                    kp[layout.BODY, 2] = np.where(vis[layout.BODY], 0.9, 0.0)
+                    ys = p[layout.BODY][vis[layout.BODY], 1]
+                    out.append((vis[layout.BODY].sum() * np.ptp(ys), kp))  # bigger = more salient
+            else:
+                for sl in layout.HANDS:
+                    if vis[sl].sum() >= 10 and vis[sl.start]:
+                        kp = np.zeros((layout.N, 3))
+                        kp[sl] = p[sl]
+                        kp[sl, 2] = 0.8
+                        out.append((vis[sl].sum(), kp))
+        if not out:
+            return Detections.empty()
+        if self.single and kind == "body":
+            out = [max(out, key=lambda t: t[0])]
+        return Detections(np.stack([k for _, k in out]))
+
+
+def test_separate_people_found_and_tracked():
+    shape = (480, 640)
+    frames = tuple(range(4))
+    truth = np.stack([[stick((200, 240)), stick((440 + 5 * f, 250), 0.9)] for f in frames])[None]
+    images = np.stack([draw(shape, truth[0, f]) for f in range(len(frames))])[None]
+    det = Painted(truth, frames)
+    prev = None
+    for i, f in enumerate(frames):
+        r = find_people(images[0, i], hints_for(truth[0, i, 0]), prev, det, frame=f)
+        for p in (0, 1):
+            ok = r.kp[p, :, 2] > 0
+            assert ok.sum() >= 60, (f, p, ok.sum())
+            np.testing.assert_allclose(r.kp[p, ok, :2], truth[0, i, p, ok, :2], atol=1e-4)
+        assert r.partner_mode == (2 if i == 0 else 1)
+        assert not r.wearer_retry
+        prev = r.partner_box
+        # the partner's search box (tracked) holds the partner
+        b = r.boxes[1]
+        assert np.all(truth[0, i, 1, layout.BODY, :2] >= b[:2]) and np.all(truth[0, i, 1, layout.BODY, :2] <= b[2:])
+
+
+def test_without_mask_the_single_person_detector_returns_the_wearer_again():
+    """Why the wearer is painted out: the most visible person in the whole image is the
+    wearer (drawn bigger), and the rule then leaves nothing for the partner."""
+    shape = (480, 640)
+    truth = np.stack([stick((220, 240), 1.2), stick((470, 250), 0.8)])[None, None]
+    img = draw(shape, truth[0, 0])[None, None]
+    det = Painted(truth, (0,))
+    bad = find_people(img[0, 0], hints_for(truth[0, 0, 0]), None, det,
+                      PeopleOptions(mask_wearer=False))
+    assert bad.partner_mode == 0
+    good = find_people(img[0, 0], hints_for(truth[0, 0, 0]), None, det)
+    assert good.partner_mode == 2
+    ok = good.kp[1, layout.BODY, 2] > 0
+    np.testing.assert_allclose(good.kp[1, layout.BODY][ok, :2], truth[0, 0, 1, layout.BODY][ok, :2])
+
+
+def test_partner_standing_in_the_wearer_crop_is_caught_by_the_marker_check():
+    """Close contact: the partner (bigger, in front) fills the wearer's crop, the detector
+    locks onto it; the anchors from the markers reject it and the retry finds the wearer."""
+    shape = (480, 640)
+    wearer = stick((300, 240), 0.8)
+    partner = stick((330, 235), 1.3)
+    truth = np.stack([wearer, partner])[None, None]
+    img = draw(shape, truth[0, 0])
+    # redraw the wearer on top so that it is entirely visible
+    for x, y, _ in wearer:
+        cv2.circle(img, (int(round(x)), int(round(y))), R, COLOURS[0], -1)
+    det = Painted(truth, (0,))
+    h = hints_for(wearer, margin=0.4)
+    first = det.detect(img, kind="body", box=h.box)
+    assert len(first) == 1 and np.allclose(first.kp[0, 5, :2], partner[5, :2])  # locked onto partner
+    r = find_people(img, h, None, det)
+    assert r.wearer_retry
+    ok = r.kp[0, layout.BODY, 2] > 0
+    assert ok.sum() >= 15
+    np.testing.assert_allclose(r.kp[0, layout.BODY][ok, :2], wearer[layout.BODY][ok, :2])
+    # the partner's keypoints are the partner's (where found), never the wearer's
+    okp = r.kp[1, layout.BODY, 2] > 0
+    assert okp.sum() >= 5
+    np.testing.assert_allclose(r.kp[1, layout.BODY][okp, :2], partner[layout.BODY][okp, :2])
+
+
+def test_multi_person_candidates_go_through_the_rule():
+    shape = (480, 640)
+    truth = np.stack([stick((220, 240)), stick((470, 250), 0.8)])[None, None]
+    img = draw(shape, truth[0, 0])
+    det = Painted(truth, (0,), single=False)
+    r = find_people(img, hints_for(truth[0, 0, 0]), None, det, PeopleOptions(mask_wearer=False))
+    for p in (0, 1):
+        ok = r.kp[p, :, 2] > 0
+        assert ok.sum() >= 60
+        np.testing.assert_allclose(r.kp[p, ok, :2], truth[0, 0, p, ok, :2], atol=1e-4)
+
+
+def test_chunks_cover_in_order():
+    for n, m in ((0, 4), (5, 16), (100, 16), (100, 1), (7, 3)):
+        parts = chunks(n, m)
+        idx = np.concatenate([np.arange(n)[s] for s in parts]) if parts else np.zeros(0)
+        np.testing.assert_array_equal(idx, np.arange(n))
+        assert all(s.stop - s.start <= m for s in parts)
+    assert len(chunks(100, 16)) == 7 and len(chunks(20, 16)) == 2
+
+
+@pytest.mark.slow
+def test_sequence_same_with_one_or_two_workers():
+    shape = (240, 320)
+    frames = tuple(range(0, 24, 2))
+    C = 2
+    truth = np.zeros((C, len(frames), 2, layout.N, 3))
+    for c in range(C):
+        for i in range(len(frames)):
+            truth[c, i, 0] = stick((100 + 2 * i + 10 * c, 120), 0.5)
+            truth[c, i, 1] = stick((230 - 2 * i, 125), 0.45)
+    images = np.stack([[draw(shape, truth[c, i]) for i in range(len(frames))] for c in range(C)])
+    hs = [[hints_for(truth[c, i, 0]) for i in range(len(frames))] for c in range(C)]
+    hints = WearerHints(*(np.array([[getattr(hs[c][i], k) for i in range(len(frames))] for c in range(C)])
+                          for k in ("box", "hand_boxes", "wrists", "anchors", "markers")))
+    src = ArraySource(images, frames)
+    det = Painted(truth, frames)
+    one = detect_sequence(src, det, hints, np.array(frames), workers=1, chunk=3)
+    two = detect_sequence(src, det, hints, np.array(frames), workers=2, chunk=3)
+    np.testing.assert_array_equal(one.kp, two.kp)
+    np.testing.assert_array_equal(one.partner_mode, two.partner_mode)
+    assert one.kp.shape == (C, len(frames), 2, layout.N, 3)
+    found = one.kp[..., 2] > 0
+    assert found.mean() > 0.9
+    err = np.linalg.norm(one.kp[..., :2] - truth[..., :2], axis=-1)[found]
+    assert err.max() < 1e-3
+    # 4 chunks: each starts with a whole-image search, then tracks
+    assert (one.partner_mode == 2).sum() == C * 4 and (one.partner_mode == 1).sum() == C * 8
