@@ -1,0 +1,206 @@
+"""Benchmark harness (``python -m bench [CASE ...]``, ``make bench``).
+
+A case is a module ``bench/cases/<name>.py`` (files starting with ``_`` are helpers, not
+cases) with::
+
+    def run(work: pathlib.Path) -> dict[str, float]   # flat keys, e.g. "marker_fit.mpjpe_mm"
+    GOALS = {"marker_fit.mpjpe_mm": ("<=", 5.0)}      # optional
+
+Cases run in name order, each with its own work folder ``bench/work/<name>/`` (created, not
+wiped: a case decides what to reuse). A case that raises is recorded as failed
+(``"<name>.error"`` in the results) and the others still run. Results are merged into
+``bench/results.json`` (flat ``{key: value}``; keys of cases not run this time are kept) and
+``bench/RESULTS.md`` is rewritten: one table row per key (value, goal, pass/fail), then the
+machine (CPU model, cores, Python, numpy), the date and the command.
+"""
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import os
+import platform
+import sys
+import time
+import traceback
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from types import ModuleType
+
+BENCH = Path(__file__).resolve().parent
+OPS = {"<=": lambda v, g: v <= g, "<": lambda v, g: v < g, ">=": lambda v, g: v >= g,
+       ">": lambda v, g: v > g, "==": lambda v, g: v == g}
+
+
+@dataclass
+class CaseResult:
+    name: str
+    values: dict[str, float] = field(default_factory=dict)
+    goals: dict[str, tuple[str, float]] = field(default_factory=dict)
+    seconds: float = 0.0
+    error: str = ""
+
+
+def discover(cases_dir: Path = BENCH / "cases") -> list[Path]:
+    """The case modules, sorted by name."""
+    return sorted(p for p in cases_dir.glob("*.py") if not p.name.startswith("_"))
+
+
+def load_case(path: Path) -> ModuleType:
+    name = f"bench_case_{path.stem}"
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def check_goals(goals: dict) -> dict[str, tuple[str, float]]:
+    out = {}
+    for k, g in goals.items():
+        if not (isinstance(g, (tuple, list)) and len(g) == 2 and g[0] in OPS):
+            raise ValueError(f"GOALS[{k!r}] = {g!r}: expected (op, number), op in {list(OPS)}")
+        out[k] = (g[0], float(g[1]))
+    return out
+
+
+def run_case(path: Path, work_root: Path) -> CaseResult:
+    """Import and run one case; never raises (a failure is recorded in ``error``)."""
+    res = CaseResult(path.stem)
+    t0 = time.perf_counter()
+    try:
+        mod = load_case(path)
+        res.goals = check_goals(getattr(mod, "GOALS", {}))
+        work = work_root / path.stem
+        work.mkdir(parents=True, exist_ok=True)
+        values = mod.run(work)
+        if not isinstance(values, dict):
+            raise TypeError(f"run() returned {type(values).__name__}, expected dict[str, float]")
+        for k, v in values.items():
+            if not isinstance(k, str) or isinstance(v, bool):
+                raise TypeError(f"run() returned {k!r}: {v!r}; expected str: float")
+            res.values[k] = float(v)
+    except Exception:  # noqa: BLE001 - recorded, the other cases still run
+        res.error = traceback.format_exc()
+    res.seconds = time.perf_counter() - t0
+    return res
+
+
+def machine_info() -> dict[str, str]:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    try:
+        import numpy
+
+        np_version = numpy.__version__
+    except ImportError:
+        np_version = "-"
+    return {"cpu": cpu, "cores": str(os.cpu_count()), "python": platform.python_version(),
+            "numpy": np_version, "platform": platform.platform(),
+            "date": datetime.now().isoformat(timespec="seconds")}
+
+
+def verdict(value: float, goal: tuple[str, float] | None) -> str:
+    if goal is None:
+        return ""
+    if math.isnan(value):
+        return "FAIL"
+    return "pass" if OPS[goal[0]](value, goal[1]) else "FAIL"
+
+
+def merge(results_file: Path, cases: list[CaseResult]) -> dict:
+    """Update the flat results with this run's values and errors."""
+    try:
+        old = json.loads(results_file.read_text()) if results_file.exists() else {}
+    except ValueError:
+        old = {}
+    for c in cases:
+        old.pop(f"{c.name}.error", None)
+        old.update(c.values)
+        if c.error:
+            old[f"{c.name}.error"] = c.error.strip().splitlines()[-1]
+    return dict(sorted(old.items()))
+
+
+def all_goals(paths: list[Path], ran: list[CaseResult]) -> dict[str, tuple[str, float]]:
+    goals: dict[str, tuple[str, float]] = {}
+    done = {c.name for c in ran}
+    for p in paths:  # goals of cases not run this time, for keys kept from earlier runs
+        if p.stem in done:
+            continue
+        try:
+            goals.update(check_goals(getattr(load_case(p), "GOALS", {})))
+        except Exception:  # noqa: BLE001 - an unimportable case just has no goals shown
+            pass
+    for c in ran:
+        goals.update(c.goals)
+    return goals
+
+
+def render_markdown(results: dict, goals: dict, ran: list[CaseResult], machine: dict,
+                    command: str) -> str:
+    now = {k for c in ran for k in c.values}
+    lines = ["# Benchmark results", "",
+             f"Written by `{command}`. Regenerate with `make bench`.", "",
+             "| key | value | goal | pass/fail |", "|---|---|---|---|"]
+    for k, v in results.items():
+        if k.endswith(".error"):
+            continue
+        g = goals.get(k)
+        goal_s = f"{g[0]} {g[1]:g}" if g else ""
+        note = "" if k in now else " (earlier run)"
+        lines.append(f"| `{k}` | {v:.4g}{note} | {goal_s} | {verdict(v, g)} |")
+    errs = {k: v for k, v in results.items() if k.endswith(".error")}
+    if errs:
+        lines += ["", "## Failed cases", ""]
+        lines += [f"- `{k[:-6]}`: {v}" for k, v in errs.items()]
+    lines += ["", "## This run", "", "| case | seconds | status |", "|---|---|---|"]
+    lines += [f"| {c.name} | {c.seconds:.1f} | {'FAILED' if c.error else 'ok'} |" for c in ran]
+    lines += ["", "## Machine", ""]
+    lines += [f"- {k}: {v}" for k, v in machine.items()]
+    lines += [f"- command: `{command}`", ""]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None, bench_dir: Path = BENCH) -> int:
+    """Run the chosen cases (all when ``argv`` is empty) of ``bench_dir/cases``; write
+    ``bench_dir/results.json`` and ``bench_dir/RESULTS.md``. Exit code 1 if a case failed."""
+    argv = sys.argv[1:] if argv is None else argv
+    paths = discover(bench_dir / "cases")
+    if argv:
+        unknown = set(argv) - {p.stem for p in paths}
+        if unknown:
+            print(f"bench: no such case(s): {sorted(unknown)} (known: {[p.stem for p in paths]})",
+                  file=sys.stderr)
+            return 2
+        chosen = [p for p in paths if p.stem in argv]
+    else:
+        chosen = paths
+    work_root = bench_dir / "work"
+    ran = []
+    for p in chosen:
+        print(f"[bench] {p.stem} ...", file=sys.stderr, flush=True)
+        r = run_case(p, work_root)
+        ran.append(r)
+        if r.error:
+            print(f"[bench] {p.stem} FAILED after {r.seconds:.1f} s:\n{r.error}", file=sys.stderr)
+        else:
+            for k, v in r.values.items():
+                g = r.goals.get(k)
+                print(f"[bench]   {k} = {v:.4g}" + (f"  (goal {g[0]} {g[1]:g}: {verdict(v, g)})"
+                                                   if g else ""), file=sys.stderr)
+    results = merge(bench_dir / "results.json", ran)
+    (bench_dir / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+    command = "python -m bench" + "".join(f" {a}" for a in argv)
+    md = render_markdown(results, all_goals(paths, ran), ran, machine_info(), command)
+    (bench_dir / "RESULTS.md").write_text(md)
+    print(f"[bench] wrote {bench_dir / 'results.json'} and {bench_dir / 'RESULTS.md'}",
+          file=sys.stderr)
+    return 1 if any(r.error for r in ran) else 0

@@ -1,0 +1,71 @@
+"""The bench harness: discovery, per-case work folders, failures recorded without stopping
+the others, flat results merged across runs, the Markdown table with goals and machine."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import bench
+
+OK = '''
+GOALS = {"ok.speed_s": ("<=", 1.0), "ok.acc_mm": (">=", 10.0)}
+def run(work):
+    (work / "touched").write_text("x")
+    return {"ok.speed_s": 0.5, "ok.acc_mm": 3.0}
+'''
+BAD = '''
+def run(work):
+    raise RuntimeError("boom in case")
+'''
+LATER = '''
+def run(work):
+    return {"later.n": 7}
+'''
+
+
+def make(tmp_path: Path) -> Path:
+    cases = tmp_path / "cases"
+    cases.mkdir()
+    (cases / "a_ok.py").write_text(OK)
+    (cases / "b_bad.py").write_text(BAD)
+    (cases / "c_later.py").write_text(LATER)
+    (cases / "_helper.py").write_text("raise SystemExit('helpers are not cases')\n")
+    return tmp_path
+
+
+def test_harness_records_failures_merges_and_renders(tmp_path):
+    d = make(tmp_path)
+    assert [p.stem for p in bench.discover(d / "cases")] == ["a_ok", "b_bad", "c_later"]
+    assert bench.main([], bench_dir=d) == 1  # one case failed
+    res = json.loads((d / "results.json").read_text())
+    assert res["ok.speed_s"] == 0.5 and res["later.n"] == 7.0  # the case after the failure ran
+    assert res["b_bad.error"] == "RuntimeError: boom in case"
+    assert (d / "work" / "a_ok" / "touched").exists()
+    md = (d / "RESULTS.md").read_text()
+    assert "| `ok.speed_s` | 0.5 | <= 1 | pass |" in md
+    assert "| `ok.acc_mm` | 3 | >= 10 | FAIL |" in md
+    assert "- `b_bad`: RuntimeError: boom in case" in md
+    for word in ("- cpu: ", "- cores: ", "- python: ", "- numpy: ", "- date: ",
+                 "- command: `python -m bench`"):
+        assert word in md
+
+    # a second run of one case keeps the other keys and clears that case's old error
+    (d / "cases" / "b_bad.py").write_text('def run(work):\n    return {"bad.fixed": 1}\n')
+    assert bench.main(["b_bad"], bench_dir=d) == 0
+    res = json.loads((d / "results.json").read_text())
+    assert "b_bad.error" not in res and res["bad.fixed"] == 1.0 and res["ok.speed_s"] == 0.5
+    md = (d / "RESULTS.md").read_text()
+    assert "| `ok.speed_s` | 0.5 (earlier run) | <= 1 | pass |" in md  # goals of cases not run
+    assert "command: `python -m bench b_bad`" in md
+    assert bench.main(["nope"], bench_dir=d) == 2
+
+
+def test_bad_return_values_are_failures(tmp_path):
+    cases = tmp_path / "cases"
+    cases.mkdir()
+    (cases / "x.py").write_text('def run(work):\n    return {"x.flag": True}\n')
+    (cases / "y.py").write_text('def run(work):\n    return [1]\n')
+    (cases / "z.py").write_text('GOALS = {"z.v": ("~", 1)}\ndef run(work):\n    return {}\n')
+    assert bench.main([], bench_dir=tmp_path) == 1
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert set(res) == {"x.error", "y.error", "z.error"}
