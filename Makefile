@@ -4,6 +4,7 @@ PY := .venv/bin/python
 RECIPE ?= recipes/demo.yaml
 SEQ ?=
 STAGE ?=
+FORCE ?=
 OUT ?= data/studio
 SEED ?= 3
 FRAMES ?=
@@ -17,14 +18,14 @@ setup:
 	@bash scripts/setup.sh
 
 demo: setup
-	@$(PY) -m pipeline demo --recipe $(RECIPE)
+	@$(PY) -m pipeline demo --recipe $(RECIPE) $(foreach f,$(FORCE),--force $(f))
 
 sequence: setup
 	@test -n "$(SEQ)" || { echo "usage: make sequence SEQ=<subject>/<action> [RECIPE=...]"; exit 2; }
-	@$(PY) -m pipeline sequence "$(SEQ)" --recipe $(RECIPE) $(if $(STAGE),--until $(STAGE),)
+	@$(PY) -m pipeline sequence "$(SEQ)" --recipe $(RECIPE) $(if $(STAGE),--until $(STAGE),) $(foreach f,$(FORCE),--force $(f))
 
 release: setup
-	@$(PY) -m pipeline release --recipe $(RECIPE)
+	@$(PY) -m pipeline release --recipe $(RECIPE) $(if $(STAGE),--until $(STAGE),) $(foreach f,$(FORCE),--force $(f))
 
 status: setup
 	@$(PY) -m pipeline status --recipe $(RECIPE)
