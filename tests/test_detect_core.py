@@ -204,3 +204,27 @@ def test_wearer_hints_boxes_contain_projected_markers():
         assert np.all(fin >= h.hand_boxes[c, 0, 1, :2]) and np.all(fin <= h.hand_boxes[c, 0, 1, 2:])
     assert np.all(np.isnan(h.wrists[:, 1, 0])) and np.all(np.isnan(h.hand_boxes[:, 1, 0]))
     assert np.all(np.isfinite(h.hand_boxes[:, 1, 1]))
+
+
+def test_metrics_errors_groups_and_swaps():
+    from detect.metrics import group_summary, identity_swaps, keypoint_errors
+
+    rng = np.random.default_rng(5)
+    truth = np.zeros((1, 2, 2, layout.N, 2))
+    truth[..., 0, :, :] = rng.uniform(100, 300, (layout.N, 2))
+    truth[..., 1, :, :] = rng.uniform(500, 700, (layout.N, 2))
+    kp = np.zeros((1, 2, 2, layout.N, 3))
+    kp[..., :2] = truth + [3.0, 4.0]  # 5 px everywhere
+    kp[..., 2] = 0.9
+    kp[0, 0, 0, 23:, 2] = 0  # no hands for the wearer in frame 0
+    kp[0, 0, 1, 17:23, :2] += [6.0, 8.0]  # feet of the partner 15 px off in frame 0
+    err = keypoint_errors(kp, truth)
+    assert np.isnan(err[0, 0, 0, 30]) and err[0, 0, 1, 18] == pytest.approx(15.0)
+    s = group_summary(err, np.ones(err.shape, bool))
+    assert s["median_px_body"] == pytest.approx(5.0) and s["median_px_hands"] == pytest.approx(5.0)
+    assert s["median_px_feet"] == pytest.approx(5.0)  # 6 of 24 foot points are 15 px
+    assert s["detected_hands"] == pytest.approx(1 - 42 / (4 * 42))
+    assert not identity_swaps(kp, truth).any()
+    kp[0, 1] = kp[0, 1, ::-1]  # frame 1: people swapped
+    sw = identity_swaps(kp, truth)
+    assert sw.tolist() == [[False, True]]

@@ -230,3 +230,28 @@ def test_sequence_same_with_one_or_two_workers():
     assert err.max() < 1e-3
     # 4 chunks: each starts with a whole-image search, then tracks
     assert (one.partner_mode == 2).sum() == C * 4 and (one.partner_mode == 1).sum() == C * 8
+
+
+def test_precomputed_candidates_without_pixels():
+    """Precomputed detections (three people: wearer, partner, a bystander with low scores;
+    padded rows) run without images; the wearer is the candidate matching the markers."""
+    from detect.precomputed import PrecomputedDetector
+
+    wearer, partner = stick((220, 240)), stick((470, 250), 0.8)
+    by = stick((600, 300), 0.5)
+    by[:, 2] = 0.3
+    partner[:, 2] = 0.7
+    partner[layout.IDX["l_knee"], 2] = 0.2  # the bystander's knee is more confident here
+    by[layout.IDX["l_knee"], 2] = 0.4
+    cands = np.stack([partner, by, wearer, np.zeros_like(wearer)])[None, None]
+    det = PrecomputedDetector(cands, (7,))
+    assert len(det.detect(None, kind="body", box=np.array([150.0, 100, 300, 400]), frame=7)) == 1
+    assert len(det.detect(None, kind="body", frame=8)) == 0
+    r = find_people(None, hints_for(wearer), None, det, frame=7)
+    np.testing.assert_allclose(r.kp[0], wearer, atol=1e-4)
+    # the paper's rule: per keypoint the most confident candidate not near the wearer
+    k = layout.IDX["l_knee"]
+    np.testing.assert_allclose(r.kp[1, k], by[k], atol=1e-4)
+    others = np.delete(np.arange(layout.N), k)
+    np.testing.assert_allclose(r.kp[1, others], partner[others], atol=1e-4)
+    assert r.partner_mode == 2

@@ -1,0 +1,83 @@
+"""Scores of detected keypoints against projected ground truth (bench and reports).
+
+Groups of the KP65 layout: ``body`` = the 17 COCO body keypoints (face, arms, legs),
+``feet`` = the 6 foot keypoints, ``hands`` = the 42 hand keypoints.
+"""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from detect import constants as K
+from detect import layout
+
+GROUPS = {
+    "body": np.arange(0, 17),
+    "feet": np.arange(17, 23),
+    "hands": np.arange(23, 65),
+}
+
+
+def keypoint_errors(kp: np.ndarray, truth_uv: np.ndarray, in_image: np.ndarray | None = None,
+                    min_conf: float = K.MIN_CONF) -> np.ndarray:
+    """Pixel distance of each detected keypoint to its truth.
+
+    kp : (..., K, 3) detections; truth_uv : (..., K, 2) projected truth; in_image : (..., K)
+    bool, truth inside the image (default: finite truth). Returns (..., K) float64, NaN where
+    not detected (confidence < min_conf) or the truth is not in the image.
+    """
+    kp = np.asarray(kp, dtype=np.float64)
+    truth_uv = np.asarray(truth_uv, dtype=np.float64)
+    ok = (kp[..., 2] >= min_conf) & np.all(np.isfinite(truth_uv), axis=-1)
+    if in_image is not None:
+        ok &= np.asarray(in_image, dtype=bool)
+    d = np.linalg.norm(kp[..., :2] - truth_uv, axis=-1)
+    return np.where(ok, d, np.nan)
+
+
+def group_summary(err: np.ndarray, detected_of: np.ndarray | None = None) -> dict[str, float]:
+    """Median error per group and overall (keys ``median_px``, ``median_px_body``, ...).
+
+    err : (..., K) from :func:`keypoint_errors`. detected_of : (..., K) bool, the keypoints
+    that could be detected (truth in image); adds ``detected_<group>`` fractions.
+    """
+    out: dict[str, float] = {}
+    e = np.asarray(err, dtype=np.float64)
+    allv = e[np.isfinite(e)]
+    out["median_px"] = float(np.median(allv)) if allv.size else float("nan")
+    out["p90_px"] = float(np.percentile(allv, 90)) if allv.size else float("nan")
+    for g, idx in GROUPS.items():
+        v = e[..., idx]
+        v = v[np.isfinite(v)]
+        out[f"median_px_{g}"] = float(np.median(v)) if v.size else float("nan")
+        if detected_of is not None:
+            can = np.asarray(detected_of, dtype=bool)[..., idx]
+            out[f"detected_{g}"] = float(np.isfinite(e[..., idx])[can].mean()) if can.any() else float("nan")
+    return out
+
+
+def identity_swaps(kp: np.ndarray, truth_uv: np.ndarray, min_conf: float = K.MIN_CONF,
+                   min_kp: int = 4) -> np.ndarray:
+    """(C, F) bool: in that view and frame a person's body keypoints lie nearer (median) the
+    other person's truth than its own, for either person.
+
+    kp : (C, F, 2, K, 3); truth_uv : (C, F, 2, K, 2). A person with fewer than ``min_kp``
+    confident body keypoints (with finite truth for both people) is not judged.
+    """
+    kp = np.asarray(kp, dtype=np.float64)[..., layout.BODY, :]
+    tr = np.asarray(truth_uv, dtype=np.float64)[..., layout.BODY, :]
+    swaps = np.zeros(kp.shape[:2], bool)
+    for p in (0, 1):
+        q = 1 - p
+        ok = (kp[:, :, p, :, 2] >= min_conf) & np.all(np.isfinite(tr[:, :, p]), -1) \
+            & np.all(np.isfinite(tr[:, :, q]), -1)
+        d_own = np.linalg.norm(kp[:, :, p, :, :2] - tr[:, :, p], axis=-1)
+        d_other = np.linalg.norm(kp[:, :, p, :, :2] - tr[:, :, q], axis=-1)
+        n = ok.sum(-1)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            m_own = np.nanmedian(np.where(ok, d_own, np.nan), axis=-1)
+            m_other = np.nanmedian(np.where(ok, d_other, np.nan), axis=-1)
+        swaps |= (n >= min_kp) & (m_other < m_own)
+    return swaps
