@@ -101,20 +101,16 @@ def load(path: Path) -> Session:
     return r
 
 
-def prepare(recipe_path: Path) -> None:
-    """Generate the synthetic demo session when ``recipe_path`` is ``recipes/demo.yaml`` and it
-    or any file it names is missing (runs ``python -m studio --recipe-preset demo``). Any
-    other recipe: nothing to do."""
-    if Path(recipe_path).resolve() != DEMO_RECIPE:
+def prepare(recipe_path: Path, demo_recipe: Path = DEMO_RECIPE, repo: Path = REPO) -> None:
+    """Generate the synthetic demo session when ``recipe_path`` is the demo recipe
+    (``recipes/demo.yaml``) and it or any file it names is missing, by running
+    ``python -m studio --recipe-preset demo`` in ``repo``. Any other recipe: nothing to do.
+    Raises RuntimeError if the studio fails or leaves files missing."""
+    if Path(recipe_path).resolve() != Path(demo_recipe).resolve():
         return
-    if DEMO_RECIPE.is_file():
-        try:
-            missing = missing_files(load_recipe(DEMO_RECIPE, check_files=False))
-        except RecipeError:
-            missing = ["(unreadable)"]
-        if not missing:
-            return
-    if not (REPO / "studio" / "__main__.py").is_file():
+    if not _demo_missing(demo_recipe):
+        return
+    if not (repo / "studio" / "__main__.py").is_file():
         print("[demo] the demo data is missing and the synthetic studio (python -m studio) is "
               "not written yet, so it can't be generated", file=sys.stderr, flush=True)
         return
@@ -122,10 +118,24 @@ def prepare(recipe_path: Path) -> None:
     print(f"[demo] generating the synthetic demo session: {' '.join(cmd[1:])}", file=sys.stderr,
           flush=True)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(
-        [str(REPO)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p])}
-    done = subprocess.run(cmd, cwd=REPO, env=env)
+        [str(repo)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p])}
+    done = subprocess.run(cmd, cwd=repo, env=env)
     if done.returncode != 0:
         raise RuntimeError(f"`{' '.join(cmd[1:])}` failed with exit code {done.returncode}")
+    still = _demo_missing(demo_recipe)
+    if still:
+        raise RuntimeError(f"`{' '.join(cmd[1:])}` ran but left {still}")
+
+
+def _demo_missing(demo_recipe: Path) -> str:
+    """What is missing of the demo session ("" when complete)."""
+    if not Path(demo_recipe).is_file():
+        return f"{demo_recipe} missing"
+    try:
+        missing = missing_files(load_recipe(demo_recipe, check_files=False))
+    except RecipeError as e:
+        return f"an unreadable recipe ({e})"
+    return f"{len(missing)} files missing, e.g. {missing[0][1]}" if missing else ""
 
 
 def registry() -> Registry:

@@ -174,3 +174,40 @@ def test_registry_placeholders_match_the_architecture_table():
         if not st.implemented:
             assert st.upstream == upstream and st.func is None
     stages.prepare(Path("some/other.yaml"))  # not the demo recipe: nothing to do
+
+
+FAKE_STUDIO = '''
+import sys
+from pathlib import Path
+assert sys.argv[1:] == ["--recipe-preset", "demo"], sys.argv
+Path("recipes").mkdir(exist_ok=True)
+Path("calls.txt").open("a").write("called\\n")
+Path("data").mkdir(exist_ok=True)
+Path("data/made.c3d").write_text("x")
+Path("recipes/demo.yaml").write_text(Path("template.yaml").read_text())
+'''
+
+
+def test_prepare_runs_the_studio_only_when_demo_data_is_missing(tmp_path):
+    import stages
+
+    repo = tmp_path / "repo"
+    (repo / "studio").mkdir(parents=True)
+    (repo / "studio" / "__init__.py").write_text("")
+    (repo / "studio" / "__main__.py").write_text(FAKE_STUDIO)
+    tpl = {"session": "d", "cameras": ["c1"], "subjects": {"a": {}, "b": {}},
+           "sequences": {"g/x": {"markers_on": "a", "partner": "b", "c3d": "../data/made.c3d",
+                                 "videos": {"c1": "../data/made.c3d"},
+                                 "calibration": {"c1": "../data/made.c3d"}}}}
+    (repo / "template.yaml").write_text(yaml.safe_dump(tpl))
+    demo = repo / "recipes" / "demo.yaml"
+    stages.prepare(tmp_path / "other.yaml", demo_recipe=demo, repo=repo)
+    assert not (repo / "calls.txt").exists()  # not the demo recipe: nothing happens
+    stages.prepare(demo, demo_recipe=demo, repo=repo)
+    assert (repo / "calls.txt").read_text() == "called\n"
+    assert load_recipe(demo).sequence("g/x").c3d.is_file()
+    stages.prepare(demo, demo_recipe=demo, repo=repo)  # complete now: not called again
+    assert (repo / "calls.txt").read_text() == "called\n"
+    (repo / "data" / "made.c3d").unlink()
+    stages.prepare(demo, demo_recipe=demo, repo=repo)  # a file went missing: regenerated
+    assert (repo / "calls.txt").read_text() == "called\ncalled\n"
