@@ -46,19 +46,16 @@ def make_progress(label: str) -> Callable[..., Any]:
 
 
 def package_versions() -> dict[str, str]:
-    """Versions of the installed distributions whose modules are imported right now, plus
-    Python's (so the manifest lists what the stage could have used)."""
-    import importlib.metadata as md
-
-    dists = md.packages_distributions()
+    """``{import name: __version__}`` of the non-standard-library top-level modules imported
+    right now, plus ``python`` (what the stage could have used; reading ``__version__`` is
+    instant where scanning the installed distributions' metadata takes ~0.2 s)."""
     out: dict[str, str] = {"python": platform.python_version()}
-    for mod in list(sys.modules):
-        for d in dists.get(mod.partition(".")[0], ()):
-            if d not in out:
-                try:
-                    out[d] = md.version(d)
-                except md.PackageNotFoundError:
-                    pass
+    for name, mod in list(sys.modules.items()):
+        if "." in name or name.startswith("_") or name in sys.stdlib_module_names:
+            continue
+        v = getattr(mod, "__version__", None)
+        if isinstance(v, str):
+            out[name] = v
     return dict(sorted(out.items()))
 
 
@@ -220,6 +217,9 @@ class Engine:
                 e = self.store.entry(u, up)
                 if e.state != "complete":
                     return Outcome("failed", detail=f"upstream {up} [{u}] vanished: {e.state} {e.problem}")
+                if e.manifest["key"] != node.upstream_keys[up][u]:
+                    return Outcome("failed", detail=f"upstream {up} [{u}] was replaced by "
+                                   "another run with other inputs; run again")
                 arts[u] = self.store.open(u, up, e.manifest)
             same = self.registry_per(up) == st.per
             inputs[up] = arts[node.unit] if same else arts

@@ -43,6 +43,7 @@ class Node:
     params_canon: Any = None
     raw: dict[str, Path] = field(default_factory=dict)
     raw_hashes: dict[str, str] = field(default_factory=dict)
+    upstream_keys: dict[str, dict[str, str]] = field(default_factory=dict)
     key: str | None = None
     error: str = ""
 
@@ -278,11 +279,11 @@ def build_plan(reg: Registry, recipe: Any, recipe_path: Path, targets: list[Node
         except (PlanError, ValueError, OSError) as e:
             node.error = str(e)
             continue
+        node.upstream_keys = {s: {u: nodes[(s, u)].key for u in us}
+                              for s, us in node.upstream.items()}
         node.key = digest({
             "stage": st.name, "version": st.version, "source": sources[st.name],
-            "params": node.params_canon,
-            "upstream": {s: {u: nodes[(s, u)].key for u in us} for s, us in node.upstream.items()},
-            "raw": node.raw_hashes,
+            "params": node.params_canon, "upstream": node.upstream_keys, "raw": node.raw_hashes,
         })
     hasher.save()
     return Plan([nodes[i] for i in ids], reg.session_name(recipe))
