@@ -269,3 +269,12 @@ def test_artifact_arrays_are_read_only(toy):
     arr = eng.store.open("g/x", "detect", e.manifest).arrays("detections")["values"]
     with pytest.raises(ValueError):
         arr[0] = 5.0
+
+
+def test_progress_bar_is_silent_when_stderr_is_not_a_terminal(capfd):
+    from pipeline.engine import make_progress
+
+    bar = make_progress("fit [g/x]")
+    assert list(bar(range(5), total=5, desc="frames")) == [0, 1, 2, 3, 4]
+    assert bar(range(5)).disable  # stderr is captured here, not a tty
+    assert capfd.readouterr().err == ""

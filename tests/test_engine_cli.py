@@ -47,11 +47,14 @@ def test_kill_9_mid_stage_leaves_nothing_complete_and_rerun_redoes_it(tmp_path):
     proc = subprocess.Popen(cli(tmp_path, "sequence", "g/x"), env=env(),
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     wait_for_line(tmp_path, "start detect g/x", proc)
-    time.sleep(0.2)  # the stage has written its partial file and is sleeping
+    unit_dir = tmp_path / "outputs" / "toy" / "g" / "x"
+    t_end = time.monotonic() + 20
+    while not list(unit_dir.glob(".tmp-detect-*/partial.json")):  # now it sleeps mid-stage
+        assert time.monotonic() < t_end and proc.poll() is None
+        time.sleep(0.02)
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait(timeout=10)
     assert proc.returncode == -signal.SIGKILL
-    unit_dir = tmp_path / "outputs" / "toy" / "g" / "x"
     assert not (unit_dir / "detect").exists()
     half = list(unit_dir.glob(".tmp-detect-*"))
     assert len(half) == 1 and (half[0] / "partial.json").exists()  # it was killed mid-stage
@@ -72,21 +75,25 @@ def test_kill_9_mid_stage_leaves_nothing_complete_and_rerun_redoes_it(tmp_path):
 
 
 def test_two_concurrent_runs_compute_each_artifact_once(tmp_path):
-    toy_registry.write_toy(tmp_path, {"detect": {"sleep_s": 1.0}}, n_seq=1)
-    procs = [subprocess.Popen(cli(tmp_path, "sequence", "g/x"), env=env(), text=True,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE) for _ in range(2)]
+    toy_registry.write_toy(tmp_path, {"detect": {"sleep_s": 2.0}}, n_seq=1)
+
+    def start() -> subprocess.Popen:
+        return subprocess.Popen(cli(tmp_path, "sequence", "g/x"), env=env(), text=True,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+    first = start()
+    wait_for_line(tmp_path, "start detect g/x", first)  # the second one arrives mid-detect
+    procs = [first, start()]
     outs = [p.communicate(timeout=60) for p in procs]
     assert [p.returncode for p in procs] == [0, 0], outs
     lines = counts(tmp_path)
     for node in ("scale a", "scale b", "detect g/x", "fit g/x", "report g/x"):
         assert lines.count(f"start {node}") == 1, (node, lines)
         assert lines.count(f"end {node}") == 1, (node, lines)
-    # detect sleeps 1 s: whoever did not compute it waited for the lock, then reused it
+    # the second process found detect locked, waited, then reused it
     detect_logs = [[ln for ln in err.splitlines() if " detect " in ln] for _, err in outs]
-    words = sorted(" ".join(ln.split()[3:4]) for logs in detect_logs for ln in logs
-                   if "waiting" not in ln)
-    assert words == ["hit", "miss"], detect_logs
-    assert any("waiting" in ln for logs in detect_logs for ln in logs)
+    words = [[ln.split()[3] for ln in logs] for logs in detect_logs]
+    assert words == [["miss"], ["waiting", "hit"]], detect_logs
 
 
 def test_cli_exit_codes_and_messages(tmp_path):
