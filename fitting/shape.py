@@ -1,0 +1,468 @@
+"""Subject shape: fit to a body scan, then place the markers on that body (MoSh++ stage I idea).
+
+1. ``fit_scan``: shape ``betas`` (the first S of the model's basis), a neutral pose of the body
+   joints, and the rigid transform from the model to the scan's frame, minimising robust
+   (Geman-McClure) point-to-plane distances in both directions: scan points to the model
+   surface (closest points with ``igl.point_mesh_squared_distance``) and model vertices to the
+   scan (nearest scan point, its normal). Holes in the scan leave model vertices far from any
+   scan point: the robust loss gives them ~0 weight. A Gaussian prior on betas (whitened, unit
+   variance) and on the pose keeps unobserved directions put. Damped Gauss-Newton with a
+   forward-difference Jacobian of ``body.lbs.forward`` (the full mesh in numpy: ~100 params).
+2. ``refine_placement``: with the shape fixed, alternate (a) the poses of a handful of frames
+   (the compiled marker graph, as in marker_fit) and (b) each marker's rest position, a linear
+   least-squares problem once the poses are fixed, regularised toward the template placement,
+   then re-projected on the surface as (face, barycentric, offset along the normal).
+3. ``fit_markers_shape``: no scan: betas are fitted to the markers of those frames too (a third
+   alternation step, forward-difference Gauss-Newton on betas with poses and placement fixed).
+
+Placement: ``face (M,)`` model face index, ``bary (M, 3)`` barycentric coordinates,
+``offset (M,)`` metres along the rest-pose face normal (outwards). A marker skins like the
+blend of its face's vertices (weights interpolated with ``bary``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+import scipy.sparse as sp
+
+from body.lbs import forward, rest_state
+from body.model import BodyModel
+from body.rotations import rodrigues
+from fitting import marker_fit, robust, skinned
+
+# constants
+FD_STEP = 1e-6
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Markers on the surface: names (M,), face (M,) int, bary (M, 3), offset (M,) metres."""
+
+    names: tuple[str, ...]
+    face: np.ndarray
+    bary: np.ndarray
+    offset: np.ndarray
+
+
+# ---------------------------------------------------------------------------- surface helpers
+
+
+def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit normals (T, 3) of triangles ``faces (T, 3)`` over ``vertices (V, 3)``."""
+    tri = vertices[faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-15)
+
+
+def marker_rest_points(rest_vertices: np.ndarray, faces: np.ndarray, pl: Placement) -> np.ndarray:
+    """(M, 3) rest positions: surface point + offset * rest face normal, metres."""
+    tri = rest_vertices[faces[pl.face]]  # (M, 3, 3)
+    surf = np.einsum("mk,mkd->md", pl.bary, tri)
+    return surf + pl.offset[:, None] * face_normals(rest_vertices, faces[pl.face])
+
+
+def marker_weights(model: BodyModel, pl: Placement) -> sp.csr_matrix:
+    """(M, J) skinning weights of the markers (their face's vertex weights blended by bary)."""
+    M = len(pl.face)
+    vids = model.faces[pl.face]  # (M, 3)
+    B = sp.csr_matrix((pl.bary.reshape(-1), (np.repeat(np.arange(M), 3), vids.reshape(-1))),
+                      shape=(M, model.num_vertices))
+    return (B @ model.weights).tocsr()
+
+
+def marker_coeffs(model: BodyModel, rest, skel: skinned.FitSkeleton, pl: Placement) -> np.ndarray:
+    """Slot coefficients Hm (M, Q, 4) of a placement (fitting/skinned.py)."""
+    pts = marker_rest_points(rest.vertices[0], model.faces, pl)
+    return skinned.vertex_coeffs(model, rest, skel, marker_weights(model, pl), pts)
+
+
+def project_to_surface(rest_vertices: np.ndarray, faces: np.ndarray, points: np.ndarray):
+    """Closest surface points of ``points (M, 3)``: (face (M,), bary (M, 3), signed offset (M,)
+    along the face normal)."""
+    import igl
+
+    _, fidx, closest = igl.point_mesh_squared_distance(points, rest_vertices, faces)
+    fidx = np.asarray(fidx, dtype=np.int64)
+    tri = rest_vertices[faces[fidx]]
+    bary = igl.barycentric_coordinates(closest, tri[:, 0].copy(), tri[:, 1].copy(), tri[:, 2].copy())
+    bary = np.clip(np.asarray(bary), 0.0, 1.0)
+    bary /= bary.sum(axis=1, keepdims=True)
+    n = face_normals(rest_vertices, faces[fidx])
+    surf = np.einsum("mk,mkd->md", bary, tri)
+    off = np.einsum("md,md->m", points - surf, n)
+    return fidx, bary, off
+
+
+# ---------------------------------------------------------------------------- scan fit
+
+
+@dataclass(frozen=True)
+class ScanFitOptions:
+    """num_betas: shape coefficients fitted; n_points: scan points sampled per iteration;
+    n_vertices: model vertices sampled for the model-to-scan direction; iters: Gauss-Newton
+    iterations; sigma_m: Geman-McClure scale (metres); beta_weight, pose_weight: prior
+    weights (residual units: metres^2 per point, averaged); headings: initial rotations about
+    the vertical tried for the rigid start."""
+
+    num_betas: int = 80
+    n_points: int = 2500
+    n_vertices: int = 1500
+    iters: int = 30
+    sigma_m: float = 0.015
+    beta_weight: float = 1e-8
+    pose_weight: float = 1e-7
+    headings: int = 8
+
+
+@dataclass
+class ScanFit:
+    """betas (S,), x: fit-skeleton unknowns of the neutral pose (model to scan frame),
+    joints: the fitted body joints; scan_to_model_mm: (N,) final distances of all scan points;
+    iterations."""
+
+    betas: np.ndarray
+    x: np.ndarray
+    joints: np.ndarray
+    scan_to_model_mm: np.ndarray
+    iterations: int
+
+
+def body_joints(model: BodyModel) -> np.ndarray:
+    """The fit joints without fingers (the scan and markers see no finger pose)."""
+    fingers = ("finger", "metacarpal", "thumb", "index", "middle", "ring", "pinky")
+    return np.array([j for j in model.fit_joints
+                     if not any(f in model.joint_names[j].lower() for f in fingers)])
+
+
+def _posed_vertices(model, skel, betas, x, rest=None):
+    """(V, 3) world vertices of the fit-skeleton unknowns x (non-fitted joints at pose 0)."""
+    pose = np.zeros((1, model.num_joints, 3))
+    pose[0, skel.joints[1:]] = x[6:].reshape(-1, 3)
+    out = forward(model, betas, pose, rodrigues(x[:3])[None], x[3:6][None], rest=rest)
+    return out.vertices[0]
+
+
+def _rigid_start(model, skel, points, rng, opts) -> np.ndarray:
+    """x (neutral pose 0) aligning the mean body to the scan: centroids, then the best of
+    ``opts.headings`` rotations about z refined by a few rigid ICP steps."""
+    from scipy.spatial import cKDTree
+
+    v0 = _posed_vertices(model, skel, np.zeros(1), np.zeros(skel.n))
+    sub = points[rng.choice(len(points), min(2000, len(points)), replace=False)]
+    tree = cKDTree(sub)
+    best = None
+    for k in range(opts.headings):
+        a = 2 * np.pi * k / opts.headings
+        R = rodrigues(np.array([0.0, 0.0, a]))
+        t = sub.mean(0) - R @ v0.mean(0)
+        for _ in range(8):
+            moved = v0 @ R.T + t
+            d, i = tree.query(moved)
+            keep = d < np.percentile(d, 80)
+            R, t = marker_fit.kabsch(v0[keep], sub[i[keep]])
+        d, _ = tree.query(v0 @ R.T + t)
+        score = np.mean(np.minimum(d, 0.05) ** 2)
+        if best is None or score < best[0]:
+            best = (score, R, t)
+    _, R, t = best
+    from body.rotations import rotmat_to_rotvec
+
+    x = np.zeros(skel.n)
+    h0 = rest_state(model, np.zeros(1)).joints[0, 0]
+    x[:3] = rotmat_to_rotvec(R)
+    x[3:6] = t + R @ h0 - h0
+    return x
+
+
+def vertex_jacobian(model: BodyModel, rest, skel: skinned.FitSkeleton, x: np.ndarray,
+                    vids: np.ndarray, S: int) -> np.ndarray:
+    """d vertices[vids] / d [betas[:S], x]: (len(vids), 3, S + n).
+
+    Betas: analytic, holding the bind rotations fixed (they move a few degrees over the whole
+    shape space; the step is accepted on the exact cost); x: forward differences with the rest
+    state fixed (``FD_STEP``)."""
+    from body.lbs import forward_kinematics
+
+    pose = np.zeros((1, model.num_joints, 3))
+    pose[0, skel.joints[1:]] = x[6:].reshape(-1, 3)
+    G, _, _ = forward_kinematics(model, rest, pose, rodrigues(x[:3])[None], x[3:6][None])
+    G = G[0]  # (J, 3, 3)
+    J = model.num_joints
+    A = rest.bind_rot[0] if rest.bind_rot is not None else np.broadcast_to(np.eye(3), (J, 3, 3))
+    par = np.asarray(model.parents)
+    dh = np.asarray(model.joint_shapedirs[:, :, :S], dtype=float)  # (J, 3, S)
+    Ap = A[np.maximum(par, 0)].copy()
+    Ap[par == 0] = np.eye(3)
+    do = np.einsum("jab,jbs->jas", Ap, dh - dh[np.maximum(par, 0)])
+    do[0] = dh[0]
+    dt = np.zeros_like(do)
+    dt[0] = do[0]
+    for j in range(1, J):
+        dt[j] = dt[par[j]] + G[par[j]] @ do[j]
+    GA = G @ A
+    c = dt - np.einsum("jab,jbs->jas", GA, dh)  # (J, 3, S)
+    W = model.weights[vids]  # (n_v, J) sparse
+    Mv = (W @ GA.reshape(J, 9)).reshape(-1, 3, 3)
+    sd = np.asarray(model.shapedirs[vids, :, :S], dtype=float)
+    jb = np.einsum("vab,vbs->vas", Mv, sd) + (W @ c.reshape(J, -1)).reshape(-1, 3, S)
+    v0 = _posed_vertices(model, skel, None, x, rest=rest)[vids]
+    jx = np.zeros((len(vids), 3, len(x)))
+    for k in range(len(x)):
+        e = np.zeros_like(x)
+        e[k] = FD_STEP
+        jx[:, :, k] = (_posed_vertices(model, skel, None, x + e, rest=rest)[vids] - v0) / FD_STEP
+    return np.concatenate([jb, jx], axis=2)
+
+
+def _scan_residuals(model, skel, b, x, rest, corr):
+    """Point-to-plane residuals (metres): scan points to their model surface points, then
+    sampled model vertices to their nearest scan points."""
+    cb, cf, pts, cn, vsel, q_pts, q_n = corr
+    faces = np.asarray(model.faces)
+    vv = _posed_vertices(model, skel, b, x, rest=rest)
+    m = np.einsum("ik,ikd->id", cb, vv[faces[cf]])
+    return np.concatenate([np.einsum("id,id->i", m - pts, cn),
+                           np.einsum("id,id->i", vv[vsel] - q_pts, q_n)])
+
+
+def fit_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | None,
+             rng: np.random.Generator, opts: ScanFitOptions = ScanFitOptions(), log=None) -> ScanFit:
+    """Fit shape and neutral pose to a scan.
+
+    points : (N, 3) metres, the scan's frame; normals : (N, 3) unit or None (then the model's
+    vertex normals stand in for the scan's). Returns :class:`ScanFit`.
+    """
+    import igl
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, dtype=float)
+    S = min(opts.num_betas, model.num_betas)
+    skel = skinned.fit_skeleton(model, body_joints(model))
+    n = skel.n
+    x = _rigid_start(model, skel, points, rng, opts)
+    betas = np.zeros(S)
+    tree = cKDTree(points)
+    faces = np.asarray(model.faces)
+    prior_w = np.concatenate([np.full(S, opts.beta_weight), np.zeros(6),
+                              np.full(n - 6, opts.pose_weight)])
+    lam = 1e-3
+    iters = 0
+    for it in range(opts.iters):
+        iters = it + 1
+        rest = rest_state(model, betas)
+        v = _posed_vertices(model, skel, betas, x, rest=rest)
+        sel = rng.choice(len(points), min(opts.n_points, len(points)), replace=False)
+        sp_ = points[sel]
+        _, cf, cp = igl.point_mesh_squared_distance(sp_, v, faces)
+        cf = np.asarray(cf, dtype=np.int64)
+        tri = v[faces[cf]]
+        cb = np.clip(np.asarray(igl.barycentric_coordinates(
+            cp, tri[:, 0].copy(), tri[:, 1].copy(), tri[:, 2].copy())), 0, 1)
+        cb /= np.maximum(cb.sum(1, keepdims=True), 1e-12)
+        cn = face_normals(v, faces[cf])
+        vsel = rng.choice(len(v), min(opts.n_vertices, len(v)), replace=False)
+        _, qi = tree.query(v[vsel])
+        q_pts = points[qi]
+        q_n = (np.asarray(normals, float)[qi] if normals is not None
+               else igl.per_vertex_normals(v, faces)[vsel])
+
+        corr = (cb, cf, sp_, cn, vsel, q_pts, q_n)
+
+        def cost(b, xx, rest_b=None, corr=corr):
+            rr = _scan_residuals(model, skel, b, xx, rest_b, corr)
+            zz = np.concatenate([b, xx])
+            return float(np.mean(robust.rho(rr * rr, "geman_mcclure", opts.sigma_m))
+                         + np.sum(prior_w * zz * zz))
+
+        r = _scan_residuals(model, skel, betas, x, rest, corr)
+        N = len(r)
+        w = robust.weight(r * r, "geman_mcclure", opts.sigma_m) / N
+        # Jacobian of the residuals through the vertices they touch
+        vids = np.unique(np.concatenate([faces[cf].reshape(-1), vsel]))
+        pos = np.full(len(v), -1)
+        pos[vids] = np.arange(len(vids))
+        Jv = vertex_jacobian(model, rest, skel, x, vids, S)  # (n_v, 3, S + n)
+        J1 = np.einsum("ik,id,ikdz->iz", cb, cn, Jv[pos[faces[cf]]])
+        J2 = np.einsum("id,idz->iz", q_n, Jv[pos[vsel]])
+        Jr = np.concatenate([J1, J2])
+        z = np.concatenate([betas, x])
+        H = (Jr * w[:, None]).T @ Jr + np.diag(prior_w)
+        g = (Jr * w[:, None]).T @ r + prior_w * z
+        c0 = cost(betas, x, rest)
+        step = np.zeros_like(z)
+        c1 = c0
+        for _ in range(10):
+            step = -np.linalg.solve(H + lam * np.diag(np.maximum(np.diag(H), 1e-12)), g)
+            c1 = cost(z[:S] + step[:S], z[S:] + step[S:])
+            if c1 < c0:
+                lam = max(lam * 0.3, 1e-7)
+                break
+            lam *= 10
+        else:
+            step = np.zeros_like(z)
+        z = z + step
+        betas, x = z[:S], marker_fit.rewrap(z[S:])
+        if log:
+            log(f"scan fit iteration {iters}: robust cost {min(c0, c1):.4e}")
+        if np.abs(step).max() < 1e-7:
+            break
+    v = _posed_vertices(model, skel, betas, x)
+    d2, _, _ = igl.point_mesh_squared_distance(points, v, faces)
+    return ScanFit(betas, x, skel.joints, 1000 * np.sqrt(np.asarray(d2)), iters)
+
+
+# ---------------------------------------------------------------------------- placement
+
+
+@dataclass(frozen=True)
+class PlacementOptions:
+    """rounds: alternations; slide_sd_m / offset_sd_m: prior spread of the placement around
+    the template (tangential / along the normal), metres; pose_iters: LM iterations per pose;
+    num_betas, beta_weight: for the marker-based shape (no scan)."""
+
+    rounds: int = 4
+    slide_sd_m: float = 0.02
+    offset_sd_m: float = 0.005
+    pose_iters: int = 30
+    num_betas: int = 20
+    beta_weight: float = 1e-5
+
+
+def _solve_poses(solver, obs, vis, X=None):
+    out = []
+    for f in range(len(obs)):
+        if X is None:
+            x0 = marker_fit.initial_pose(solver.skel, solver.u, solver.Hm, obs[f], vis[f])
+            r = solver.solve(x0, obs[f], vis[f], first=True)
+        else:
+            r = solver.solve(X[f], obs[f], vis[f])
+        out.append(marker_fit.rewrap(r.x))
+    return np.array(out)
+
+
+def _update_placement(model, rest, skel, u, pl: Placement, X, obs, vis, opts: PlacementOptions
+                      ) -> Placement:
+    """Per marker: the rest point minimising |posed - observed|^2 over frames plus the prior,
+    linear in the rest point once poses and skinning weights are fixed."""
+    faces = np.asarray(model.faces)
+    Wm = marker_weights(model, pl).toarray()  # (M, J)
+    h = rest.joints[0]
+    A = rest.bind_rot[0] if rest.bind_rot is not None else np.broadcast_to(np.eye(3), (len(h), 3, 3))
+    _, s = skinned.reduced_offsets(model, rest, skel)
+    frames = [skinned._fk_np(skel, u, x) for x in X]
+    p0 = marker_rest_points(rest.vertices[0], faces, pl)
+    n0 = face_normals(rest.vertices[0], faces[pl.face])
+    new = np.zeros_like(p0)
+    for m in range(len(p0)):
+        js = np.flatnonzero(Wm[m] > 0)
+        rows_A, rows_b = [], []
+        for f, (G, t) in enumerate(frames):
+            if vis[f, m] <= 0:
+                continue
+            # world = sum_j w_j (G_o A_j (p - h_j) + G_o s_j + t_o), o = owner(j)
+            L = np.zeros((3, 3))
+            c = np.zeros(3)
+            for j in js:
+                o = skel.owner[j]
+                L += Wm[m, j] * G[o] @ A[j]
+                c += Wm[m, j] * (G[o] @ (s[j] - A[j] @ h[j]) + t[o])
+            rows_A.append(L)
+            rows_b.append(obs[f, m] - c)
+        # prior: tangential slide ~ slide_sd, normal offset ~ offset_sd around the template
+        P = np.eye(3) - np.outer(n0[m], n0[m])
+        prior = P / opts.slide_sd_m + np.outer(n0[m], n0[m]) / opts.offset_sd_m
+        rows_A.append(prior)
+        rows_b.append(prior @ p0[m])
+        AA = np.concatenate(rows_A)
+        bb = np.concatenate(rows_b)
+        new[m] = np.linalg.lstsq(AA, bb, rcond=None)[0]
+    face, bary, off = project_to_surface(rest.vertices[0], faces, new)
+    return replace(pl, face=face, bary=bary, offset=off)
+
+
+def _beta_step(model, skel, betas, pl, X, obs, vis, opts):
+    """One damped Gauss-Newton step on betas with poses and placement fixed."""
+    S = len(betas)
+
+    def markers(b):
+        rest = rest_state(model, b)
+        u, _ = skinned.reduced_offsets(model, rest, skel)
+        Hm = marker_coeffs(model, rest, skel, pl)
+        return np.concatenate([skinned.slot_positions_np(skel, u, Hm, x) for x in X])
+
+    ok = (vis > 0).reshape(-1)
+    target = obs.reshape(-1, 3)
+    m0 = markers(betas)
+    r = (m0 - target)[ok].reshape(-1)
+    J = np.zeros((len(r), S))
+    for k in range(S):
+        e = np.zeros(S)
+        e[k] = 1e-4
+        J[:, k] = ((markers(betas + e) - target)[ok].reshape(-1) - r) / 1e-4
+    w = opts.beta_weight * len(r)
+    H = J.T @ J + w * np.eye(S)
+    return betas - np.linalg.solve(H + 1e-3 * np.diag(np.diag(H)), J.T @ r + w * betas)
+
+
+@dataclass
+class PlacementFit:
+    """placement, betas (S,), poses X (K, n) of the frames used, residual_mm (K, M) NaN where
+    not visible, rounds."""
+
+    placement: Placement
+    betas: np.ndarray
+    X: np.ndarray
+    residual_mm: np.ndarray
+
+
+def refine_placement(model: BodyModel, betas: np.ndarray, pl: Placement, obs: np.ndarray,
+                     vis: np.ndarray, make_solver, opts: PlacementOptions = PlacementOptions(),
+                     fit_betas: bool = False, log=None) -> PlacementFit:
+    """MoSh++ stage I: marker placement (and, with ``fit_betas``, shape) from a few frames.
+
+    obs : (K, M, 3) metres, world, of well-spread frames; vis : (K, M).
+    make_solver(rest, skel, u, Hm) -> marker_fit.FrameSolver over the body joints.
+    """
+    betas = np.array(betas, dtype=float)
+    skel = skinned.fit_skeleton(model, body_joints(model))
+    X = None
+    for k in range(opts.rounds):
+        rest = rest_state(model, betas)
+        u, _ = skinned.reduced_offsets(model, rest, skel)
+        Hm = marker_coeffs(model, rest, skel, pl)
+        solver = make_solver(rest, skel, u, Hm)
+        X = _solve_poses(solver, obs, vis, X)
+        pl = _update_placement(model, rest, skel, u, pl, X, obs, vis, opts)
+        if fit_betas:
+            betas = _beta_step(model, skel, betas, pl, X, obs, vis, opts)
+        if log:
+            log(f"placement round {k + 1}/{opts.rounds}")
+    rest = rest_state(model, betas)
+    u, _ = skinned.reduced_offsets(model, rest, skel)
+    Hm = marker_coeffs(model, rest, skel, pl)
+    solver = make_solver(rest, skel, u, Hm)
+    X = _solve_poses(solver, obs, vis, X)
+    res = np.stack([np.linalg.norm(skinned.slot_positions_np(skel, u, Hm, x) - np.nan_to_num(o),
+                                   axis=1) for x, o in zip(X, obs, strict=True)])
+    res = np.where(vis > 0, 1000 * res, np.nan)
+    return PlacementFit(pl, betas, X, res)
+
+
+def spread_frames(vis: np.ndarray, obs: np.ndarray, k: int) -> np.ndarray:
+    """Indices of ``k`` well-spread frames: mostly-visible frames chosen by farthest-point
+    sampling on the marker configuration (centred), so poses differ."""
+    F = len(obs)
+    frac = (vis > 0).mean(axis=1)
+    cand = np.flatnonzero(frac >= min(0.9, frac.max()))
+    if len(cand) <= k:
+        return cand
+    feat = np.nan_to_num(obs[cand] - np.nanmean(obs[cand], axis=1, keepdims=True)).reshape(len(cand), -1)
+    chosen = [int(np.argmax(frac[cand]))]
+    d = np.linalg.norm(feat - feat[chosen[0]], axis=1)
+    while len(chosen) < k:
+        i = int(np.argmax(d))
+        chosen.append(i)
+        d = np.minimum(d, np.linalg.norm(feat - feat[i], axis=1))
+    del F
+    return np.sort(cand[chosen])
