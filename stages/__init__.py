@@ -38,13 +38,21 @@ PLANNED: tuple[tuple[str, Granularity, tuple[str, ...], str], ...] = (
 
 
 def _stage(name: str, per: Granularity, upstream: tuple[str, ...], doc: str) -> Stage:
-    """The module's STAGE if ``stages/<name>.py`` exists, else a placeholder."""
+    """The module's STAGE if ``stages/<name>.py`` exists and defines one, else a placeholder
+    (a module still being written, without ``STAGE``, counts as not implemented; a module
+    that fails to import is an error)."""
+    placeholder = Stage(name=name, func=None, per=per, upstream=upstream, implemented=False,
+                        doc=doc)
     if importlib.util.find_spec(f"stages.{name}") is None:
-        return Stage(name=name, func=None, per=per, upstream=upstream, implemented=False, doc=doc)
+        return placeholder
     mod = importlib.import_module(f"stages.{name}")
     st = getattr(mod, "STAGE", None)
+    if st is None:
+        print(f"[stages] stages/{name}.py defines no STAGE yet: {name} counts as not implemented",
+              file=sys.stderr, flush=True)
+        return placeholder
     if not isinstance(st, Stage):
-        raise ImportError(f"stages/{name}.py defines no STAGE = Stage(...)")
+        raise ImportError(f"stages/{name}.py: STAGE is a {type(st).__name__}, not a Stage")
     if st.name != name:
         raise ImportError(f"stages/{name}.py: STAGE.name is {st.name!r}, expected {name!r}")
     return st
