@@ -162,6 +162,13 @@ def fit_sequence(solver: FrameSolver, obs: np.ndarray, vis: np.ndarray, uv=None,
     obs : (F, M, 3) metres, world; vis : (F, M) bool/0-1; uv : (F, C, K, 2) pixels and
     conf : (F, C, K) or None (no hand keypoints). progress : optional iterable wrapper.
     """
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1):  # tiny dense algebra: BLAS threads only add overhead
+        return _fit_sequence(solver, obs, vis, uv, conf, progress)
+
+
+def _fit_sequence(solver, obs, vis, uv, conf, progress) -> SequenceFit:
     F, M, _ = obs.shape
     n = solver.graph.spec.n_x
     X = np.zeros((F, n))

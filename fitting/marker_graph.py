@@ -7,8 +7,8 @@ lens model), so it is compiled once per spec and cached (``fitting/compiled.py``
 
 Parameter vector ``p`` (:meth:`MarkerGraph.params` packs it):
     u (Q, 3)            reduced-tree offsets (fitting/skinned.py), metres
-    Hm (M, Q, 4)        marker slot coefficients
-    Hk (K, Q, 4)        keypoint slot coefficients
+    Hm (M, Q, 4)        marker slot coefficients, only on each marker's support joints
+    Hk (K, Q, 4)        keypoint slot coefficients, likewise
     cams (C, 21)        packed cameras (calib.camera_vector)
     obs (M, 3), vis (M,)            observed markers (metres, world) and visibility 0/1
     uv (C, K, 2), conf (C, K)       detected keypoints (pixels) and confidence (0 = missing)
@@ -28,14 +28,24 @@ from fitting import compiled, skinned, terms
 
 @dataclass(frozen=True)
 class GraphSpec:
-    """What fixes the graph. parents: reduced tree (-1 root); n_markers M; n_keypoints K;
-    n_cameras C (0 when K = 0); camera_model: the lens model of the cameras."""
+    """What fixes the graph. parents: reduced tree (-1 root); marker_support: per marker, the
+    fitted joints its coefficients may use (fitting.skinned.neighbourhood_support), M of them;
+    keypoint_support: the same for the K keypoints; n_cameras C (0 when K = 0);
+    camera_model: the lens model of the cameras."""
 
     parents: tuple[int, ...]
-    n_markers: int
-    n_keypoints: int = 0
+    marker_support: tuple[tuple[int, ...], ...]
+    keypoint_support: tuple[tuple[int, ...], ...] = ()
     n_cameras: int = 0
     camera_model: str = "h36m"
+
+    @property
+    def n_markers(self) -> int:
+        return len(self.marker_support)
+
+    @property
+    def n_keypoints(self) -> int:
+        return len(self.keypoint_support)
 
     @property
     def Q(self) -> int:
@@ -47,7 +57,8 @@ class GraphSpec:
 
     def name(self) -> str:
         kp = f"_k{self.n_keypoints}c{self.n_cameras}{self.camera_model}" if self.n_keypoints else ""
-        return f"markers_q{self.Q}_m{self.n_markers}{kp}"
+        nz = sum(len(s) for s in self.marker_support) + sum(len(s) for s in self.keypoint_support)
+        return f"markers_q{self.Q}_m{self.n_markers}{kp}_nz{nz}"
 
 
 class MarkerGraph:
@@ -58,7 +69,9 @@ class MarkerGraph:
             raise ValueError("keypoints need cameras")
         self.spec = spec
         Q, M, K, C = spec.Q, spec.n_markers, spec.n_keypoints, spec.n_cameras
-        sizes = [("u", Q * 3), ("Hm", M * Q * 4), ("Hk", K * Q * 4),
+        self.n_hm = 4 * sum(len(sp) for sp in spec.marker_support)
+        self.n_hk = 4 * sum(len(sp) for sp in spec.keypoint_support)
+        sizes = [("u", Q * 3), ("Hm", self.n_hm), ("Hk", self.n_hk),
                  ("cams", C * CAM_VECTOR_SIZE), ("obs", M * 3), ("vis", M),
                  ("uv", C * K * 2), ("conf", C * K)]
         self.slices: dict[str, slice] = {}
@@ -75,14 +88,12 @@ class MarkerGraph:
 
         u = blk("u", Q, 3)
         G, t = skinned.fk_cs(spec.parents, x, u)
-        Hm_all = p[self.slices["Hm"]]
-        Hm = [ca.reshape(Hm_all[i * Q * 4:(i + 1) * Q * 4], 4, Q).T for i in range(M)]
-        markers = skinned.slots_cs(G, t, Hm)
+        markers = skinned.slots_cs(G, t, self._blocks(p[self.slices["Hm"]], spec.marker_support),
+                                   spec.marker_support)
         r = [terms.L_3d(markers, blk("obs", M, 3), p[self.slices["vis"]])]
         if K:
-            Hk_all = p[self.slices["Hk"]]
-            Hk = [ca.reshape(Hk_all[i * Q * 4:(i + 1) * Q * 4], 4, Q).T for i in range(K)]
-            kp = skinned.slots_cs(G, t, Hk)  # (K, 3)
+            kp = skinned.slots_cs(G, t, self._blocks(p[self.slices["Hk"]], spec.keypoint_support),
+                                  spec.keypoint_support)  # (K, 3)
             cams = blk("cams", C, CAM_VECTOR_SIZE)
             uv_model = []
             for c in range(C):
@@ -96,18 +107,31 @@ class MarkerGraph:
         self.fun = compiled.build(spec.name(), x, p, ca.vertcat(*r),
                                   opts or compiled.CompileOptions(), log=log)
 
+    @staticmethod
+    def _blocks(flat, support):
+        out, o = [], 0
+        for sup in support:
+            n = len(sup)
+            out.append(ca.reshape(flat[o:o + 4 * n], 4, n).T)
+            o += 4 * n
+        return out
+
     def params(self, u, Hm, obs, vis, Hk=None, cams=None, uv=None, conf=None) -> np.ndarray:
-        """Pack the parameter vector (shapes in the module docstring; gaps: vis 0, obs any)."""
+        """Pack the parameter vector (shapes in the module docstring; gaps: vis 0, obs any).
+        ``Hm (M, Q, 4)``/``Hk (K, Q, 4)`` are restricted to the spec's supports; the largest
+        weight that falls outside is kept in ``self.dropped_weight``."""
         s = self.spec
         p = np.zeros(self.n_p)
         p[self.slices["u"]] = np.asarray(u, float).reshape(-1)
-        p[self.slices["Hm"]] = np.asarray(Hm, float).reshape(-1)
+        p[self.slices["Hm"]], self.dropped_weight = skinned.restrict(np.asarray(Hm, float),
+                                                                     s.marker_support)
         vis = np.asarray(vis, float).reshape(-1)
         p[self.slices["obs"]] = np.where(vis[:, None] > 0, np.nan_to_num(
             np.asarray(obs, float).reshape(s.n_markers, 3)), 0.0).reshape(-1)
         p[self.slices["vis"]] = vis
         if s.n_keypoints:
-            p[self.slices["Hk"]] = np.asarray(Hk, float).reshape(-1)
+            p[self.slices["Hk"]], dk = skinned.restrict(np.asarray(Hk, float), s.keypoint_support)
+            self.dropped_weight = max(self.dropped_weight, dk)
             p[self.slices["cams"]] = np.asarray(cams, float).reshape(-1)
             conf = np.asarray(conf, float).reshape(-1)
             uvv = np.nan_to_num(np.asarray(uv, float).reshape(-1, 2))

@@ -155,9 +155,60 @@ def fk_cs(parents: tuple[int, ...], x, u):
     return G, t
 
 
-def slots_cs(G, t, H):
-    """World positions (S, 3) SX of slots with coefficients ``H``: a list of S (Q, 4) SX."""
-    Q = len(G)
-    GT = ca.horzcat(*[ca.horzcat(G[q], t[q]) for q in range(Q)])  # (3, 4Q)
-    rows = [ca.mtimes(GT, ca.reshape(Hs.T, -1, 1)).T for Hs in H]  # Hs (Q,4) -> 4Q col-major
+def slots_cs(G, t, H, support):
+    """World positions (S, 3) SX of slots: ``H`` a list of S SX blocks (len(support_s), 4),
+    the coefficients of slot s on the fitted joints ``support[s]`` (the others are zero)."""
+    rows = []
+    for Hs, sup in zip(H, support, strict=True):
+        GT = ca.horzcat(*[ca.horzcat(G[q], t[q]) for q in sup])  # (3, 4 |sup|)
+        rows.append(ca.mtimes(GT, ca.reshape(Hs.T, -1, 1)).T)
     return ca.vertcat(*rows)
+
+
+def support_of(H: np.ndarray, tol: float = 0.0) -> tuple[tuple[int, ...], ...]:
+    """Fitted joints with a nonzero coefficient (|W| > tol) in each slot of ``H (S, Q, 4)``."""
+    return tuple(tuple(int(q) for q in np.flatnonzero(np.abs(h[:, 3]) > tol)) or (0,) for h in H)
+
+
+def neighbourhood_support(model: BodyModel, rest: RestState, skel: FitSkeleton,
+                          points: np.ndarray, radius: float) -> tuple[tuple[int, ...], ...]:
+    """For each rest point (S, 3): the fitted joints owning any skinning weight of the rest
+    vertices within ``radius`` metres. A superset of what a marker sliding that far needs, so
+    a graph built on it serves every subject's placement."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(rest.vertices[0])
+    W = model.weights.tocsr()
+    out = []
+    for pt in np.asarray(points, float):
+        vids = tree.query_ball_point(pt, radius)
+        if not vids:
+            vids = [int(tree.query(pt)[1])]
+        js = np.unique(W[vids].indices)
+        out.append(tuple(sorted(set(int(skel.owner[j]) for j in js))))
+    return tuple(out)
+
+
+def restrict(H: np.ndarray, support) -> tuple[np.ndarray, float]:
+    """Pack ``H (S, Q, 4)`` on ``support`` (flat, slot-major) and the largest dropped weight
+    (coefficients outside the support are dropped and the rest rescaled to keep sum W = 1)."""
+    parts = []
+    dropped = 0.0
+    for h, sup in zip(H, support, strict=True):
+        keep = h[list(sup)]
+        tot, kept = h[:, 3].sum(), keep[:, 3].sum()
+        dropped = max(dropped, float(tot - kept))
+        if kept > 0 and abs(tot - kept) > 0:
+            keep = keep * (tot / kept)
+        parts.append(keep.reshape(-1))
+    return np.concatenate(parts) if parts else np.zeros(0), dropped
+
+
+def regressed_coeffs(model: BodyModel, rest: RestState, skel: FitSkeleton,
+                     regressor) -> np.ndarray:
+    """Slot coefficients (K, Q, 4) of points regressed linearly from vertices,
+    ``regressor (K, V)`` (sparse or dense): the same combination of the vertices' slots."""
+    R = sp.csr_matrix(regressor)
+    vids = np.unique(R.indices)
+    Hv = vertex_coeffs(model, rest, skel, model.weights[vids], rest.vertices[0, vids])
+    return (R[:, vids] @ Hv.reshape(len(vids), -1)).reshape(R.shape[0], len(skel.joints), 4)

@@ -82,7 +82,8 @@ def test_marker_graph_residuals_and_jacobian(tmp_path):
     cams = [look_at(f"c{i}", [3 * np.cos(a), 3 * np.sin(a), 1.2], [0, 0, 0.3], (1000, 1000),
                     (450, 450), 900, 900, k=(-0.1, 0.05, 0.0), p=(1e-4, -2e-4))
             for i, a in enumerate([0.3, 2.0])]
-    spec = marker_graph.GraphSpec(skel.topology, M, K, len(cams), "h36m")
+    spec = marker_graph.GraphSpec(skel.topology, skinned.support_of(Hm), skinned.support_of(Hk),
+                                  len(cams), "h36m")
     g = marker_graph.MarkerGraph(spec, compiled.CompileOptions(mode="interpreted"))
     obs = rng.normal(0, 0.3, (M, 3))
     vis = np.array([1, 1, 0, 1, 1, 1.0])
@@ -107,3 +108,27 @@ def test_marker_graph_residuals_and_jacobian(tmp_path):
     r0, J0 = g.fun.dense(x0, p)
     assert np.all(np.isfinite(J0))
     np.testing.assert_allclose(J0, _fd(numpy_r, x0, h=1e-7), atol=1e-4, rtol=1e-5)
+
+
+def test_support_restriction_is_exact_when_it_covers_the_weights():
+    rng = np.random.default_rng(2)
+    model = random_model(rng, bind=False)
+    rest = rest_state(model, np.zeros(4))
+    skel = skinned.fit_skeleton(model)
+    vm = rng.choice(model.num_vertices, 5, replace=False)
+    H = skinned.vertex_coeffs(model, rest, skel, model.weights[vm], rest.vertices[0, vm])
+    sup = skinned.support_of(H)
+    assert all(len(s) < len(skel.joints) for s in sup)
+    flat, dropped = skinned.restrict(H, sup)
+    assert dropped < 1e-12 and len(flat) == 4 * sum(len(s) for s in sup)
+    big = skinned.neighbourhood_support(model, rest, skel, rest.vertices[0, vm], 0.05)
+    assert all(set(a) <= set(b) for a, b in zip(sup, big, strict=True))
+    # a support missing a joint drops its weight and rescales the rest to sum 1
+    cut = tuple(s[1:] if len(s) > 1 else s for s in sup)
+    flat2, dropped2 = skinned.restrict(H, cut)
+    assert dropped2 > 0
+    o = 0
+    for s in cut:
+        blk = flat2[o:o + 4 * len(s)].reshape(len(s), 4)
+        assert np.isclose(blk[:, 3].sum(), 1.0)
+        o += 4 * len(s)

@@ -22,7 +22,8 @@ def setup():
     M = 24
     vm = rng.choice(model.num_vertices, M, replace=False)
     Hm = skinned.vertex_coeffs(model, rest, skel, model.weights[vm], rest.vertices[0, vm])
-    graph = MarkerGraph(GraphSpec(skel.topology, M), compiled.CompileOptions(mode="interpreted"))
+    graph = MarkerGraph(GraphSpec(skel.topology, skinned.support_of(Hm)),
+                        compiled.CompileOptions(mode="interpreted"))
     prior = priors.default_prior(skel.names[1:])
     return skel, u, Hm, graph, prior
 
