@@ -33,6 +33,7 @@ from fitting import marker_fit, robust, skinned
 
 # constants
 FD_STEP = 1e-6
+COARSE_BETAS = 10  # scan fit: betas fitted in the first third of the iterations
 
 
 @dataclass(frozen=True)
@@ -53,6 +54,11 @@ def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     tri = vertices[faces]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-15)
+
+
+def _face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    tri = vertices[faces]
+    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
 
 
 def marker_rest_points(rest_vertices: np.ndarray, faces: np.ndarray, pl: Placement) -> np.ndarray:
@@ -111,7 +117,7 @@ class ScanFitOptions:
     iters: int = 30
     sigma_m: float = 0.015
     beta_weight: float = 1e-8
-    pose_weight: float = 1e-7
+    pose_weight: float = 1e-5
     headings: int = 8
 
 
@@ -244,12 +250,14 @@ def fit_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | None,
     betas = np.zeros(S)
     tree = cKDTree(points)
     faces = np.asarray(model.faces)
-    prior_w = np.concatenate([np.full(S, opts.beta_weight), np.zeros(6),
-                              np.full(n - 6, opts.pose_weight)])
     lam = 1e-3
     iters = 0
     for it in range(opts.iters):
         iters = it + 1
+        # coarse to fine: the first third of the iterations fits only the first betas
+        s_on = min(S, COARSE_BETAS) if it < opts.iters // 3 else S
+        prior_w = np.concatenate([np.full(s_on, opts.beta_weight), np.full(S - s_on, 1e3),
+                                  np.zeros(6), np.full(n - 6, opts.pose_weight)])
         rest = rest_state(model, betas)
         v = _posed_vertices(model, skel, betas, x, rest=rest)
         sel = rng.choice(len(points), min(opts.n_points, len(points)), replace=False)
@@ -261,7 +269,10 @@ def fit_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | None,
             cp, tri[:, 0].copy(), tri[:, 1].copy(), tri[:, 2].copy())), 0, 1)
         cb /= np.maximum(cb.sum(1, keepdims=True), 1e-12)
         cn = face_normals(v, faces[cf])
-        vsel = rng.choice(len(v), min(opts.n_vertices, len(v)), replace=False)
+        # model vertices sampled by surface area (fingers and face are densely meshed)
+        area = np.zeros(len(v))
+        np.add.at(area, faces.reshape(-1), np.repeat(_face_areas(v, faces) / 3, 3))
+        vsel = rng.choice(len(v), min(opts.n_vertices, len(v)), replace=False, p=area / area.sum())
         _, qi = tree.query(v[vsel])
         q_pts = points[qi]
         q_n = (np.asarray(normals, float)[qi] if normals is not None
@@ -269,7 +280,7 @@ def fit_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | None,
 
         corr = (cb, cf, sp_, cn, vsel, q_pts, q_n)
 
-        def cost(b, xx, rest_b=None, corr=corr):
+        def cost(b, xx, rest_b=None, corr=corr, prior_w=prior_w):
             rr = _scan_residuals(model, skel, b, xx, rest_b, corr)
             zz = np.concatenate([b, xx])
             return float(np.mean(robust.rho(rr * rr, "geman_mcclure", opts.sigma_m))
@@ -466,3 +477,13 @@ def spread_frames(vis: np.ndarray, obs: np.ndarray, k: int) -> np.ndarray:
         d = np.minimum(d, np.linalg.norm(feat - feat[i], axis=1))
     del F
     return np.sort(cand[chosen])
+
+
+def marker_support(model: BodyModel, skel: skinned.FitSkeleton, template: Placement,
+                   radius: float = 0.06) -> tuple[tuple[int, ...], ...]:
+    """Graph support of each marker: the fitted joints skinning the mean-shape surface within
+    ``radius`` of its template position (covers placement refinement and every subject, so
+    one compiled graph serves all; fitting/skinned.py neighbourhood_support)."""
+    rest0 = rest_state(model, np.zeros(1))
+    pts = marker_rest_points(rest0.vertices[0], np.asarray(model.faces), template)
+    return skinned.neighbourhood_support(model, rest0, skel, pts, radius)
