@@ -1,0 +1,92 @@
+"""Magic numbers of the synthetic capture studio, in one place (metres, seconds, pixels)."""
+
+# ------------------------------------------------------------------------------------ timing
+#: Video frame rate (CHI3D: 50 fps) and marker capture rate (Vicon, may differ from video).
+VIDEO_FPS = 50.0
+MOCAP_HZ = 100.0
+#: The C3D's first frame is at this video time (seconds): mocap starts a little before the
+#: video and ends a little after it. Must be a multiple of 1 / MOCAP_HZ.
+SYNC_OFFSET_S = -0.12
+#: Extra mocap after the last video frame, seconds.
+MOCAP_TAIL_S = 0.1
+
+# ------------------------------------------------------------------------------------ cameras
+#: CHI3D camera serials and image size.
+CAMERA_NAMES = ("50591643", "58860488", "60457274", "65906101")
+IMAGE_SIZE = (900, 900)
+#: Camera placement around the capture volume: azimuths (deg, jittered), distance and height
+#: ranges (metres) of the camera centres, focal length range (pixels), the point they look at.
+CAMERA_AZIMUTHS_DEG = (40.0, 130.0, 220.0, 310.0)
+CAMERA_AZIMUTH_JITTER_DEG = 8.0
+CAMERA_DISTANCE_M = (3.9, 4.4)
+CAMERA_HEIGHT_M = (1.5, 2.3)
+CAMERA_LOOKAT_M = (0.0, 0.0, 0.95)
+CAMERA_LOOKAT_JITTER_M = 0.12
+CAMERA_FOCAL_PX = (1080.0, 1180.0)
+CAMERA_PRINCIPAL_JITTER_PX = 8.0
+#: Mild Human3.6M-model distortion: k1, k2, k3 ranges and |p| bound.
+CAMERA_K_RANGE = ((-0.16, -0.06), (0.02, 0.12), (-0.02, 0.02))
+CAMERA_P_ABS = 6e-4
+
+# ------------------------------------------------------------------------------------ render
+BACKGROUND_RGB = (205, 208, 212)
+FLOOR_RGB = (150, 142, 128)
+FLOOR_HALF_SIZE_M = 12.0
+SKIN_RGB = (224, 178, 148)
+#: Clothing palettes per person: shirt, sleeves, trousers, shoes (RGB 0-255). Person 0 is
+#: the first subject of the session (blue/grey), person 1 the second (red/olive).
+CLOTHING = (
+    {"shirt": (40, 90, 200), "sleeve": (70, 130, 230), "trousers": (35, 40, 60), "shoes": (20, 20, 20)},
+    {"shirt": (210, 50, 40), "sleeve": (240, 110, 60), "trousers": (90, 110, 40), "shoes": (240, 240, 235)},
+)
+#: Render margin around the distortion-free region that the output image needs, pixels.
+RENDER_MARGIN_PX = 4
+#: H.264/MPEG-4 quality is the writer's; this is only the znear/zfar of the renderer.
+ZNEAR_M, ZFAR_M = 0.2, 20.0
+
+# ------------------------------------------------------------------------------------ scans
+SCAN_POINTS = 60000
+SCAN_NOISE_M = 0.002
+SCAN_HOLE_RADIUS_M = 0.055
+SCAN_SOLE_HEIGHT_M = 0.03
+SCAN_DENSITY_CONTRAST = 6.0
+
+# ------------------------------------------------------------------------------------ markers
+#: Standard deviation of the marker noise per axis (metres): ~1 mm 3D RMS.
+MARKER_NOISE_SD_M = 0.001 / 3 ** 0.5
+#: Fraction of markers that get occlusion gaps, gaps per affected marker, run length (samples).
+MARKER_GAP_FRACTION = 0.3
+MARKER_GAPS_PER_MARKER = (1, 3)
+MARKER_GAP_LEN = (5, 50)
+#: Per-subject marker placement differs from the nominal set: tangential slide and offset
+#: change (metres), standard deviations.
+MARKER_SLIDE_SD_M = 0.004
+MARKER_OFFSET_SD_M = 0.001
+
+# ------------------------------------------------------------------------------------ subjects
+#: Random anny body sliders per subject (count, |value| bound).
+SUBJECT_SLIDERS = 12
+SUBJECT_SLIDER_RANGE = 0.5
+#: Studio lights for the CPU Lambert shading: (direction the light travels, intensity), ambient.
+LIGHTS = (((0.4, -0.6, -1.0), 0.55), ((-0.5, 0.7, -0.6), 0.3))
+AMBIENT_LIGHT = 0.45
+
+# ------------------------------------------------------------------------------------ motion
+#: IK iterations per sample and synthesis passes (IK -> measure -> correct).
+IK_ITERS = 10
+SYNTH_PASSES = 3
+#: At a contact the surfaces are pressed together by this much (metres): soft tissue.
+CONTACT_PRESS_M = 0.0015
+#: Interpenetration outside the contacts deeper than this is resolved by pushing apart,
+#: plus a margin; the push is smoothed over this many master samples.
+PENETRATION_TOL_M = 0.002
+SEPARATION_MARGIN_M = 0.003
+SEPARATION_SMOOTH = 6
+#: Vertices this close to the other body's bounding box are checked for penetration.
+NEAR_M = 0.05
+#: Broad phase: the most flesh around any joint (metres); IK is re-solved where a correction
+#: moved a target by more than REFINE_TOL_M.
+FLESH_M = 0.16
+REFINE_TOL_M = 0.0003
+#: Vertices nearer than this to the other body get exact (libigl) signed distances.
+EXACT_BAND_M = 0.025

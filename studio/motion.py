@@ -1,0 +1,409 @@
+"""Two-person motion synthesis: nominal tracks, contacts driven by inverse kinematics, contact
+refinement on the true surfaces and separation of interpenetrating bodies.
+
+Time: a master timeline at the mocap rate (``constants.MOCAP_HZ``) covers the mocap capture,
+which starts ``-sync_offset_s`` before the first video frame; video frame ``i`` is master
+sample ``m0 + i * step`` (``step = MOCAP_HZ / VIDEO_FPS``, an integer). Everything (IK, checks)
+runs on the master timeline, so the marker samples and the video frames see the same bodies.
+
+A :class:`Contact` makes person ``who`` put an effector point (a palm, a fist, an instep) on an
+:class:`Anchor` of the other person (a point attached to one of their joint frames), blended in
+and out by a weight profile. Synthesis is a few passes of: IK for every contact and sample,
+skin both meshes, measure the true gap at each contact and shift the IK target along the
+surface normal so the surfaces touch (by ``constants.CONTACT_PRESS_M``), and push the bodies
+apart where other parts interpenetrate.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+from scipy.spatial import cKDTree
+
+from body import forward
+from studio import constants as C
+from studio.kin import Dof, Goal, Person, solve_ik
+from studio.render import vertex_normals
+
+
+@dataclass(frozen=True)
+class Timeline:
+    """frames: video frames; n: master samples; m0: master index of video frame 0;
+    step: master samples per video frame; hz: master (= mocap) rate; t: (n,) video time of each
+    master sample, seconds (negative before the first video frame)."""
+
+    frames: int
+    n: int
+    m0: int
+    step: int
+    hz: float
+
+    @property
+    def t(self) -> np.ndarray:
+        return (np.arange(self.n) - self.m0) / self.hz
+
+    @property
+    def video_samples(self) -> np.ndarray:
+        """(frames,) master indices of the video frames."""
+        return self.m0 + self.step * np.arange(self.frames)
+
+    @property
+    def duration(self) -> float:
+        """Video duration, seconds (first to last frame)."""
+        return (self.frames - 1) * self.step / self.hz
+
+
+def make_timeline(frames: int, fps: float = C.VIDEO_FPS, hz: float = C.MOCAP_HZ,
+                  sync_offset_s: float = C.SYNC_OFFSET_S, tail_s: float = C.MOCAP_TAIL_S) -> Timeline:
+    step = hz / fps
+    m0 = -sync_offset_s * hz
+    if abs(step - round(step)) > 1e-9 or abs(m0 - round(m0)) > 1e-6 or m0 < 0:
+        raise ValueError(f"mocap rate {hz} Hz must be a multiple of {fps} fps and the sync offset "
+                         f"{sync_offset_s} s a non-positive multiple of 1/{hz} s")
+    step, m0 = int(round(step)), int(round(m0))
+    n = m0 + step * (frames - 1) + 1 + int(round(tail_s * hz))
+    return Timeline(frames, n, m0, step, hz)
+
+
+def ramp(u: np.ndarray, a: float, b: float) -> np.ndarray:
+    """Minimum-jerk step from 0 (u <= a) to 1 (u >= b)."""
+    x = np.clip((np.asarray(u, float) - a) / max(b - a, 1e-9), 0, 1)
+    return x ** 3 * (10 - 15 * x + 6 * x ** 2)
+
+
+def pulse(u: np.ndarray, a: float, b: float, c: float, d: float) -> np.ndarray:
+    """0 before a, up to 1 by b, 1 until c, down to 0 by d (minimum-jerk edges)."""
+    return ramp(u, a, b) * (1 - ramp(u, c, d))
+
+
+@dataclass
+class Track:
+    """Motion of one person on the master timeline: pose (N, J, 3) local axis-angle, R (N, 3, 3)
+    global orientation, T (N, 3) translation (metres, world)."""
+
+    pose: np.ndarray
+    R: np.ndarray
+    T: np.ndarray
+
+    def copy(self) -> Track:
+        return Track(self.pose.copy(), self.R.copy(), self.T.copy())
+
+
+@dataclass(frozen=True)
+class Anchor:
+    """A point on a person's surface attached to a joint frame: offset (3,) and outward normal
+    (3,) in that frame (world-aligned at pose 0)."""
+
+    joint: int
+    offset: np.ndarray
+    normal: np.ndarray
+
+    def world(self, person: Person, track: Track, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(len(idx), 3) points and unit normals at master samples idx."""
+        t, G = person.fk(track.pose[idx], track.R[idx], track.T[idx])
+        Gj = G[:, self.joint]
+        return t[:, self.joint] + Gj @ self.offset, Gj @ self.normal
+
+
+@dataclass(frozen=True)
+class Fixed:
+    """A target given in the world: points (N, 3) on the master timeline and one unit normal
+    (3,) (the direction the effector surface is pressed against: it faces ``-normal``)."""
+
+    points: np.ndarray
+    normal: np.ndarray
+
+    def world(self, person: Person, track: Track, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # noqa: ARG002
+        return self.points[idx], np.broadcast_to(self.normal, (len(idx), 3))
+
+
+def anchor_at(person: Person, pose: np.ndarray, point_body: np.ndarray, joint: int,
+              direction: np.ndarray | None = None) -> Anchor:
+    """The anchor on ``person`` (posed by ``pose`` (J, 3) in the body frame) at the surface point
+    nearest to ``point_body`` (3,), or where the ray from ``point_body`` along ``direction``
+    leaves the body; attached to ``joint``."""
+    out = forward(person.model, person.betas, pose[None], np.eye(3)[None], np.zeros((1, 3)),
+                  rest=person.rest)
+    V = out.vertices[0]
+    N = vertex_normals(V, person.model.faces)
+    p = np.asarray(point_body, float)
+    if direction is None:
+        k = int(np.argmin(np.linalg.norm(V - p, axis=1)))
+    else:
+        d = np.asarray(direction, float) / np.linalg.norm(direction)
+        rel = V - p
+        along = rel @ d
+        perp = np.linalg.norm(rel - along[:, None] * d, axis=1)
+        ok = (along > 0) & (perp < 0.02) & (N @ d > 0.3)
+        if not ok.any():
+            ok = perp < np.sort(perp)[20]
+        cand = np.flatnonzero(ok)
+        k = int(cand[np.argmax(along[cand])])
+    G = out.joint_rot[0, joint]
+    return Anchor(joint, G.T @ (V[k] - out.joints[0, joint]), G.T @ N[k])
+
+
+@dataclass
+class Contact:
+    """Person ``who`` puts ``effector`` (joint, offset (3,) in its frame) on ``anchor`` of the
+    other person (an :class:`Anchor`, or a :class:`Fixed` world target), at ``clearance`` metres outside the anchor along its normal (the effector's
+    own thickness; refined on the true surfaces). weight: (N,) in [0, 1] on the master
+    timeline (1 = in contact). eff_normal: optional (3,) outward normal of the effector surface
+    in its frame, turned to face the anchor (orient_weight). poles: extra goals
+    ``(joint, offset, fn(idx) -> (len(idx), 3) world targets, weight)`` (e.g. an elbow kept
+    outside the partner). region: (n,) vertex ids of the effector's body part (for gap
+    measurement). name: for reports (``"hand.R->back"``)."""
+
+    who: int
+    dofs: list[Dof]
+    effector: tuple[int, np.ndarray]
+    anchor: Anchor | Fixed
+    clearance: float
+    weight: np.ndarray
+    region: np.ndarray
+    eff_normal: np.ndarray | None = None
+    orient_weight: float = 0.3
+    poles: list = field(default_factory=list)
+    name: str = ""
+    anchor_region: np.ndarray | None = None
+    refine: bool = True  # measure the true gap and correct the target (False: fixed target)
+    adjust: np.ndarray | None = None  # (N,) learned clearance corrections
+
+
+def _solve_contacts(people: list[Person], tracks: list[Track], nominal: list[Track],
+                    contacts: list[Contact], active: np.ndarray | None = None,
+                    warm_pass: bool = False) -> None:
+    """Run the IK of every contact over the timeline (in place on tracks), at the samples
+    ``active`` (N,) bool (default all). warm_pass: start each sample from its own current
+    solution (a later pass) instead of the previous sample's."""
+    N = len(tracks[0].T)
+    for c in contacts:
+        me, other = c.who, 1 - c.who
+        P, tr, nom = people[me], tracks[me], nominal[me]
+        if c.adjust is None:
+            c.adjust = np.zeros(N)
+        idx = np.flatnonzero(c.weight > 1e-4)
+        if active is not None:
+            idx = idx[active[idx]]
+        if not len(idx):
+            continue
+        a_pt, a_n = c.anchor.world(people[other], tracks[other], idx)
+        joint, off = c.effector
+        t0, G0 = P.fk(nom.pose[idx], nom.R[idx], nom.T[idx])
+        e_nom = t0[:, joint] + G0[:, joint] @ off
+        prev = None
+        for k, i in enumerate(idx):
+            w = c.weight[i]
+            tgt = a_pt[k] + a_n[k] * (c.clearance + c.adjust[i])
+            goal = (1 - w) * e_nom[k] + w * tgt
+            goals = [Goal(joint, tuple(off), tuple(goal), 1.0)]
+            if c.eff_normal is not None and c.orient_weight > 0 and w > 0.05:
+                # the point 5 cm out of the effector surface should lie 5 cm "into" the anchor
+                en = c.eff_normal * 0.05
+                goals.append(Goal(joint, tuple(off + en), tuple(goal - a_n[k] * 0.05),
+                                  c.orient_weight * w))
+            for pj, poff, fn, pw in c.poles:
+                goals.append(Goal(pj, tuple(poff), tuple(fn(np.array([i]))[0]), pw * w))
+            start = tr.pose[i] if (prev is None or warm_pass) else _carry(tr.pose[i], prev, c.dofs)
+            sol = solve_ik(P, start, tr.R[i], tr.T[i], goals, c.dofs, nominal=nom.pose[i],
+                           iters=C.IK_ITERS)
+            for d in c.dofs:
+                tr.pose[i, d.joint] = sol[d.joint]
+            prev = sol
+
+
+def _carry(pose: np.ndarray, prev: np.ndarray, dofs: list[Dof]) -> np.ndarray:
+    """Warm start: the previous sample's solution on the IK joints."""
+    p = pose.copy()
+    for d in dofs:
+        p[d.joint] = prev[d.joint]
+    return p
+
+
+def skin_all(people: list[Person], tracks: list[Track], idx: np.ndarray) -> list[np.ndarray]:
+    """Skinned vertices (len(idx), V, 3) of each person at master samples idx."""
+    out = []
+    for P, tr in zip(people, tracks, strict=True):
+        out.append(forward(P.model, P.betas, tr.pose[idx], tr.R[idx], tr.T[idx], rest=P.rest).vertices)
+    return out
+
+
+def pair_distances(V0: np.ndarray, V1: np.ndarray, faces: np.ndarray, normals: VertexNormals,
+                   near: float = C.NEAR_M) -> list[np.ndarray]:
+    """Signed distance of every vertex of each body to the other body's surface (negative
+    inside), where it matters: vertices within ``near`` of the other's bounding box.
+
+    V0, V1: (V, 3) metres. Returns [d0 (V,), d1 (V,)], +inf for vertices far from the other
+    body. Exact (libigl, pseudonormal sign, on the other body's local faces) for vertices within
+    constants.EXACT_BAND_M of the other's nearest vertex; further vertices get that nearest-vertex
+    distance, signed by the vertex normal there (only deep penetrations reach this case).
+    """
+    import igl
+
+    V = [V0, V1]
+    out = [np.full(len(V0), np.inf), np.full(len(V1), np.inf)]
+    lo = np.maximum(V0.min(0), V1.min(0)) - near
+    hi = np.minimum(V0.max(0), V1.max(0)) + near
+    if np.any(lo > hi):
+        return out
+    inbox = [np.all((v > lo) & (v < hi), axis=1) for v in V]
+    if not inbox[0].any() or not inbox[1].any():
+        return out
+    for a in range(2):
+        b = 1 - a
+        qa = np.flatnonzero(inbox[a])
+        vb = np.flatnonzero(inbox[b])
+        tree = cKDTree(V[b][vb])
+        dnn, k = tree.query(V[a][qa])
+        Nb = normals(V[b])
+        sign = np.sign(np.einsum("md,md->m", V[a][qa] - V[b][vb[k]], Nb[vb[k]]))
+        d = dnn * np.where(sign == 0, 1.0, sign)
+        band = dnn < C.EXACT_BAND_M
+        if band.any():
+            fb = faces[inbox[b][faces].all(1)]
+            if len(fb):
+                sd = igl.signed_distance(V[a][qa[band]], V[b], fb,
+                                         igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)[0]
+                d[band] = sd
+        out[a][qa] = d
+    return out
+
+
+class VertexNormals:
+    """Area-weighted unit vertex normals of a fixed triangle topology, fast (a sparse
+    vertex-face incidence product). ``VertexNormals(faces, V)(vertices (V, 3)) -> (V, 3)``."""
+
+    def __init__(self, faces: np.ndarray, num_vertices: int):
+        import scipy.sparse as sp
+
+        T = len(faces)
+        self.faces = np.asarray(faces)
+        self.inc = sp.csr_matrix((np.ones(3 * T), (self.faces.T.ravel(), np.tile(np.arange(T), 3))),
+                                 shape=(num_vertices, T))
+
+    def __call__(self, V: np.ndarray) -> np.ndarray:
+        tri = V[self.faces]
+        fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        n = self.inc @ fn
+        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+
+@dataclass(frozen=True)
+class SynthReport:
+    """min_gap_m: (contacts, N) measured gap of each contact at each sample (NaN where
+    inactive); max_penetration_m: (N,) deepest approximate penetration between the bodies."""
+
+    min_gap_m: np.ndarray
+    max_penetration_m: np.ndarray
+
+
+def synthesize(people: list[Person], nominal: list[Track], contacts: list[Contact],
+               movable: int, check_samples: np.ndarray, passes: int = C.SYNTH_PASSES
+               ) -> tuple[list[Track], SynthReport]:
+    """Solve the contacts and separate the bodies.
+
+    people: the two persons; nominal: their nominal tracks (not modified); movable: the person
+    whose root is pushed away when bodies interpenetrate outside the contacts; check_samples:
+    master samples where gaps and penetration are measured and corrected (the video frames;
+    corrections are smoothed over the samples between them). Returns the final tracks and a
+    report (measured at check_samples, NaN / 0 elsewhere).
+    """
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1):  # tiny dense solves: threads only add overhead
+        return _synthesize(people, nominal, contacts, movable, passes, check_samples)
+
+
+def _near_samples(people: list[Person], tracks: list[Track]) -> np.ndarray:
+    """(N,) bool: samples where the two bodies' joint boxes, grown by constants.FLESH_M (the
+    most flesh around a joint), overlap (a cheap broad phase)."""
+    boxes = []
+    for P, tr in zip(people, tracks, strict=True):
+        t, _ = P.fk(tr.pose, tr.R, tr.T)
+        boxes.append((t.min(1) - C.FLESH_M, t.max(1) + C.FLESH_M))
+    lo = np.maximum(boxes[0][0], boxes[1][0])
+    hi = np.minimum(boxes[0][1], boxes[1][1])
+    return np.all(lo <= hi, axis=1)
+
+
+def _synthesize(people, nominal, contacts, movable, passes, check_samples):
+    tracks = [t.copy() for t in nominal]
+    N = len(tracks[0].T)
+    normals = VertexNormals(people[0].model.faces, people[0].model.num_vertices)
+    push = np.zeros((N, 3))
+    base_T = nominal[movable].T.copy()
+    # contact regions: their vertices are allowed to touch
+    allowed = [np.zeros(people[i].model.num_vertices, bool) for i in range(2)]
+    for c in contacts:
+        allowed[c.who][c.region] = True
+        c.adjust = np.zeros(N)
+    report = None
+    todo = np.ones(N, bool)
+    faces = people[0].model.faces
+    check = np.zeros(N, bool)  # measure at the video frames only (the ground truth's samples)
+    check[check_samples] = True
+    for it in range(passes + 1):
+        tracks[movable].T = base_T + push
+        if todo.any():
+            _solve_contacts(people, tracks, nominal, contacts, active=todo, warm_pass=it > 0)
+        near = _near_samples(people, tracks)
+        near[~check] = False
+        idx = np.flatnonzero(near)
+        gaps = np.full((len(contacts), N), np.nan)
+        pen = np.zeros(N)
+        need = np.zeros((N, 3))
+        verts = skin_all(people, tracks, idx) if len(idx) else None
+        for k, i in enumerate(idx):
+            V = [verts[0][k], verts[1][k]]
+            d = pair_distances(V[0], V[1], faces, normals)
+            for ci, c in enumerate(contacts):
+                if c.weight[i] > 0.05 and c.refine:
+                    g = d[c.who][c.region].min()
+                    if c.anchor_region is not None:
+                        g = min(g, d[1 - c.who][c.anchor_region].min())
+                    gaps[ci, i] = g
+            pen[i] = max(0.0, -min(d[0].min(), d[1].min()))
+            free = min(np.min(d[0][~allowed[0]], initial=np.inf), np.min(d[1][~allowed[1]], initial=np.inf))
+            if -free > C.PENETRATION_TOL_M:
+                # push the movable person away from the other along the horizontal line
+                cm = V[movable].mean(0) - V[1 - movable].mean(0)
+                cm[2] = 0
+                need[i] = cm / np.linalg.norm(cm) * (-free + C.SEPARATION_MARGIN_M)
+        report = SynthReport(gaps, pen)
+        if it == passes:
+            break
+        todo = np.zeros(N, bool)
+        # contact refinement: move each target along its normal by the measured gap
+        for ci, c in enumerate(contacts):
+            g = gaps[ci]
+            ok = np.isfinite(g)
+            if ok.any():
+                # in contact: close the gap; while reaching or letting go: only undo penetration
+                # (the blend moves the effector by weight * correction)
+                full = c.weight > 0.98
+                want = np.where(full, g + C.CONTACT_PRESS_M, np.minimum(g + C.CONTACT_PRESS_M, 0.0))
+                corr = np.interp(np.arange(N), np.flatnonzero(ok), want[ok])
+                corr = corr / np.maximum(c.weight, 0.2) * (c.weight > 0.05)
+                delta = gaussian_filter1d(corr, 1.0) * (c.weight > 0.05)
+                c.adjust = c.adjust - delta
+                todo |= np.abs(delta) > C.REFINE_TOL_M
+        if np.any(need):
+            # a smooth push, held while needed and eased in and out
+            mag = _grow(np.linalg.norm(need, axis=1))
+            env = gaussian_filter1d(_grow(mag), C.SEPARATION_SMOOTH)
+            dirs = need.sum(0)
+            dirs = dirs / max(np.linalg.norm(dirs), 1e-9)
+            push = push + env[:, None] * dirs[None]
+            todo |= env > C.REFINE_TOL_M
+        if not todo.any():
+            break
+    return tracks, report
+
+
+def _grow(mag: np.ndarray) -> np.ndarray:
+    """Dilate a per-sample push magnitude in time (a few samples) so the smoothed push still
+    covers every sample that needed it."""
+    from scipy.ndimage import maximum_filter1d
+
+    return maximum_filter1d(mag, size=2 * C.SEPARATION_SMOOTH + 1)

@@ -1,0 +1,226 @@
+"""What a session contains, decided before anything is computed: subjects, sequences (action,
+who wears the markers, number of frames, text), file layout and the recipe.
+
+The plan depends only on the seed and the options, so the committed preset recipes
+(``recipes/demo.yaml``, ``recipes/bench.yaml``) can be checked against it without generating
+any data.
+
+Layout of a generated session folder ``<out>``::
+
+    recipe.yaml                                   the capture recipe (paths relative to <out>)
+    scans/<subject>.ply                           one scan per subject
+    <group>/camera_parameters/<camera>/<action>.json    CHI3D camera JSON
+    <group>/videos/<camera>/<action>.mp4
+    <group>/mocap/<action>.c3d                    markers of the subject wearing them
+    <group>/interaction_contact_signature.json    contact annotations, keyed by action
+    gt/...                                        ground truth (never read by the pipeline)
+    previews/<group>_<action>_contact.png         contact sheet of the four views
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from studio import constants as C
+
+#: The paper's eight interaction classes: scenario name -> CHI3D action name (without take).
+SCENARIOS = {
+    "grab": "Grab",
+    "handshake": "Handshake",
+    "hit": "Hit",
+    "holding_hands": "HoldingHands",
+    "hug": "Hug",
+    "kick": "Kick",
+    "posing": "Posing",
+    "push": "Push",
+}
+#: Accepted spellings on the command line.
+_ALIASES = {"holding-hands": "holding_hands", "holdinghands": "holding_hands"}
+
+
+@dataclass(frozen=True)
+class Preset:
+    """A named session configuration (the committed recipes)."""
+
+    name: str
+    seed: int
+    frames: int
+    scenarios: tuple[str, ...]
+
+
+PRESETS = {
+    "demo": Preset("demo", seed=3, frames=100, scenarios=("handshake", "hug")),
+    "bench": Preset("bench", seed=11, frames=150, scenarios=tuple(SCENARIOS)),
+}
+DEFAULT_SCENARIOS = ("handshake", "hug", "push", "kick")
+DEFAULT_FRAMES = 100
+
+
+@dataclass(frozen=True)
+class SequencePlan:
+    """One sequence. index: position in the session (seeds its randomness); scenario: key of
+    SCENARIOS; action: CHI3D action name with take (``"Hug 1"``); markers_on / partner:
+    subject ids; frames: video frames; text: one sentence describing the motion."""
+
+    index: int
+    scenario: str
+    group: str
+    action: str
+    markers_on: str
+    partner: str
+    frames: int
+    text: str
+
+    @property
+    def seq_id(self) -> str:
+        return f"{self.group}/{self.action}"
+
+
+@dataclass(frozen=True)
+class SessionPlan:
+    """A whole session. subjects: the two subject ids, in the order of person 0 / person 1 of
+    the generator (the colours of constants.CLOTHING)."""
+
+    session: str
+    seed: int
+    group: str
+    subjects: tuple[str, str]
+    cameras: tuple[str, ...]
+    sequences: tuple[SequencePlan, ...]
+    preset: str | None = None
+    sync_offset_s: float = C.SYNC_OFFSET_S
+    fps: float = C.VIDEO_FPS
+    mocap_hz: float = C.MOCAP_HZ
+
+
+def parse_scenarios(text: str | None) -> tuple[str, ...]:
+    """``"hug,handshake"`` -> ("hug", "handshake"); raises ValueError on an unknown name."""
+    if not text:
+        return DEFAULT_SCENARIOS
+    out = []
+    for s in text.split(","):
+        k = s.strip().lower().replace(" ", "_")
+        k = _ALIASES.get(k, k)
+        if k not in SCENARIOS:
+            raise ValueError(f"--scenarios: unknown scenario {s!r} (known: {', '.join(SCENARIOS)})")
+        out.append(k)
+    return tuple(out)
+
+
+# Colour words of the two people (match constants.CLOTHING).
+_WHO = ("the person in blue", "the person in red")
+_TEXT = {
+    "grab": ["{a} reaches out and grabs {b} by the {limb}.",
+             "{a} grabs the {limb} of {b}, who pulls back a little."],
+    "handshake": ["{a} and {b} step towards each other and shake hands.",
+                  "{a} shakes hands with {b}, holding the grip for a moment."],
+    "hit": ["{a} punches {b} on the {part} and {b} flinches.",
+            "{a} swings a fist at {b} and hits the {part}."],
+    "holding_hands": ["{a} and {b} stand side by side and hold hands.",
+                      "{a} takes the hand of {b} and they hold hands, swinging their arms."],
+    "hug": ["{a} and {b} hug each other, arms around each other's back.",
+            "{a} wraps both arms around {b}, who hugs back."],
+    "kick": ["{a} kicks {b} on the {leg} with the right foot.",
+             "{a} lifts a leg and kicks {b} lightly on the {leg}."],
+    "posing": ["{a} puts an arm around the shoulders of {b} and they pose for a photo.",
+               "{a} and {b} pose together, {a} with an arm over the shoulders of {b}."],
+    "push": ["{a} pushes {b} in the chest with both hands and {b} steps back.",
+             "{a} shoves {b} with both hands; {b} is pushed backwards."],
+}
+
+
+def sentence(scenario: str, actor: int, rng: np.random.Generator) -> str:
+    """One sentence for a scenario; actor: 0 or 1, the person who initiates."""
+    a, b = _WHO[actor], _WHO[1 - actor]
+    t = _TEXT[scenario][int(rng.integers(len(_TEXT[scenario])))]
+    s = t.format(a=a, b=b, limb="forearm", part="shoulder", leg="thigh")
+    return s[0].upper() + s[1:]
+
+
+def make_plan(seed: int, frames: int | None = None, scenarios: tuple[str, ...] | None = None,
+              preset: str | None = None) -> SessionPlan:
+    """The plan of a session. A preset gives defaults for seed-independent options; explicit
+    ``frames`` / ``scenarios`` override it."""
+    p = PRESETS[preset] if preset else None
+    frames = frames or (p.frames if p else DEFAULT_FRAMES)
+    scenarios = scenarios or (p.scenarios if p else DEFAULT_SCENARIOS)
+    if frames < 10:
+        raise ValueError(f"--frames: need at least 10 frames, got {frames}")
+    group = "s01"
+    subjects = (f"{group}a", f"{group}b")
+    takes: dict[str, int] = {}
+    seqs = []
+    for i, sc in enumerate(scenarios):
+        rng = np.random.default_rng([seed, 1000 + i])
+        takes[sc] = takes.get(sc, 0) + 1
+        wearer = i % 2  # as in CHI3D, who wears the markers alternates between sequences
+        actor = int(rng.integers(2))
+        seqs.append(SequencePlan(index=i, scenario=sc, group=group,
+                                 action=f"{SCENARIOS[sc]} {takes[sc]}",
+                                 markers_on=subjects[wearer], partner=subjects[1 - wearer],
+                                 frames=int(frames), text=sentence(sc, actor, rng)))
+    session = f"studio_{preset}" if preset else f"studio_seed{seed}"
+    return SessionPlan(session=session, seed=int(seed), group=group, subjects=subjects,
+                       cameras=C.CAMERA_NAMES, sequences=tuple(seqs), preset=preset)
+
+
+# ------------------------------------------------------------------------------------ layout
+def scan_path(subject: str) -> Path:
+    return Path("scans") / f"{subject}.ply"
+
+
+def camera_path(seq: SequencePlan, cam: str) -> Path:
+    return Path(seq.group) / "camera_parameters" / cam / f"{seq.action}.json"
+
+
+def video_path(seq: SequencePlan, cam: str) -> Path:
+    return Path(seq.group) / "videos" / cam / f"{seq.action}.mp4"
+
+
+def c3d_path(seq: SequencePlan) -> Path:
+    return Path(seq.group) / "mocap" / f"{seq.action}.c3d"
+
+
+def contact_path(seq: SequencePlan) -> Path:
+    return Path(seq.group) / "interaction_contact_signature.json"
+
+
+def gt_path(seq: SequencePlan) -> Path:
+    return Path("gt") / seq.group / f"{seq.action}.npz"
+
+
+def preview_path(seq: SequencePlan) -> Path:
+    return Path("previews") / f"{seq.group}_{seq.action.replace(' ', '_')}_contact.png"
+
+
+def recipe_dict(plan: SessionPlan, prefix: str = "") -> dict:
+    """The recipe (plain dict, YAML-ready) with every path ``prefix + relative path``."""
+
+    def p(x: Path) -> str:
+        return prefix + x.as_posix()
+
+    return {
+        "session": plan.session,
+        "cameras": list(plan.cameras),
+        "subjects": {s: {"scan": p(scan_path(s)), "markerset": "plug-in-gait"}
+                     for s in plan.subjects},
+        "sequences": {
+            seq.seq_id: {
+                "markers_on": seq.markers_on,
+                "partner": seq.partner,
+                "c3d": p(c3d_path(seq)),
+                "videos": {c: p(video_path(seq, c)) for c in plan.cameras},
+                "calibration": {c: p(camera_path(seq, c)) for c in plan.cameras},
+                "contact": p(contact_path(seq)),
+                "text": seq.text,
+                "fps": plan.fps,
+                "mocap": {"sync_offset_s": plan.sync_offset_s},
+            }
+            for seq in plan.sequences
+        },
+        "body_model": {"kind": "anny"},
+        "ground_plane": {"normal": [0.0, 0.0, 1.0], "offset": 0.0},
+        "stages": {},
+    }

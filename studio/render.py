@@ -1,0 +1,169 @@
+"""Offscreen rendering of the two people in the four calibrated views (pyrender, EGL).
+
+pyrender draws an ideal pinhole image; the lens distortion of each ``calib.Camera`` is applied
+afterwards by resampling (``cv2.remap``) a slightly larger pinhole canvas with the exact
+inverse map: output pixel ``uv`` (distorted) shows what the pinhole camera sees at
+``calib.camera.undistort_pixels(cam, uv)``. So a world point projected with
+``calib.camera.project(cam, X)`` lands on the pixel where it is drawn.
+
+Scene: a plain background, a floor quad at ``z = 0`` and one mesh per person with per-vertex
+colours (clothing), Lambert-shaded on the CPU under fixed studio lights and drawn unlit
+(``RenderFlags.FLAT``: Mesa's software rasteriser is 2-3x faster without pyrender's PBR shader). :meth:`Renderer.render_ids` draws the same scene as person ids (-1 for
+floor and background) for tests and masks.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib.camera import Camera, undistort_pixels
+from studio import constants as C
+
+
+@dataclass(frozen=True)
+class PersonMesh:
+    """One person to draw. vertices: (V, 3) world metres; faces: (T, 3) int; colors: (V, 3)
+    uint8 RGB."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    colors: np.ndarray
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(V, 3) area-weighted unit vertex normals of a triangle mesh (V, 3) / (T, 3)."""
+    tri = vertices[faces]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n = np.zeros_like(vertices)
+    for i in range(3):
+        np.add.at(n, faces[:, i], fn)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+
+def shading(normals: np.ndarray) -> np.ndarray:
+    """(V,) Lambert shading factor of unit normals (V, 3) under the studio's fixed lights
+    (constants.LIGHTS: world directions the light travels, intensities) plus ambient light."""
+    s = np.full(len(normals), C.AMBIENT_LIGHT)
+    for d, k in C.LIGHTS:
+        d = np.asarray(d, float) / np.linalg.norm(d)
+        s += k * np.clip(-(normals @ d), 0, None)
+    return s
+
+
+@dataclass(frozen=True)
+class _Warp:
+    """Per camera: where the pinhole canvas sits and the remap tables into the output image."""
+
+    offset: np.ndarray  # (2,) canvas pixel = undistorted pixel + offset
+    map_x: np.ndarray  # (H, W) float32 canvas x of each output pixel
+    map_y: np.ndarray
+
+
+def _warps(cams: list[Camera]) -> tuple[list[_Warp], tuple[int, int]]:
+    warps, lo, hi = [], [], []
+    for cam in cams:
+        u, v = np.meshgrid(np.arange(cam.width, dtype=float), np.arange(cam.height, dtype=float))
+        und = undistort_pixels(cam, np.stack([u, v], -1))
+        if not np.all(np.isfinite(und)):
+            raise ValueError(f"camera {cam.name}: distortion not invertible over the image")
+        mn, mx = und.reshape(-1, 2).min(0), und.reshape(-1, 2).max(0)
+        off = C.RENDER_MARGIN_PX - np.floor(mn)
+        warps.append(_Warp(off, (und[..., 0] + off[0]).astype(np.float32),
+                           (und[..., 1] + off[1]).astype(np.float32)))
+        lo.append(mn)
+        hi.append(mx + off)
+    size = np.ceil(np.max(hi, axis=0)).astype(int) + C.RENDER_MARGIN_PX
+    return warps, (int(size[0]), int(size[1]))
+
+
+def _gl_pose(cam: Camera) -> np.ndarray:
+    """(4, 4) world_from_camera in OpenGL axes (x right, y up, z backwards)."""
+    M = np.eye(4)
+    M[:3, :3] = cam.R.T @ np.diag([1.0, -1.0, -1.0])
+    M[:3, 3] = cam.T
+    return M
+
+
+class Renderer:
+    """Offscreen renderer for a fixed camera rig. Use as a context manager (it owns a GL
+    context). Not thread-safe."""
+
+    def __init__(self, cams: list[Camera]):
+        os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+        import pyrender
+
+        self._pr = pyrender
+        self.cams = list(cams)
+        self._warps, (cw, ch) = _warps(self.cams)
+        self._renderer = pyrender.OffscreenRenderer(cw, ch)
+        self._cam_nodes = []
+        bg = np.array(C.BACKGROUND_RGB + (255,)) / 255.0
+        self.scene = pyrender.Scene(bg_color=bg)
+        for cam, w in zip(self.cams, self._warps, strict=True):
+            pc = pyrender.IntrinsicsCamera(cam.f[0], cam.f[1], cam.c[0] + w.offset[0],
+                                           cam.c[1] + w.offset[1], znear=C.ZNEAR_M, zfar=C.ZFAR_M)
+            self._cam_nodes.append(self.scene.add(pc, pose=_gl_pose(cam)))
+        s = C.FLOOR_HALF_SIZE_M
+        fv = np.array([[-s, -s, 0], [s, -s, 0], [s, s, 0], [-s, s, 0]], float)
+        ff = np.array([[0, 1, 2], [0, 2, 3]])
+        self._floor = self.scene.add(self._mesh(fv, ff, np.tile(C.FLOOR_RGB, (4, 1)), shade=False))
+        self._people: list = []
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.delete()
+            self._renderer = None
+
+    def _mesh(self, vertices, faces, colors, shade=True):
+        pr = self._pr
+        col = np.asarray(colors, np.float32) / 255.0
+        if shade:
+            col = np.clip(col * shading(vertex_normals(np.asarray(vertices, float), faces))[:, None], 0, 1)
+        col = np.concatenate([col, np.ones((len(vertices), 1), np.float32)], 1)
+        prim = pr.Primitive(positions=np.asarray(vertices, np.float32), color_0=col,
+                            indices=np.asarray(faces, np.uint32),
+                            material=pr.MetallicRoughnessMaterial(metallicFactor=0.0))
+        return pr.Mesh([prim])
+
+    def _set_people(self, people: list[PersonMesh]) -> None:
+        for n in self._people:
+            self.scene.remove_node(n)
+        self._people = [self.scene.add(self._mesh(p.vertices, p.faces, p.colors)) for p in people]
+
+    def _each_view(self, flags, warp_interp, seg_node_map=None):
+        import cv2
+
+        out = []
+        kw = {} if seg_node_map is None else {"seg_node_map": seg_node_map}
+        for node, w in zip(self._cam_nodes, self._warps, strict=True):
+            self.scene.main_camera_node = node
+            img = self._renderer.render(self.scene, flags=flags, **kw)
+            img = img[0] if isinstance(img, tuple) else img
+            out.append(cv2.remap(np.ascontiguousarray(img), w.map_x, w.map_y, warp_interp,
+                                 borderMode=cv2.BORDER_REPLICATE))
+        return out
+
+    def render(self, people: list[PersonMesh]) -> list[np.ndarray]:
+        """One RGB frame per camera: list of (H, W, 3) uint8."""
+        import cv2
+
+        self._set_people(people)
+        return self._each_view(self._pr.RenderFlags.FLAT, cv2.INTER_LINEAR)
+
+    def render_ids(self, people: list[PersonMesh]) -> list[np.ndarray]:
+        """Person id per pixel, one (H, W) int8 per camera: i for ``people[i]``, -1 elsewhere."""
+        import cv2
+
+        self._set_people(people)
+        seg = {self._floor: (0, 0, 0)}
+        seg.update({n: (i + 1, 0, 0) for i, n in enumerate(self._people)})
+        views = self._each_view(self._pr.RenderFlags.SEG, cv2.INTER_NEAREST, seg)
+        return [v[..., 0].astype(np.int8) - 1 for v in views]
