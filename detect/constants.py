@@ -19,12 +19,12 @@ HAND_CENTRE_ALONG = 1.2
 
 #: Hand crop from 2D body keypoints (no markers): the hand centre is HAND_ALONG_FOREARM x
 #: the elbow-to-wrist vector past the wrist (forearm ~0.26 m, hand centre ~0.09 m past the
-#: wrist); half-side HAND_BOX_FROM_FOREARM x the forearm (0.14 m / 0.26 m), at least
-#: HAND_BOX_FROM_HEIGHT x the person's box height (0.14 m / ~2 m box incl. margin), and at
-#: least MIN_HAND_BOX_PX / 2.
+#: wrist); half-side HAND_BOX_FROM_FOREARM x the forearm (~0.18 m / 0.26 m), at least
+#: HAND_BOX_FROM_HEIGHT x the person's keypoint box height (~0.16 m / 1.6 m), and at least
+#: MIN_HAND_BOX_PX / 2. Generous: the palm detector needs context around the hand.
 HAND_ALONG_FOREARM = 0.35
-HAND_BOX_FROM_FOREARM = 0.55
-HAND_BOX_FROM_HEIGHT = 0.07
+HAND_BOX_FROM_FOREARM = 0.7
+HAND_BOX_FROM_HEIGHT = 0.1
 MIN_HAND_BOX_PX = 32.0
 
 #: Smallest body crop side (pixels); below it the detector sees too few pixels anyway.

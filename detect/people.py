@@ -224,6 +224,9 @@ def find_people(image: np.ndarray | None, hints: WearerHints, prev_partner_box: 
     if o.hands and mode:
         hb, wr = _partner_hand_boxes(kp[1], o.accept_conf)
         hand_boxes[1] = hb
-        _hands(search, kp[1], hb, wr, det, o, cam, frame, kp[0], radius)
+        # the original image: hands are small and the hand detector returns two per crop, so
+        # the wearer's hand next to the partner's (handshake) is told apart by the wrist
+        # anchor and the rule; painting the wearer out would also paint the touching hand.
+        _hands(image, kp[1], hb, wr, det, o, cam, frame, kp[0], radius)
     pbox = _person_box(kp[1], o.accept_conf, o.body_margin) if mode else np.full(4, np.nan)
     return ViewPeople(kp, boxes, hand_boxes, pbox, retried, mode)
