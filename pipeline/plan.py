@@ -12,6 +12,7 @@ compare them with the stored manifests without running anything.
 """
 from __future__ import annotations
 
+import ast
 import dataclasses
 import hashlib
 import inspect
@@ -109,8 +110,37 @@ def check_registry(reg: Registry) -> list[Stage]:
     return order
 
 
+def _local_imports(path: Path, root: Path, pkg: str) -> list[Path]:
+    """Source files under ``root`` that the module at ``path`` imports (absolute or relative),
+    including the packages' ``__init__.py`` on the way. Pure AST: nothing is imported."""
+    tree = ast.parse(path.read_bytes(), filename=str(path))
+    names: list[str] = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names += [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = pkg.split(".")[: len(pkg.split(".")) - node.level + 1] if pkg else []
+                mod = ".".join(base + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            names.append(mod)
+            names += [f"{mod}.{a.name}" for a in node.names if a.name != "*"]
+    found: list[Path] = []
+    for name in names:
+        parts = [p for p in name.split(".") if p]
+        for i in range(1, len(parts) + 1):
+            d = root.joinpath(*parts[:i])
+            for cand in (d.with_suffix(".py"), d / "__init__.py"):
+                if cand.is_file():
+                    found.append(cand)
+    return found
+
+
 def source_hash(stage: Stage) -> str:
-    """sha256 of the source file of the module defining ``stage.func`` ("" for placeholders).
+    """sha256 over the source of the module defining ``stage.func`` and of every module of the
+    same source tree that it imports, transitively ("" for placeholders). A change in a helper
+    package the stage uses therefore invalidates the stage, with no version bump needed.
     A function whose source can't be found can't be keyed: PlanError."""
     if stage.func is None:
         return ""
@@ -120,7 +150,28 @@ def source_hash(stage: Stage) -> str:
         src = None
     if src is None or not Path(src).is_file():
         raise PlanError(f"stage {stage.name}: can't find the source of {stage.func!r} to hash it")
-    return hashlib.sha256(Path(src).read_bytes()).hexdigest()
+    modname = getattr(stage.func, "__module__", "") or ""
+    start = Path(src).resolve()
+    depth = max(len(modname.split(".")) - 1, 0) if start.name != "__init__.py" else len(modname.split("."))
+    root = start.parents[depth] if modname else start.parent
+    seen: dict[Path, None] = {}
+    todo = [start]
+    while todo:
+        f = todo.pop()
+        if f in seen:
+            continue
+        seen[f] = None
+        rel = f.relative_to(root).with_suffix("")
+        parts = list(rel.parts)
+        pkg = ".".join(parts[:-1] if parts[-1] != "__init__" else parts[:-1])
+        try:
+            todo += [p.resolve() for p in _local_imports(f, root, pkg)]
+        except SyntaxError as e:
+            raise PlanError(f"stage {stage.name}: {f}: can't parse to hash it: {e}") from None
+    h = hashlib.sha256()
+    for f in sorted(seen):
+        h.update(str(f.relative_to(root)).encode() + b"\0" + f.read_bytes() + b"\0")
+    return h.hexdigest()
 
 
 def validate_params(stage: Stage, raw: dict, where: str) -> tuple[Any, Any]:

@@ -27,7 +27,8 @@ class Stage:
     per : granularity of one unit of work (a subject, a sequence, the session).
     upstream : names of stages whose artifacts this one reads.
     version : bump when the stage's behaviour changes in a way the source hash can't see
-        (the engine also hashes the module source of ``func``).
+        (the engine hashes the source of ``func``'s module and of the local modules it
+        imports, transitively).
     params : a class (frozen dataclass or pydantic model) that validates the recipe section;
         unknown keys are errors. ``None``: the stage takes no parameters.
     raw_inputs : ``raw_inputs(recipe, unit) -> {name: Path}``: raw files read from the recipe;
