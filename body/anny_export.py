@@ -19,8 +19,8 @@ rest orientations) is *affine* in a vector ``c`` of blendshape coefficients:
 
 6 phenotypes are too coarse for real people (DESIGN.md: ~9 mm left on a real capture); the
 sliders fix that but enter piecewise-linearly. Fitting wants a LINEAR basis, so we export
-``betas``: a PCA of ``c`` under a sampling distribution (phenotypes ~ U[0, 1], sliders
-~ U[-1, 1]), whitened so each beta has unit variance, and ordered by vertex variance. All
+``betas``: a PCA of ``c`` under a sampling distribution (phenotypes ~ U[0, 1] but age
+~ U[0.4, 1] (adults), sliders ~ U[-1, 1]), whitened so each beta has unit variance, and ordered by vertex variance. All
 ``K = 384`` components are kept, so the basis is exact: ``betas_from_anny(phenotypes,
 local_changes)`` maps any anny body to betas with no loss (our forward then equals anny's to
 round-off), while a fit uses the first ``S`` betas (``num_betas_1mm`` in the file is the smallest
@@ -63,6 +63,7 @@ BODY_SLIDER_EXCLUDE = (
 PCA_SAMPLES = 6000
 PCA_HELDOUT = 100
 PCA_SEED = 20250603
+ADULT_AGE_MIN = 0.4
 ANNY_LOCAL_CHANGES = "default"  # anny's preset: every slider but the nipple ones
 
 
@@ -114,10 +115,15 @@ def phenotype_coeffs_np(phen: np.ndarray, z: dict) -> np.ndarray:
 
 
 def sample_coeffs(z: dict, n: int, rng: np.random.Generator) -> np.ndarray:
-    """Sample c under the PCA distribution: phenotypes U[0,1], body sliders U[-1,1]. -> (n, K)."""
+    """Sample c under the PCA distribution: phenotypes U[0,1] (age U[0.4, 1]), body sliders
+    U[-1,1]. -> (n, K)."""
     from body.anny import coefficients
 
-    phen = rng.uniform(0.0, 1.0, size=(n, len(z["pheno_labels"])))
+    labels = [str(s) for s in z["pheno_labels"]]
+    phen = rng.uniform(0.0, 1.0, size=(n, len(labels)))
+    # adults (the people a mocap lab records): age in [0.4, 1] (anny: 1/3 child, 2/3 young, 1 old),
+    # so betas = 0 is an average adult. Children stay reachable (the basis is exact).
+    phen[:, labels.index("age")] = rng.uniform(ADULT_AGE_MIN, 1.0, size=n)
     local = rng.uniform(-1.0, 1.0, size=(n, len(z["local_change_labels"])))
     return coefficients(phen, local, z)
 
