@@ -175,6 +175,10 @@ def find_people(image: np.ndarray | None, hints: WearerHints, prev_partner_box: 
     kp = np.zeros((2, layout.N, 3), np.float32)
     boxes = np.full((2, 4), np.nan)
     hand_boxes = np.full((2, 2, 4), np.nan)
+    if not np.all(np.isfinite(hints.box)):
+        # No markers in this view and frame: nothing tells the two people apart (the rule
+        # needs the wearer's keypoints), so neither is reported rather than risk a swap.
+        return ViewPeople(kp, boxes, hand_boxes, np.full(4, np.nan), False, 0)
     boxes[0] = hints.box
 
     # -- person 0: the marker wearer

@@ -255,3 +255,15 @@ def test_precomputed_candidates_without_pixels():
     others = np.delete(np.arange(layout.N), k)
     np.testing.assert_allclose(r.kp[1, others], partner[others], atol=1e-4)
     assert r.partner_mode == 2
+
+
+def test_no_markers_no_people():
+    """Without the wearer's markers in a view nothing tells the two apart: report neither."""
+    shape = (480, 640)
+    truth = np.stack([stick((220, 240)), stick((470, 250), 0.8)])[None, None]
+    img = draw(shape, truth[0, 0])
+    h = hints_for(truth[0, 0, 0])
+    h = WearerHints(np.full(4, np.nan), h.hand_boxes * np.nan, h.wrists * np.nan,
+                    h.anchors * np.nan, h.markers * np.nan)
+    r = find_people(img, h, np.array([400.0, 100, 560, 400]), Painted(truth, (0,)))
+    assert not r.kp[..., 2].any() and r.partner_mode == 0
