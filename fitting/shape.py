@@ -329,15 +329,19 @@ def fit_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | None,
 @dataclass(frozen=True)
 class PlacementOptions:
     """rounds: alternations; slide_sd_m / offset_sd_m: prior spread of the placement around
-    the template (tangential / along the normal), metres; pose_iters: LM iterations per pose;
-    num_betas, beta_weight: for the marker-based shape (no scan)."""
+    the template (tangential / along the normal), metres; data_sd_m: expected marker error
+    (noise plus model error) that weighs the data against that prior; pose_iters: LM iterations per pose;
+    num_betas, beta_weight, beta_steps: for the marker-based shape (no scan): coefficients,
+    prior weight, Gauss-Newton steps per round."""
 
     rounds: int = 4
     slide_sd_m: float = 0.02
     offset_sd_m: float = 0.005
+    data_sd_m: float = 0.002
     pose_iters: int = 30
     num_betas: int = 20
     beta_weight: float = 1e-5
+    beta_steps: int = 3
 
 
 def _solve_poses(solver, obs, vis, X=None):
@@ -378,8 +382,8 @@ def _update_placement(model, rest, skel, u, pl: Placement, X, obs, vis, opts: Pl
                 o = skel.owner[j]
                 L += Wm[m, j] * G[o] @ A[j]
                 c += Wm[m, j] * (G[o] @ (s[j] - A[j] @ h[j]) + t[o])
-            rows_A.append(L)
-            rows_b.append(obs[f, m] - c)
+            rows_A.append(L / opts.data_sd_m)
+            rows_b.append((obs[f, m] - c) / opts.data_sd_m)
         # prior: tangential slide ~ slide_sd, normal offset ~ offset_sd around the template
         P = np.eye(3) - np.outer(n0[m], n0[m])
         prior = P / opts.slide_sd_m + np.outer(n0[m], n0[m]) / opts.offset_sd_m
@@ -446,7 +450,8 @@ def refine_placement(model: BodyModel, betas: np.ndarray, pl: Placement, obs: np
         X = _solve_poses(solver, obs, vis, X)
         pl = _update_placement(model, rest, skel, u, pl, X, obs, vis, opts)
         if fit_betas:
-            betas = _beta_step(model, skel, betas, pl, X, obs, vis, opts)
+            for _ in range(opts.beta_steps):
+                betas = _beta_step(model, skel, betas, pl, X, obs, vis, opts)
         if log:
             log(f"placement round {k + 1}/{opts.rounds}")
     rest = rest_state(model, betas)

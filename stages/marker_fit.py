@@ -78,7 +78,12 @@ def template_placement(model, markerset: str):
     from body import markers as bm
     from fitting.shape import Placement
 
-    ms = bm.load_markerset(markerset, model)
+    if markerset == "plug-in-gait":
+        ms = bm.plug_in_gait(model)
+    elif markerset.endswith(".json"):
+        ms = bm.load_json(markerset, num_faces=len(model.faces))
+    else:
+        raise InputError(markerset, "markerset", "expected 'plug-in-gait' or a marker-set .json")
     return Placement(tuple(ms.names), np.asarray(ms.faces, np.int64), np.asarray(ms.bary, float),
                      np.asarray(ms.offsets, float))
 
