@@ -75,9 +75,12 @@ def bind_rotations(model: BodyModel, betas: np.ndarray) -> np.ndarray | None:
 def rest_state(model: BodyModel, betas) -> RestState:
     """Rest mesh, joints, bind rotations and reference offsets for betas (S',) or (B, S')."""
     b = pad_betas(model, betas)
-    sd = model.shapedirs
-    verts = model.v_template[None] + np.einsum("vds,bs->bvd", sd, b.astype(sd.dtype)).astype(float)
-    joints = model.joint_template[None] + np.einsum("jds,bs->bjd", model.joint_shapedirs, b)
+    V, J, S = model.num_vertices, model.num_joints, model.num_betas
+    n = int(np.max(np.flatnonzero(np.any(b != 0, axis=0)), initial=-1)) + 1  # skip trailing 0s
+    sd = model.shapedirs.reshape(V * 3, S)
+    verts = model.v_template[None] + (sd[:, :n] @ b[:, :n].T).T.reshape(-1, V, 3)
+    jsd = model.joint_shapedirs.reshape(J * 3, S)
+    joints = model.joint_template[None] + (jsd[:, :n] @ b[:, :n].T).T.reshape(-1, J, 3)
     A = bind_rotations(model, b)
     par = model.parents
     diff = joints - joints[:, np.maximum(par, 0)]
@@ -113,7 +116,7 @@ def forward_kinematics(model: BodyModel, rest: RestState, body_pose, global_orie
     G[:, 0] = Rg @ D[:, 0]
     t[:, 0] = off[:, 0] + T
     par = model.parents
-    for idx in kinematic_levels(par):
+    for idx in model.levels:
         p = par[idx]
         G[:, idx] = G[:, p] @ D[:, idx]
         t[:, idx] = t[:, p] + np.einsum("fjab,fjb->fja", G[:, p], off[:, idx])

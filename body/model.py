@@ -85,6 +85,14 @@ class BodyModel:
         object.__setattr__(self, "extras", MappingProxyType(ex))
         if not self.fit_joints:
             object.__setattr__(self, "fit_joints", tuple(range(len(self.joint_names))))
+        from body.lbs import kinematic_levels
+
+        object.__setattr__(self, "_levels", tuple(kinematic_levels(np.asarray(self.parents))))
+
+    @property
+    def levels(self) -> tuple[np.ndarray, ...]:
+        """Joints grouped by depth (root excluded), for level-by-level kinematics."""
+        return self._levels
 
     @property
     def num_vertices(self) -> int:
