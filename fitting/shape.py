@@ -342,6 +342,7 @@ class PlacementOptions:
     num_betas: int = 20
     beta_weight: float = 1e-5
     beta_steps: int = 3
+    beta_sigma_m: float = 0.03
 
 
 def _solve_poses(solver, obs, vis, X=None):
@@ -409,12 +410,18 @@ def _beta_step(model, skel, betas, pl, X, obs, vis, opts):
     ok = (vis > 0).reshape(-1)
     target = obs.reshape(-1, 3)
     m0 = markers(betas)
-    r = (m0 - target)[ok].reshape(-1)
+    e0 = (m0 - target)[ok]
+    r = e0.reshape(-1)
+    # Geman-McClure IRLS weights per marker: poses solved with a wrong shape leave outliers
+    sw = np.repeat(np.sqrt(robust.weight(np.sum(e0 * e0, axis=1), "geman_mcclure",
+                                         opts.beta_sigma_m)), 3)
     J = np.zeros((len(r), S))
     for k in range(S):
         e = np.zeros(S)
         e[k] = 1e-4
         J[:, k] = ((markers(betas + e) - target)[ok].reshape(-1) - r) / 1e-4
+    J *= sw[:, None]
+    r = r * sw
     w = opts.beta_weight * len(r)
     H = J.T @ J + w * np.eye(S)
     return betas - np.linalg.solve(H + 1e-3 * np.diag(np.diag(H)), J.T @ r + w * betas)
