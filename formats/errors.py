@@ -38,7 +38,7 @@ def expect_shape(x, spec: str, name: str, file: str | Path = "<memory>", frame: 
     if a.ndim != len(dims):
         raise InputError(file, name, f"expected shape ({spec}), got {a.shape}", frame)
     seen: dict[str, int] = {}
-    for d, n in zip(dims, a.shape):
+    for d, n in zip(dims, a.shape, strict=True):
         if d.isdigit():
             if int(d) != n:
                 raise InputError(file, name, f"expected shape ({spec}), got {a.shape}", frame)
