@@ -87,3 +87,41 @@ def test_scan_fit_recovers_shape(anny):
     assert np.median(fit.scan_to_model_mm) < 2.5  # 2 mm noise: median |n| ~ 1.35 mm
     assert posed.mean() < 10.0, posed.mean()  # same vertices, in the scan pose and frame
     assert v2v.mean() < 15.0, v2v.mean()  # neutral pose: shape vs pose trade-off left
+
+
+@pytest.mark.slow
+def test_shape_fit_stage_with_scan_and_captures(tmp_path, anny):
+    """The stage adapter: a scan and one Vicon-like capture -> shape.npz and a mm report;
+    a recipe pointing at a missing scan fails naming the file."""
+    import json
+    from types import SimpleNamespace
+
+    from test_marker_fit_stage import FakeWriter, _session
+
+    from body.lbs import rest_state
+    from stages.shape_fit import Options, run
+    from studio.scan import sample_scan
+
+    rng = np.random.default_rng(8)
+    recipe, raw, art, _, truth = _session(tmp_path, anny, rng, F=30, swap=False)
+    betas = art.arrays("shape")["betas"]
+    v = rest_state(anny, betas).vertices[0]
+    pts, nrm = sample_scan(v - [0, 0, v[:, 2].min()], np.asarray(anny.faces), np.zeros((0, 3)),
+                           rng)
+    scan = _write_ply(tmp_path / "s1.ply", pts, nrm)
+    recipe.subjects["s1"].markerset = "plug-in-gait"
+    out = FakeWriter(tmp_path / "shape_out")
+    ctx = SimpleNamespace(stage="shape_fit", unit="s1", recipe=recipe,
+                          params=Options(num_betas=30, scan_iters=10, frames=5, rounds=2),
+                          inputs={}, raw={"scan": scan, "c3d:g/take": raw["c3d"]}, out=out,
+                          progress=lambda it, **k: it, log=lambda s: None)
+    run(ctx)
+    rep = json.loads((out.dir / "report.json").read_text())
+    sh = dict(np.load(out.dir / "shape.npz"))
+    assert rep["shape_source"] == "scan" and rep["scan_to_model_mm"]["median"] < 6.0
+    assert len(rep["placement_frames"]) == 5
+    assert rep["placement_residual_mm"]["median"] < 5.0
+    assert sh["betas"].shape == (30,) and sh["marker_face"].shape == (39,)
+    ctx.raw = {"scan": tmp_path / "missing.ply"}
+    with pytest.raises(InputError, match=r"missing\.ply: scan: file not found"):
+        run(ctx)
