@@ -206,9 +206,25 @@ def restrict(H: np.ndarray, support) -> tuple[np.ndarray, float]:
 
 def regressed_coeffs(model: BodyModel, rest: RestState, skel: FitSkeleton,
                      regressor) -> np.ndarray:
-    """Slot coefficients (K, Q, 4) of points regressed linearly from vertices,
-    ``regressor (K, V)`` (sparse or dense): the same combination of the vertices' slots."""
+    """Slot coefficients (K, Q, 4) of points regressed linearly from the posed vertices, or
+    from the stacked posed vertices and joints: ``regressor (K, V)`` or ``(K, V + J)``
+    (body.joints.regressor), sparse or dense. A joint j is ``t_j = t_q + G_q s_j`` with q its
+    owner (fitting/skinned.py), i.e. the slot ``[s_j | 1]`` on q."""
     R = sp.csr_matrix(regressor)
-    vids = np.unique(R.indices)
-    Hv = vertex_coeffs(model, rest, skel, model.weights[vids], rest.vertices[0, vids])
-    return (R[:, vids] @ Hv.reshape(len(vids), -1)).reshape(R.shape[0], len(skel.joints), 4)
+    V, J = model.num_vertices, model.num_joints
+    if R.shape[1] not in (V, V + J):
+        raise ValueError(f"regressor: expected {V} or {V + J} columns, got {R.shape[1]}")
+    Q = len(skel.joints)
+    Rv = R[:, :V].tocsr()
+    vids = np.unique(Rv.indices)
+    H = np.zeros((R.shape[0], Q, 4))
+    if len(vids):
+        Hv = vertex_coeffs(model, rest, skel, model.weights[vids], rest.vertices[0, vids])
+        H += (Rv[:, vids] @ Hv.reshape(len(vids), -1)).reshape(R.shape[0], Q, 4)
+    if R.shape[1] == V + J:
+        _, s = reduced_offsets(model, rest, skel)
+        Hj = np.zeros((J, Q, 4))
+        Hj[np.arange(J), skel.owner, :3] = s
+        Hj[np.arange(J), skel.owner, 3] = 1.0
+        H += (R[:, V:] @ Hj.reshape(J, -1)).reshape(R.shape[0], Q, 4)
+    return H

@@ -132,3 +132,21 @@ def test_support_restriction_is_exact_when_it_covers_the_weights():
         blk = flat2[o:o + 4 * len(s)].reshape(len(s), 4)
         assert np.isclose(blk[:, 3].sum(), 1.0)
         o += 4 * len(s)
+
+
+def test_regressed_coeffs_match_regressing_the_full_forward():
+    rng = np.random.default_rng(3)
+    model = random_model(rng)
+    betas = rng.normal(0, 1, 4)
+    rest = rest_state(model, betas)
+    skel = skinned.fit_skeleton(model)
+    u, _ = skinned.reduced_offsets(model, rest, skel)
+    V, J = model.num_vertices, model.num_joints
+    R = sp.random(5, V + J, density=0.05, random_state=3, format="csr")
+    H = skinned.regressed_coeffs(model, rest, skel, R)
+    x = rng.normal(0, 0.5, skel.n)
+    pose = np.zeros((1, J, 3))
+    pose[0, skel.joints[1:]] = x[6:].reshape(-1, 3)
+    out = forward(model, betas, pose, rodrigues(x[:3])[None], x[3:6][None], rest=rest)
+    want = R @ np.concatenate([out.vertices[0], out.joints[0]])
+    np.testing.assert_allclose(skinned.slot_positions_np(skel, u, H, x), want, atol=1e-12)
