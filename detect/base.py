@@ -11,6 +11,9 @@ sense) and everything else 0.
 """
 from __future__ import annotations
 
+import contextlib
+import os
+import sys
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
@@ -82,3 +85,26 @@ class DetectorFactory(Protocol):
     """A picklable recipe for a detector: each worker process builds its own instance."""
 
     def build(self) -> Detector: ...
+
+
+@contextlib.contextmanager
+def quiet_native_logs():
+    """Send file descriptor 2 (native stderr) to /dev/null inside the block. Python-level
+    exceptions still propagate; only C++ logging is lost."""
+    try:
+        sys.stderr.flush()
+    except (AttributeError, ValueError):
+        pass
+    saved = os.dup(2)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        yield
+    finally:
+        try:
+            sys.stderr.flush()
+        except (AttributeError, ValueError):
+            pass
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)

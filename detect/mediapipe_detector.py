@@ -10,45 +10,20 @@
   the person's right hand in our camera images. :func:`hand_side` does the flip.
 - Confidence: pose keypoints use the landmark's ``visibility``; hand keypoints all get the
   handedness score (the legacy API exposes no per-landmark confidence).
-- The native code logs to stderr (TFLite, absl); :func:`quiet_native_logs` silences it around
-  graph construction and every call.
+- The native code logs to stderr (TFLite, absl); :func:`detect.base.quiet_native_logs`
+  silences it around graph construction and every call (and around whole chunks in
+  :mod:`detect.run`, since some lines come from graph threads after a call returns).
 """
 from __future__ import annotations
 
-import contextlib
-import os
-import sys
 from dataclasses import dataclass
 
 import numpy as np
 
 from detect import layout
-from detect.base import Detections, Kind
+from detect.base import Detections, Kind, quiet_native_logs
 from detect.constants import N_KP
 from detect.crops import crop_to_image, crop_window
-
-
-@contextlib.contextmanager
-def quiet_native_logs():
-    """Send file descriptor 2 (native stderr) to /dev/null inside the block. Python-level
-    exceptions still propagate; only C++ logging is lost."""
-    try:
-        sys.stderr.flush()
-    except (AttributeError, ValueError):
-        pass
-    saved = os.dup(2)
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, 2)
-        yield
-    finally:
-        try:
-            sys.stderr.flush()
-        except (AttributeError, ValueError):
-            pass
-        os.dup2(saved, 2)
-        os.close(saved)
-        os.close(devnull)
 
 
 def hand_side(label: str) -> int:

@@ -4,8 +4,9 @@ paper's rule.
 The marker wearer (person 0): body from a tight crop around its projected markers
 (:class:`detect.hints.WearerHints`), hands from crops around its projected hand markers.
 The detection is checked against where the markers put some keypoints; if the detector
-locked onto the partner standing in the crop (hugs), the crop is retried with everything far
-from the wearer's markers painted out.
+locked onto the partner standing in the crop (hugs, or a partner nearer the camera), the crop
+is retried "isolated": everything far from the wearer's markers painted out. The plain crop is
+tried first because painting can clip the wearer's extremities.
 
 The partner (person 1): the paper runs a multi-person detector on the whole image and, per
 keypoint type, drops candidates close to the wearer's keypoint and keeps the most confident
@@ -73,7 +74,8 @@ class ViewPeople:
     boxes : (2, 4) the body crops used (partner: the search box, or the whole image).
     hand_boxes : (2, 2, 4) hand crops (person, side).
     partner_box : (4,) the partner's keypoint box + margin (the next frame's search box).
-    wearer_retry : the first wearer detection failed the marker check and was retried.
+    wearer_retry : the wearer's keypoints come from its isolated crop (the plain crop's
+        detection failed the marker check: the partner stood in it).
     partner_mode : 0 not found, 1 found by tracking, 2 found over the whole image.
     """
 
@@ -99,11 +101,11 @@ def _person_box(kp: np.ndarray, conf: float, margin: float) -> np.ndarray:
                       min_side=K.MIN_BODY_BOX_PX, square=True)
 
 
-def _find_wearer(image, hints: WearerHints, det: Detector, o: PeopleOptions, cam: int, frame: int):
-    """(kp (65, 3), retried)."""
+def _find_wearer(image, hints: WearerHints, det: Detector, o: PeopleOptions, cam: int, frame: int,
+                 isolated_first: bool):
+    """(kp (65, 3), isolated): the wearer's body keypoints, and whether they came from the
+    crop with everything far from its markers painted out ("isolated")."""
     kp = np.zeros((layout.N, 3), np.float32)
-    if not np.all(np.isfinite(hints.box)):
-        return kp, False
     h = _height(hints.box)
     tol = o.anchor_frac * h
 
@@ -117,20 +119,31 @@ def _find_wearer(image, hints: WearerHints, det: Detector, o: PeopleOptions, cam
         i = int(np.argmax(box_support(cands.kp, hints.box)))
         return cands.kp[i], np.nan  # no anchors to check against: accept
 
-    cand, err = best(det.detect(image, kind="body", box=hints.box, cam=cam, frame=frame))
-    retried = False
-    if det.needs_pixels and (cand is None or (np.isfinite(err) and err > tol)):
-        # Keep only the neighbourhood of the wearer's markers: the partner in the crop goes.
-        near = silhouette_mask(image.shape[:2], np.zeros((layout.N, 3)), layout.EDGES,
-                               2.5 * o.mask_radius_frac * h, points=hints.markers)
-        cand2, err2 = best(det.detect(paint_out(image, ~near), kind="body", box=hints.box,
-                                      cam=cam, frame=frame))
-        retried = True
-        if cand2 is not None and (cand is None or not err2 > err):
-            cand, err = cand2, err2
+    def attempt(isolated: bool):
+        img = image
+        if isolated:
+            # Keep only the neighbourhood of the wearer's markers: the partner in the crop goes.
+            near = silhouette_mask(image.shape[:2], np.zeros((layout.N, 3)), layout.EDGES,
+                                   2.5 * o.mask_radius_frac * h, points=hints.markers)
+            img = paint_out(image, ~near)
+        return best(det.detect(img, kind="body", box=hints.box, cam=cam, frame=frame))
+
+    def good(err):
+        return not (np.isfinite(err) and err > tol)
+
+    order = (True, False) if isolated_first else (False, True)
+    if not det.needs_pixels:
+        order = (False,)
+    cand, err, used = None, np.inf, False
+    for isolated in order:
+        c, e = attempt(isolated)
+        if c is not None and (cand is None or not e > err):
+            cand, err, used = c, e, isolated
+        if c is not None and good(e):
+            break
     if cand is not None:
         kp[layout.BODY] = cand[layout.BODY]
-    return kp, retried
+    return kp, used
 
 
 def _hands(image, person_kp: np.ndarray, boxes: np.ndarray, anchors: np.ndarray, det: Detector,
@@ -165,12 +178,14 @@ def _partner_hand_boxes(kp: np.ndarray, conf: float) -> tuple[np.ndarray, np.nda
 
 def find_people(image: np.ndarray | None, hints: WearerHints, prev_partner_box: np.ndarray | None,
                 det: Detector, o: PeopleOptions = PeopleOptions(), cam: int = 0,
-                frame: int = 0) -> ViewPeople:
+                frame: int = 0, wearer_isolated_first: bool = False) -> ViewPeople:
     """Both people in one view.
 
-    image : (H, W, 3) uint8 RGB (None for detectors that don't need pixels; then H, W come
-        from nowhere and the whole-image box is NaN). hints : one view's
-        :meth:`WearerHints.view`. prev_partner_box : (4,) or None.
+    image : (H, W, 3) uint8 RGB (None for detectors that don't need pixels; then the
+        whole-image box is NaN). hints : one view's :meth:`WearerHints.view`.
+    prev_partner_box : (4,) or None. wearer_isolated_first : try the wearer's isolated crop
+        first (it was needed in this view in the previous frame: saves a detection per frame
+        while the partner stands in the wearer's crop).
     """
     kp = np.zeros((2, layout.N, 3), np.float32)
     boxes = np.full((2, 4), np.nan)
@@ -182,7 +197,7 @@ def find_people(image: np.ndarray | None, hints: WearerHints, prev_partner_box: 
     boxes[0] = hints.box
 
     # -- person 0: the marker wearer
-    kp[0], retried = _find_wearer(image, hints, det, o, cam, frame)
+    kp[0], isolated = _find_wearer(image, hints, det, o, cam, frame, wearer_isolated_first)
     hw = _height(hints.box)
     radius = o.near_frac * hw if np.isfinite(hw) else 0.0
     if o.hands:
@@ -233,4 +248,4 @@ def find_people(image: np.ndarray | None, hints: WearerHints, prev_partner_box: 
         # anchor and the rule; painting the wearer out would also paint the touching hand.
         _hands(image, kp[1], hb, wr, det, o, cam, frame, kp[0], radius)
     pbox = _person_box(kp[1], o.accept_conf, o.body_margin) if mode else np.full(4, np.nan)
-    return ViewPeople(kp, boxes, hand_boxes, pbox, retried, mode)
+    return ViewPeople(kp, boxes, hand_boxes, pbox, isolated, mode)

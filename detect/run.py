@@ -17,7 +17,7 @@ from typing import Any, Callable, Protocol
 import numpy as np
 
 from detect import layout
-from detect.base import DetectorFactory
+from detect.base import DetectorFactory, quiet_native_logs
 from detect.hints import WearerHints
 from detect.people import PeopleOptions, find_people
 
@@ -76,6 +76,11 @@ class SequenceKeypoints:
 def _run_chunk(source: FrameSource, factory: DetectorFactory, hints: WearerHints,
                frames: np.ndarray, n_cam: int, opts: PeopleOptions) -> tuple[dict[str, np.ndarray], float]:
     """Detect one chunk of frames (in a worker). hints cover exactly ``frames``."""
+    with quiet_native_logs():  # detector threads may log after a call has returned
+        return _run_chunk_loud(source, factory, hints, frames, n_cam, opts)
+
+
+def _run_chunk_loud(source, factory, hints, frames, n_cam, opts):
     t0 = time.process_time()
     det = factory.build()
     reader = source.open() if det.needs_pixels else None
@@ -87,10 +92,13 @@ def _run_chunk(source: FrameSource, factory: DetectorFactory, hints: WearerHints
     mode = np.zeros((n_cam, n), np.int8)
     try:
         prev = [None] * n_cam
+        isolated = [False] * n_cam
         for i, fr in enumerate(frames):
             for c in range(n_cam):
                 img = reader.read(c, int(fr)) if reader is not None else None
-                r = find_people(img, hints.view(c, i), prev[c], det, opts, cam=c, frame=int(fr))
+                r = find_people(img, hints.view(c, i), prev[c], det, opts, cam=c, frame=int(fr),
+                                wearer_isolated_first=isolated[c])
+                isolated[c] = r.wearer_retry
                 kp[c, i], boxes[c, i], hand_boxes[c, i] = r.kp, r.boxes, r.hand_boxes
                 retry[c, i], mode[c, i] = r.wearer_retry, r.partner_mode
                 prev[c] = r.partner_box if r.partner_mode else None
@@ -100,6 +108,17 @@ def _run_chunk(source: FrameSource, factory: DetectorFactory, hints: WearerHints
         det.close()
     out = dict(kp=kp, boxes=boxes, hand_boxes=hand_boxes, wearer_retry=retry, partner_mode=mode)
     return out, time.process_time() - t0
+
+
+def _silence_native_stderr() -> None:
+    """Worker initializer: native stderr (fd 2) to /dev/null for the worker's lifetime (the
+    detector's graph threads log at any time). Errors still reach the parent: exceptions are
+    pickled back with their tracebacks."""
+    import os
+
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 2)
+    os.close(devnull)
 
 
 def chunks(n: int, chunk: int) -> list[slice]:
@@ -136,7 +155,8 @@ def detect_sequence(source: FrameSource, factory: DetectorFactory, hints: Wearer
             results[j] = _run_chunk(source, factory, hints.frames(sl), frames[sl], n_cam, opts)
     else:
         ctx = mp.get_context("spawn")
-        with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
+                                    initializer=_silence_native_stderr) as pool:
             futs = {pool.submit(_run_chunk, source, factory, hints.frames(sl), frames[sl], n_cam,
                                 opts): j for j, sl in enumerate(parts)}
             for fut in progress(cf.as_completed(futs), total=len(futs), desc="keypoints"):
@@ -206,7 +226,7 @@ class _VideoReader:
 
             raise InputError(self.paths[cam], "frames", "could not decode", frame=int(frame))
         self.pos[cam] = frame + 1
-        return np.ascontiguousarray(bgr[..., ::-1])
+        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
     def close(self) -> None:
         for cap in self.caps:

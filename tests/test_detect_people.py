@@ -180,6 +180,21 @@ def test_partner_standing_in_the_wearer_crop_is_caught_by_the_marker_check():
     okp = r.kp[1, layout.BODY, 2] > 0
     assert okp.sum() >= 5
     np.testing.assert_allclose(r.kp[1, layout.BODY][okp, :2], partner[layout.BODY][okp, :2])
+    # next frame, isolated crop first (as the chunk loop asks after a retry): one body call
+    # for the wearer instead of two, same keypoints
+    calls = []
+
+    class Counting:
+        needs_pixels = True
+
+        def detect(self, image, *, kind, box=None, cam=0, frame=0):
+            calls.append((kind, None if box is None else tuple(np.round(box, 1))))
+            return det.detect(image, kind=kind, box=box, cam=cam, frame=frame)
+
+    r2 = find_people(img, h, None, Counting(), wearer_isolated_first=True)
+    wearer_calls = [c for c in calls if c[0] == "body" and c[1] == tuple(np.round(h.box, 1))]
+    assert len(wearer_calls) == 1 and r2.wearer_retry
+    np.testing.assert_array_equal(r2.kp[0], r.kp[0])
 
 
 def test_multi_person_candidates_go_through_the_rule():

@@ -1,0 +1,280 @@
+"""Stage ``keypoints`` (per sequence): 2D body and hand keypoints of both people in every view.
+
+The marker wearer (person 0) is detected in a tight crop around its projected markers (C3D
+resampled to the video frames, projected with each camera), its hands in crops around the
+projected wrist and knuckle markers. The partner (person 1) is found over the image with the
+wearer painted out, then per keypoint type by the paper's rule (drop candidates near the
+wearer's keypoint, keep the most confident); between frames its box is tracked
+(:mod:`detect.people` explains the choices). With precomputed detections (the recipe's
+``keypoints`` folders) the same rules pick the two people among the file's candidates.
+
+Writes:
+
+- ``keypoints.npz``: ``kp (C, F, 2, 65, 3)`` float32 (x, y full-image pixels, confidence;
+  0 = missing; KP65 layout; person 0 = marker wearer), ``boxes (C, F, 2, 4)`` body crop boxes,
+  ``hand_boxes (C, F, 2, 2, 4)``, ``frames (F,)`` video frame indices, ``wearer_retry (C, F)``,
+  ``partner_mode (C, F)`` (0 not found, 1 tracked, 2 whole image);
+- ``keypoints.mcap``: the keypoints and boxes per camera and frame (Foxglove-viewable);
+- ``overlay_<camera>.png``: one sample frame per view with both people drawn;
+- ``report.json``: detector, frames, detection rates per person and joint group, timings
+  (``fps_per_core``).
+
+Frames run in parallel worker processes (``workers``), each with its own detector; ``stride``
+keeps every n-th video frame (the detector dominates the pipeline's run time).
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from detect import constants as DK
+from formats.errors import InputError
+from pipeline.spec import Stage, StageContext
+
+
+@dataclass(frozen=True)
+class Options:
+    """detector : ``auto`` (precomputed files when the sequence names them, else mediapipe),
+        ``mediapipe`` or ``precomputed``.
+    stride : keep every ``stride``-th video frame; start / stop : video frame range
+        (stop None: to the end).
+    workers : detector processes (0: one per core). chunk : frames per task (each task
+        starts its partner search afresh).
+    hands : detect hand keypoints. track / mask_wearer : partner search (detect.people).
+    body_margin : wearer crop margin (fraction of the marker box's larger side).
+    near_frac : the paper's "close proximity", fraction of the wearer's box height.
+    pose_min_conf / hand_min_conf : mediapipe detection thresholds.
+    overlay_frame : video frame drawn in the overlay PNGs (None: the middle one).
+    mcap : write keypoints.mcap.
+    """
+
+    detector: Literal["auto", "mediapipe", "precomputed"] = "auto"
+    stride: int = 1
+    start: int = 0
+    stop: int | None = None
+    workers: int = 0
+    chunk: int = 32
+    hands: bool = True
+    track: bool = True
+    mask_wearer: bool = True
+    body_margin: float = DK.BODY_MARGIN
+    near_frac: float = DK.NEAR_FRAC
+    pose_min_conf: float = 0.3
+    hand_min_conf: float = 0.3
+    overlay_frame: int | None = None
+    mcap: bool = True
+
+    def __post_init__(self):
+        if self.stride < 1:
+            raise ValueError(f"stride: must be >= 1, got {self.stride}")
+        if self.start < 0 or (self.stop is not None and self.stop <= self.start):
+            raise ValueError(f"start/stop: need 0 <= start < stop, got {self.start}, {self.stop}")
+        if self.workers < 0 or self.chunk < 1:
+            raise ValueError(f"workers >= 0 and chunk >= 1, got {self.workers}, {self.chunk}")
+
+
+def _precomputed_files(seq, cam: str) -> list[Path]:
+    root = Path(seq.keypoints[cam])
+    return sorted(root.glob("*.json")) if root.is_dir() else [root]
+
+
+def raw_inputs(recipe, unit: str) -> dict[str, Path]:
+    seq = recipe.sequence(unit)
+    out: dict[str, Path] = {"c3d": Path(seq.c3d)}
+    for cam in recipe.cameras:
+        out[f"video:{cam}"] = Path(seq.videos[cam])
+        out[f"calibration:{cam}"] = Path(seq.calibration[cam])
+        if seq.keypoints and cam in seq.keypoints:
+            for i, p in enumerate(_precomputed_files(seq, cam)):
+                out[f"keypoints:{cam}:{i:06d}"] = p
+    return out
+
+
+def frame_indices(n_video: int, o: Options) -> np.ndarray:
+    """(F,) video frames to detect: start, start + stride, ... < min(stop, n_video)."""
+    stop = n_video if o.stop is None else min(o.stop, n_video)
+    return np.arange(o.start, max(stop, o.start), o.stride, dtype=np.int64)
+
+
+def markers_on_frames(times_s: np.ndarray, xyz: np.ndarray, frames: np.ndarray, fps: float,
+                      sync_offset_s: float) -> np.ndarray:
+    """Marker positions at video frames: (F, M, 3) metres, world, NaN where not observed.
+
+    times_s : (Fs,) mocap sample times (mocap clock); xyz : (Fs, M, 3) with NaN gaps; video
+    frame f is at f / fps - sync_offset_s on the mocap clock. Gaps are never bridged."""
+    from fitting.mocap import resample
+
+    t = np.asarray(frames, dtype=np.float64) / float(fps) - float(sync_offset_s)
+    obs, vis = resample(times_s, xyz, t)
+    return np.where(vis[..., None], obs, np.nan)
+
+
+def video_frame_count(paths: list[Path]) -> tuple[int, list[tuple[int, int]]]:
+    """(frames in the shortest video, [(width, height)] per video). Raises InputError."""
+    import cv2
+
+    counts, sizes = [], []
+    for p in paths:
+        cap = cv2.VideoCapture(str(p))
+        if not cap.isOpened():
+            raise InputError(p, "video", "cannot be opened (missing or not a video)")
+        counts.append(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)))
+        sizes.append((int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))))
+        cap.release()
+        if counts[-1] <= 0:
+            raise InputError(p, "frames", "no frames")
+    return min(counts), sizes
+
+
+def people_options(o: Options):
+    from detect.people import PeopleOptions
+
+    return PeopleOptions(body_margin=o.body_margin, near_frac=o.near_frac, track=o.track,
+                         mask_wearer=o.mask_wearer, hands=o.hands)
+
+
+def summary(kp: np.ndarray, cpu_s: float, wall_s: float, n_frames: int) -> dict:
+    """Detection rates per person and joint group, and speed. kp (C, F, 2, 65, 3)."""
+    from detect.metrics import GROUPS
+
+    out: dict = {"frames": int(n_frames), "cpu_s": round(cpu_s, 3), "wall_s": round(wall_s, 3),
+                 "fps_per_core": round(n_frames / cpu_s, 4) if cpu_s > 0 else None,
+                 "fps_wall": round(n_frames / wall_s, 4) if wall_s > 0 else None,
+                 "detected": {}}
+    for p, who in enumerate(("wearer", "partner")):
+        for g, idx in GROUPS.items():
+            c = kp[:, :, p][..., idx, 2]
+            out["detected"][f"{who}.{g}"] = round(float((c >= DK.MIN_CONF).mean()), 4) if c.size else None
+    return out
+
+
+def write_overlays(out, source, res, cams: list[str], frame: int) -> list[str]:
+    """overlay_<camera>.png of one video frame (the nearest detected one)."""
+    import cv2
+
+    from detect.overlay import draw_overlay
+
+    i = int(np.argmin(np.abs(res.frames - frame)))
+    reader = source.open()
+    names = []
+    try:
+        for c, cam in enumerate(cams):
+            img = reader.read(c, int(res.frames[i]))
+            ov = draw_overlay(img, res.kp[c, i], res.boxes[c, i], res.hand_boxes[c, i],
+                              label=f"{cam} frame {int(res.frames[i])}")
+            name = f"overlay_{cam}.png"
+            cv2.imwrite(str(out.path(name)), ov[..., ::-1])
+            names.append(name)
+    finally:
+        reader.close()
+    return names
+
+
+def run(ctx: StageContext) -> None:
+    from calib.io import read_chi3d_camera
+    from detect.hints import wearer_hints
+    from detect.mediapipe_detector import MediapipeOptions
+    from detect.run import VideoSource, detect_sequence
+    from formats.c3d import read_c3d
+
+    o: Options = ctx.params or Options()
+    rec = ctx.recipe
+    seq = rec.sequence(ctx.unit)
+    cam_names = list(rec.cameras)
+    cams = [read_chi3d_camera(ctx.raw[f"calibration:{c}"], name=c) for c in cam_names]
+    videos = [ctx.raw[f"video:{c}"] for c in cam_names]
+    n_video, _sizes = video_frame_count(videos)
+    frames = frame_indices(n_video, o)
+    if len(frames) == 0:
+        raise InputError(videos[0], "frames", f"no frame in [{o.start}, {o.stop}) of {n_video}")
+
+    markers = read_c3d(ctx.raw["c3d"])
+    times = markers.times_s if seq.mocap.rate_hz is None else \
+        (markers.first_frame + np.arange(len(markers.xyz))) / seq.mocap.rate_hz
+    xyz = markers_on_frames(times, markers.xyz, frames, seq.fps, seq.mocap.sync_offset_s)
+    seen = np.isfinite(xyz[..., 0]).any(axis=1)
+    if not seen.any():
+        raise InputError(ctx.raw["c3d"], "markers", "no marker observed at any video frame "
+                         "(check mocap.sync_offset_s and fps)")
+    hints = wearer_hints(cams, xyz, list(markers.names), o.body_margin)
+
+    kind = o.detector
+    if kind == "auto":
+        kind = "precomputed" if seq.keypoints else "mediapipe"
+    if kind == "precomputed":
+        factory = load_precomputed(seq)
+    else:
+        factory = MediapipeOptions(pose_min_conf=o.pose_min_conf, hand_min_conf=o.hand_min_conf)
+    workers = o.workers or (os.cpu_count() or 1)
+    source = VideoSource(tuple(str(v) for v in videos))
+    ctx.log(f"keypoints: {len(frames)} frames x {len(cams)} views, detector {kind}, "
+            f"{workers} worker(s)")
+    res = detect_sequence(source, factory, hints, frames, people_options(o), workers=workers,
+                          chunk=o.chunk, progress=ctx.progress)
+
+    ctx.out.save_arrays("keypoints", kp=res.kp, boxes=res.boxes.astype(np.float32),
+                        hand_boxes=res.hand_boxes.astype(np.float32), frames=res.frames,
+                        wearer_retry=res.wearer_retry, partner_mode=res.partner_mode)
+    sample = int(frames[len(frames) // 2]) if o.overlay_frame is None else o.overlay_frame
+    overlays = write_overlays(ctx.out, source, res, cam_names, sample)
+    mcap_name = None
+    if o.mcap:
+        mcap_name = write_mcap(ctx.out.path("keypoints.mcap"), res, cam_names, seq.fps)
+    report = {"detector": kind, "cameras": cam_names, "video_frames": n_video,
+              "stride": o.stride, "workers": workers, "markers": len(markers.names),
+              "frames_with_markers": int(seen.sum()),
+              "wearer_retries": int(res.wearer_retry.sum()),
+              "partner_mode_counts": {m: int((res.partner_mode == i).sum())
+                                      for i, m in enumerate(("missing", "tracked", "whole_image"))},
+              "overlays": overlays, "mcap": mcap_name,
+              **summary(res.kp, res.cpu_s, res.wall_s, len(frames))}
+    ctx.out.save_json("report", report)
+    ctx.log(f"keypoints: {report['fps_per_core']} frames/s per core (all {len(cams)} views), "
+            f"partner tracked in {report['partner_mode_counts']['tracked']} view-frames")
+
+
+def write_mcap(path: Path, res, cam_names: list[str], fps: float) -> str:
+    """keypoints.mcap: one JSON message per camera and frame on ``/keypoints/<camera>``
+    (``{"frame", "people": [{"kp": [[x, y, c] x 65], "box": [x0, y0, x1, y1] | null}]}``),
+    log time = frame / fps."""
+    import json
+
+    from mcap.writer import Writer
+
+    schema = json.dumps({
+        "type": "object", "title": "KP65 keypoints of both people in one view",
+        "properties": {"frame": {"type": "integer"},
+                       "people": {"type": "array", "items": {"type": "object"}}}}).encode()
+    with open(path, "wb") as fh:
+        w = Writer(fh)
+        w.start(profile="", library="chi3d-gt keypoints")
+        sid = w.register_schema("chi3d_gt.Keypoints", "jsonschema", schema)
+        chans = [w.register_channel(f"/keypoints/{c}", "json", sid) for c in cam_names]
+        for i, fr in enumerate(res.frames):
+            t = int(round(int(fr) / fps * 1e9))
+            for c, ch in enumerate(chans):
+                people = []
+                for p in range(res.kp.shape[2]):
+                    b = res.boxes[c, i, p]
+                    people.append({"kp": np.round(res.kp[c, i, p].astype(float), 2).tolist(),
+                                   "box": np.round(b, 1).tolist() if np.all(np.isfinite(b)) else None})
+                msg = json.dumps({"frame": int(fr), "people": people}).encode()
+                w.add_message(ch, log_time=t, data=msg, publish_time=t, sequence=i)
+        w.finish()
+    return path.name
+
+
+def load_precomputed(seq):
+    """A PrecomputedDetector from the sequence's OpenPose / COCO JSON files."""
+    raise InputError(next(iter(seq.keypoints.values())), "keypoints",
+                     "precomputed keypoint files: readers (formats/openpose.py, formats/coco.py) "
+                     "not available yet")
+
+
+STAGE = Stage(name="keypoints", func=run, per="sequence", upstream=(), params=Options,
+              raw_inputs=raw_inputs, version="1",
+              doc="2D body and hand keypoints of both people in every view")
