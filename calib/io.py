@@ -163,8 +163,9 @@ def _fs_open(path: Path, write: bool):
         raise InputError(path, "<file>", "missing")
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE if write else cv2.FILE_STORAGE_READ)
-    except cv2.error as e:
-        raise InputError(path, "<filestorage>", f"unreadable or truncated: {e.err}") from None
+    except (cv2.error, SystemError) as e:  # a parse error can surface as SystemError
+        msg = getattr(e, "err", None) or getattr(e.__cause__, "err", None) or str(e)
+        raise InputError(path, "<filestorage>", f"unreadable or truncated: {msg}") from None
     if not fs.isOpened():
         raise InputError(path, "<filestorage>", "cannot open")
     return fs
