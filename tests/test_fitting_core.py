@@ -300,3 +300,18 @@ def test_cache_dir_env_override(tmp_path, monkeypatch):
     monkeypatch.delenv(compiled.CACHE_ENV)
     assert compiled.cache_dir(compiled.CompileOptions()) == compiled.DEFAULT_CACHE
     assert os.fspath(compiled.DEFAULT_CACHE).endswith(os.path.join("assets", "cache", "casadi"))
+
+
+def test_auto_mode_interprets_huge_sources(tmp_path):
+    x = ca.SX.sym("x", 2)
+    p = ca.SX.sym("p", 1)
+    r = ca.vertcat(x[0] * p, ca.sin(x[1]))
+    opts = compiled.CompileOptions(mode="auto", cache_dir=tmp_path, max_source_mb=1e-6)
+    msgs = []
+    f = compiled.build("huge", x, p, r, opts, log=msgs.append)
+    assert not f.compiled and "interpreted" in msgs[0]
+    assert not list(tmp_path.glob("*.so"))
+    if compiled.find_compiler(opts) is not None:
+        forced = compiled.build("huge", x, p, r, compiled.CompileOptions(
+            mode="compiled", cache_dir=tmp_path, max_source_mb=1e-6))
+        assert forced.compiled
