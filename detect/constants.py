@@ -38,6 +38,10 @@ NEAR_FRAC = 0.04
 #: of its confident keypoints are "close" (above) to the wearer's keypoints of the same type.
 SAME_PERSON_FRAC = 0.5
 
+#: The partner rule's coherence guard: keypoints from a secondary candidate must lie within the
+#: primary candidate's keypoint box grown by this fraction of its larger side.
+COHERENT_MARGIN = 0.25
+
 #: Keypoints with a confidence below this are treated as missing by the selection rules.
 MIN_CONF = 0.1
 

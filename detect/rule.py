@@ -44,13 +44,19 @@ def is_same_person(
 
 def select_partner(
     cands: np.ndarray, wearer: np.ndarray, radius: float, min_conf: float = K.MIN_CONF,
-    drop_same_person: bool = True,
+    drop_same_person: bool = True, coherent: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The paper's rule, per keypoint type.
 
     cands : (N, K, 3) candidates (x, y px, confidence), e.g. every person a detector found in
         the whole image. wearer : (K, 3) the marker wearer's keypoints (from its crop).
     radius : pixels; "close proximity" to the wearer's keypoint of the same type.
+    drop_same_person : also drop whole candidates that are the wearer found again.
+    coherent : a keypoint may come from another candidate than the "primary" one (the most
+        confident in total after dropping) only if it lies in the primary's keypoint box grown
+        by COHERENT_MARGIN. The per-keypoint rule is there to merge partial detections of the
+        partner (a detector splitting one person in two); without this guard it also takes, say,
+        a bystander's knee when the partner's knee was dropped for being near the wearer's.
     Returns (partner (K, 3) float32, source (K,) int: index of the candidate each keypoint came
     from, -1 where none survived; those keypoints have confidence 0).
     """
@@ -64,6 +70,13 @@ def select_partner(
     keep &= ~near_same_type(cands, wearer, radius, min_conf)
     if drop_same_person:
         keep &= ~is_same_person(cands, wearer, radius, min_conf=min_conf)[:, None]
+    if coherent and keep.any():
+        primary = int(np.argmax(np.where(keep, cands[..., 2], 0.0).sum(axis=1)))
+        pts = cands[primary, keep[primary], :2]
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        grow = K.COHERENT_MARGIN * max(float((hi - lo).max()), 1.0)
+        inside = np.all((cands[..., :2] >= lo - grow) & (cands[..., :2] <= hi + grow), axis=-1)
+        keep &= inside
     conf = np.where(keep, cands[..., 2], -1.0)
     best = conf.argmax(axis=0)
     has = conf[best, np.arange(nk)] >= 0

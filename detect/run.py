@@ -180,54 +180,31 @@ def detect_sequence(source: FrameSource, factory: DetectorFactory, hints: Wearer
 
 @dataclass(frozen=True)
 class VideoSource:
-    """Frames decoded from one video file per camera (``paths`` in camera order).
-
-    Each worker opens its own decoders. Reads within a chunk go forward, so a decoder only
-    seeks when asked for a frame behind its position or far ahead of it; otherwise it skips
-    frames by grabbing without decoding (cheaper than seeking for small strides).
-    """
+    """Frames decoded from one video file per camera (``paths`` in camera order) with
+    :class:`formats.video.VideoReader` (frame-accurate; forward reads within a chunk decode
+    sequentially). Each worker opens its own readers."""
 
     paths: tuple[str, ...]
 
-    def open(self) -> "_VideoReader":
-        return _VideoReader(self.paths)
+    def open(self) -> "_VideoReaders":
+        return _VideoReaders(self.paths)
 
 
-class _VideoReader:
-    #: farther ahead than this many frames: seek instead of grabbing.
-    MAX_GRAB = 16
-
+class _VideoReaders:
     def __init__(self, paths):
-        import cv2
+        from formats.video import VideoReader
 
-        self._cv2 = cv2
-        self.paths = paths
-        self.caps = []
-        for p in paths:
-            cap = cv2.VideoCapture(str(p))
-            if not cap.isOpened():
-                from formats.errors import InputError
-
-                raise InputError(p, "video", "cannot be opened (missing or not a video)")
-            self.caps.append(cap)
-        self.pos = [0] * len(paths)  # index of the next frame each decoder returns
+        self.readers = []
+        try:
+            for p in paths:
+                self.readers.append(VideoReader(p))
+        except Exception:
+            self.close()
+            raise
 
     def read(self, cam: int, frame: int) -> np.ndarray:
-        cv2, cap = self._cv2, self.caps[cam]
-        gap = frame - self.pos[cam]
-        if gap < 0 or gap > self.MAX_GRAB:
-            cap.set(cv2.CAP_PROP_POS_FRAMES, frame)
-        else:
-            for _ in range(gap):
-                cap.grab()
-        ok, bgr = cap.read()
-        if not ok:
-            from formats.errors import InputError
-
-            raise InputError(self.paths[cam], "frames", "could not decode", frame=int(frame))
-        self.pos[cam] = frame + 1
-        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        return self.readers[cam][frame]
 
     def close(self) -> None:
-        for cap in self.caps:
-            cap.release()
+        for r in self.readers:
+            r.close()

@@ -113,21 +113,11 @@ def markers_on_frames(times_s: np.ndarray, xyz: np.ndarray, frames: np.ndarray, 
     return np.where(vis[..., None], obs, np.nan)
 
 
-def video_frame_count(paths: list[Path]) -> tuple[int, list[tuple[int, int]]]:
-    """(frames in the shortest video, [(width, height)] per video). Raises InputError."""
-    import cv2
+def video_frame_count(paths: list[Path]) -> int:
+    """Frames in the shortest of the videos (InputError naming a bad file)."""
+    from formats.video import video_info
 
-    counts, sizes = [], []
-    for p in paths:
-        cap = cv2.VideoCapture(str(p))
-        if not cap.isOpened():
-            raise InputError(p, "video", "cannot be opened (missing or not a video)")
-        counts.append(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)))
-        sizes.append((int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))))
-        cap.release()
-        if counts[-1] <= 0:
-            raise InputError(p, "frames", "no frames")
-    return min(counts), sizes
+    return min(video_info(p).n_frames for p in paths)
 
 
 def people_options(o: Options):
@@ -187,7 +177,7 @@ def run(ctx: StageContext) -> None:
     cam_names = list(rec.cameras)
     cams = [read_chi3d_camera(ctx.raw[f"calibration:{c}"], name=c) for c in cam_names]
     videos = [ctx.raw[f"video:{c}"] for c in cam_names]
-    n_video, _sizes = video_frame_count(videos)
+    n_video = video_frame_count(videos)
     frames = frame_indices(n_video, o)
     if len(frames) == 0:
         raise InputError(videos[0], "frames", f"no frame in [{o.start}, {o.stop}) of {n_video}")
@@ -206,7 +196,7 @@ def run(ctx: StageContext) -> None:
     if kind == "auto":
         kind = "precomputed" if seq.keypoints else "mediapipe"
     if kind == "precomputed":
-        factory = load_precomputed(seq)
+        factory = load_precomputed(ctx, seq, cam_names)
     else:
         factory = MediapipeOptions(pose_min_conf=o.pose_min_conf, hand_min_conf=o.hand_min_conf)
     workers = o.workers or (os.cpu_count() or 1)
@@ -268,11 +258,36 @@ def write_mcap(path: Path, res, cam_names: list[str], fps: float) -> str:
     return path.name
 
 
-def load_precomputed(seq):
-    """A PrecomputedDetector from the sequence's OpenPose / COCO JSON files."""
-    raise InputError(next(iter(seq.keypoints.values())), "keypoints",
-                     "precomputed keypoint files: readers (formats/openpose.py, formats/coco.py) "
-                     "not available yet")
+def load_precomputed(ctx: StageContext, seq, cam_names: list[str]):
+    """A PrecomputedDetector from the sequence's OpenPose (a folder of per-frame JSON files per
+    camera) or COCO (one JSON file per camera) detections: every camera's candidates on the
+    union of the frames the files cover (a frame missing from one camera has no candidates
+    there)."""
+    from detect.precomputed import PrecomputedDetector
+    from formats.coco import read_coco
+    from formats.openpose import read_openpose
+
+    fmt = seq.keypoints_format or "openpose"
+    per_cam = []
+    for cam in cam_names:
+        files = [p for k, p in sorted(ctx.raw.items()) if k.startswith(f"keypoints:{cam}:")]
+        if not files:
+            raise InputError(ctx.recipe.source, f"sequences.{ctx.unit}.keypoints.{cam}",
+                             "no keypoint files for this camera")
+        if fmt == "openpose":
+            per_cam.append(read_openpose(files))
+        else:
+            if len(files) != 1:
+                raise InputError(files[0].parent, "keypoints", f"COCO: expected one JSON file "
+                                 f"for camera {cam}, got {len(files)}")
+            per_cam.append(read_coco(files[0]))
+    frames = np.unique(np.concatenate([k.frames for k in per_cam]))
+    n = max([k.kp.shape[1] for k in per_cam] + [1])
+    kp = np.zeros((len(cam_names), len(frames), n, 65, 3), np.float32)
+    for c, k in enumerate(per_cam):
+        rows = np.searchsorted(frames, k.frames)
+        kp[c, rows, :k.kp.shape[1]] = k.kp
+    return PrecomputedDetector(kp, tuple(int(f) for f in frames))
 
 
 STAGE = Stage(name="keypoints", func=run, per="sequence", upstream=(), params=Options,

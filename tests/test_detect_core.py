@@ -110,7 +110,8 @@ def test_select_partner_drops_the_wearer_found_again():
     partner = _person(rng, np.array([650.0, 300.0]), conf=0.5)
     out, src = select_partner(np.stack([again, partner]), wearer, radius=10.0)
     assert np.all(src == 1)
-    out2, src2 = select_partner(np.stack([again, partner]), wearer, radius=10.0, drop_same_person=False)
+    out2, src2 = select_partner(np.stack([again, partner]), wearer, radius=10.0,
+                                drop_same_person=False, coherent=False)
     assert np.all(src2[:10] == 0)  # the literal rule would have taken them
 
 
@@ -228,3 +229,21 @@ def test_metrics_errors_groups_and_swaps():
     kp[0, 1] = kp[0, 1, ::-1]  # frame 1: people swapped
     sw = identity_swaps(kp, truth)
     assert sw.tolist() == [[False, True]]
+
+
+def test_select_partner_coherence_guard_keeps_out_a_bystander():
+    rng = np.random.default_rng(4)
+    wearer = _person(rng, np.array([300.0, 300.0]))
+    partner = _person(rng, np.array([420.0, 300.0]), conf=0.7)
+    partner[3, :2] = wearer[3, :2] + 2.0  # touching: dropped by the rule
+    half = partner.copy()  # a partial second detection of the partner, more confident
+    half[:30, 2] = 0.0
+    half[30:, 2] = 0.9
+    half[30:, :2] += 1.5
+    bystander = _person(rng, np.array([900.0, 300.0]), conf=0.3)
+    cands = np.stack([partner, half, bystander])
+    out, src = select_partner(cands, wearer, radius=8.0)
+    assert src[3] == -1  # literal rule would take the bystander's keypoint 3
+    assert np.all(src[30:] == 1) and np.all(src[:30][np.arange(30) != 3] == 0)
+    _, src_lit = select_partner(cands, wearer, radius=8.0, coherent=False)
+    assert src_lit[3] == 2

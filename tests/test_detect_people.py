@@ -253,20 +253,24 @@ def test_precomputed_candidates_without_pixels():
     from detect.precomputed import PrecomputedDetector
 
     wearer, partner = stick((220, 240)), stick((470, 250), 0.8)
-    by = stick((600, 300), 0.5)
+    by = stick((620, 300), 0.5)  # a bystander, more confident on one keypoint
     by[:, 2] = 0.3
     partner[:, 2] = 0.7
-    partner[layout.IDX["l_knee"], 2] = 0.2  # the bystander's knee is more confident here
-    by[layout.IDX["l_knee"], 2] = 0.4
-    cands = np.stack([partner, by, wearer, np.zeros_like(wearer)])[None, None]
+    k = layout.IDX["l_knee"]
+    partner[k, 2] = 0.2
+    by[k, 2] = 0.9
+    part = np.zeros_like(partner)  # a partial second detection of the partner's legs
+    part[13:17] = partner[13:17] + [1.0, 1.0, 0.0]
+    part[13:17, 2] = 0.6
+    cands = np.stack([partner, by, part, wearer, np.zeros_like(wearer)])[None, None]
     det = PrecomputedDetector(cands, (7,))
     assert len(det.detect(None, kind="body", box=np.array([150.0, 100, 300, 400]), frame=7)) == 1
     assert len(det.detect(None, kind="body", frame=8)) == 0
     r = find_people(None, hints_for(wearer), None, det, frame=7)
     np.testing.assert_allclose(r.kp[0], wearer, atol=1e-4)
-    # the paper's rule: per keypoint the most confident candidate not near the wearer
-    k = layout.IDX["l_knee"]
-    np.testing.assert_allclose(r.kp[1, k], by[k], atol=1e-4)
+    # the paper's rule: per keypoint the most confident candidate not near the wearer (the
+    # partial detection's knee), but not the far bystander's (coherence guard)
+    np.testing.assert_allclose(r.kp[1, k], part[k], atol=1e-4)
     others = np.delete(np.arange(layout.N), k)
     np.testing.assert_allclose(r.kp[1, others], partner[others], atol=1e-4)
     assert r.partner_mode == 2
