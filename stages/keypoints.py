@@ -227,34 +227,34 @@ def run(ctx: StageContext) -> None:
             f"partner tracked in {report['partner_mode_counts']['tracked']} view-frames")
 
 
+BOXES_SCHEMA = {
+    "title": "keypoints.CropBoxes", "type": "object",
+    "properties": {"frame": {"type": "integer"}, "camera": {"type": "string"},
+                   "body": {"type": "array", "description": "per person [x0, y0, x1, y1] or null"},
+                   "hands": {"type": "array",
+                             "description": "per person [left, right] boxes or null"}},
+    "required": ["frame", "camera", "body", "hands"],
+}
+
+
+def _box_or_none(b) -> list | None:
+    return np.round(np.asarray(b, float), 1).tolist() if np.all(np.isfinite(b)) else None
+
+
 def write_mcap(path: Path, res, cam_names: list[str], fps: float) -> str:
-    """keypoints.mcap: one JSON message per camera and frame on ``/keypoints/<camera>``
-    (``{"frame", "people": [{"kp": [[x, y, c] x 65], "box": [x0, y0, x1, y1] | null}]}``),
-    log time = frame / fps."""
-    import json
+    """keypoints.mcap (formats.mcap_log): ``/keypoints/<camera>`` (both people, KP65) and
+    ``/boxes/<camera>`` (their body and hand crop boxes) per detected frame."""
+    from formats.mcap_log import SequenceLog
 
-    from mcap.writer import Writer
-
-    schema = json.dumps({
-        "type": "object", "title": "KP65 keypoints of both people in one view",
-        "properties": {"frame": {"type": "integer"},
-                       "people": {"type": "array", "items": {"type": "object"}}}}).encode()
-    with open(path, "wb") as fh:
-        w = Writer(fh)
-        w.start(profile="", library="chi3d-gt keypoints")
-        sid = w.register_schema("chi3d_gt.Keypoints", "jsonschema", schema)
-        chans = [w.register_channel(f"/keypoints/{c}", "json", sid) for c in cam_names]
+    with SequenceLog(path, fps=fps) as log:
         for i, fr in enumerate(res.frames):
-            t = int(round(int(fr) / fps * 1e9))
-            for c, ch in enumerate(chans):
-                people = []
-                for p in range(res.kp.shape[2]):
-                    b = res.boxes[c, i, p]
-                    people.append({"kp": np.round(res.kp[c, i, p].astype(float), 2).tolist(),
-                                   "box": np.round(b, 1).tolist() if np.all(np.isfinite(b)) else None})
-                msg = json.dumps({"frame": int(fr), "people": people}).encode()
-                w.add_message(ch, log_time=t, data=msg, publish_time=t, sequence=i)
-        w.finish()
+            for c, cam in enumerate(cam_names):
+                log.log_keypoints(int(fr), cam, res.kp[c, i])
+                log.add_json_channel(f"/boxes/{cam}", BOXES_SCHEMA)
+                log.log_json(f"/boxes/{cam}", int(fr), {
+                    "frame": int(fr), "camera": cam,
+                    "body": [_box_or_none(b) for b in res.boxes[c, i]],
+                    "hands": [[_box_or_none(b) for b in hb] for hb in res.hand_boxes[c, i]]})
     return path.name
 
 

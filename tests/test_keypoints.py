@@ -140,8 +140,6 @@ def _truth_uv(truth, frames):
 
 @pytest.mark.slow
 def test_stage_mediapipe_end_to_end(session, tmp_path):
-    from mcap.reader import make_reader
-
     from detect.metrics import identity_swaps, keypoint_errors
 
     root, truth = session
@@ -170,13 +168,18 @@ def test_stage_mediapipe_end_to_end(session, tmp_path):
     for cam in truth["cams"]:
         img = cv2.imread(str(art / f"overlay_{cam.name}.png"))
         assert img is not None and img.shape == (900, 900, 3)
-    with open(art / "keypoints.mcap", "rb") as fh:
-        msgs = [(ch.topic, json.loads(msg.data)) for _, ch, msg in make_reader(fh).iter_messages()]
-    assert len(msgs) == C * N_FRAMES
-    topic, m0 = msgs[0]
-    assert topic.startswith("/keypoints/") and len(m0["people"]) == 2
-    c = [cam.name for cam in truth["cams"]].index(topic.split("/")[-1])
-    np.testing.assert_allclose(np.array(m0["people"][1]["kp"]), z["kp"][c, m0["frame"], 1], atol=0.01)
+    from formats.mcap_log import read_log
+
+    log = read_log(art / "keypoints.mcap")
+    names = [cam.name for cam in truth["cams"]]
+    assert sorted(log) == sorted([f"/keypoints/{n}" for n in names] + [f"/boxes/{n}" for n in names])
+    for c, n in enumerate(names):
+        msgs = log[f"/keypoints/{n}"]
+        assert [m["frame"] for _, m in msgs] == list(range(N_FRAMES))
+        f = msgs[2][1]["frame"]
+        np.testing.assert_allclose(np.array(msgs[2][1]["people"][1]["kp"]), z["kp"][c, f, 1], atol=1e-4)
+        box = log[f"/boxes/{n}"][2][1]["body"][0]
+        np.testing.assert_allclose(box, z["boxes"][c, f, 0], atol=0.06)
 
 
 def test_stage_precomputed_openpose(session, tmp_path):
