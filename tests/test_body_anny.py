@@ -27,6 +27,10 @@ def anny_model():
     import anny.paths
 
     anny.paths.set_anny_cache_path(os.environ["ANNY_CACHE_DIR"])
+    from pathlib import Path
+
+    if not anny_export.compact_cache_file(Path(os.environ["ANNY_CACHE_DIR"])).exists():
+        pytest.skip("anny's compact-model cache is missing (run `make setup`)")
     t = time.time()
     m = anny_export.build_anny()
     if time.time() - t > 60:
@@ -111,3 +115,21 @@ def test_shape_space_exact_and_linear(model):
     # the default phenotype (0.5 everywhere) is a plausible adult: 1.5 - 2.0 m tall
     v = rest_state(model, betas_from_anny(model, np.full(6, 0.5))).vertices[0]
     assert 1.5 < np.ptp(v[:, 2]) < 2.0
+
+
+def test_export_stamp_and_bad_file(tmp_path, model):
+    from body import anny_export
+    from formats.errors import InputError
+
+    assert not anny_export.is_stale(anny_export.model_path())
+    p = tmp_path / "anny_model.npz"
+    np.savez(p, stamp=np.array("old"))
+    assert anny_export.is_stale(p) and anny_export.is_stale(tmp_path / "missing.npz")
+    assert anny_export.main(["--if-stale"]) == 0  # current file: no-op
+    np.savez(p, v_template=model.v_template, faces=model.faces)
+    with pytest.raises(InputError) as e:
+        load_model("anny", p)
+    assert e.value.field == "shapedirs" and str(p) in str(e.value)
+    np.savez(p, v_template=model.v_template[:, :2])
+    with pytest.raises(InputError, match="v_template"):
+        load_model("anny", p)
