@@ -26,7 +26,7 @@ from fitting.marker_graph import MarkerGraph
 from fitting.priors import PosePrior
 from fitting.skinned import FitSkeleton, slot_positions_np
 
-DEFAULT_WEIGHTS = {"L_3d": 1.0, "L_2d": 1e-9, "L_theta": 2e-7, "L_s": 1e-6}
+DEFAULT_WEIGHTS = {"L_3d": 1.0, "L_2d": 1e-6, "L_theta": 2e-7, "L_s": 1e-6}
 GNC_FACTORS = (20.0, 5.0, 1.0)  # first frame: robust scale sigma times these, in turn
 
 

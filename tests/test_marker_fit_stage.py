@@ -56,7 +56,7 @@ def anny():
         pytest.skip(f"Anny not exported: {e}")
 
 
-def _session(tmp: Path, model, rng, F=40, fps=50.0, rate=240.0, swap=True):
+def _session(tmp: Path, model, rng, F=40, fps=50.0, rate=240.0, swap=True, fingers=False):
     """Truth motion, its markers as a Vicon C3D, cameras, and the stage context pieces."""
     import importlib.util
 
@@ -73,7 +73,7 @@ def _session(tmp: Path, model, rng, F=40, fps=50.0, rate=240.0, swap=True):
     spec.loader.exec_module(S)
     betas = S.subject_betas(model, rng)[:80]
     pl = template_placement(model, "plug-in-gait")
-    skel = skinned.fit_skeleton(model, shape.body_joints(model))
+    skel = skinned.fit_skeleton(model, None if fingers else shape.body_joints(model))
     # mocap at 240 Hz covering the video (sync offset -0.1 s), motion defined per mocap sample
     sync = -0.1
     n_mocap = int((F / fps - sync + 0.05) * rate)
@@ -101,6 +101,18 @@ def _session(tmp: Path, model, rng, F=40, fps=50.0, rate=240.0, swap=True):
         "betas": betas, "marker_names": np.array(pl.names), "marker_face": pl.face,
         "marker_bary": pl.bary, "marker_offset": pl.offset}})
     kp = np.zeros((4, F, 2, 65, 3), np.float32)  # detections without hands (conf 0)
+    if fingers:  # person 0's hand keypoints: the truth projected, 2 px noise
+        from body.joints import regressor
+        from calib import project
+        from calib.io import read_chi3d_camera
+
+        R = regressor(model, "kp65")
+        pts = np.stack([R @ np.concatenate([truth.vertices[s], truth.joints[s]])
+                        for s in np.round((np.arange(F) / fps - sync) * rate).astype(int)])
+        for c, p in enumerate(cams.values()):
+            uv = project(read_chi3d_camera(p), pts) + rng.normal(0, 2.0, pts.shape[:2] + (2,))
+            kp[c, :, 0, 23:65, :2] = uv[:, 23:65]
+            kp[c, :, 0, 23:65, 2] = 0.9
     kp_art = FakeArtifact(tmp, {"keypoints": {"kp": kp, "frames": np.arange(F)}})
     seq = SimpleNamespace(markers_on="s1", partner="s2", fps=fps,
                           mocap=SimpleNamespace(sync_offset_s=sync, rate_hz=None))
@@ -149,3 +161,30 @@ def test_stage_recovers_motion_from_vicon_export(tmp_path, anny):
     # gaps are masked: NaN residuals exactly where markers are not visible
     assert np.array_equal(np.isnan(fit["marker_residual_m"]), ~fit["visible"])
     assert not fit["visible"].all()
+
+
+@pytest.mark.slow
+def test_stage_uses_hand_keypoints_when_present(tmp_path, anny):
+    """Fingers move in the truth; the markers can't see them, person 0's hand keypoints can."""
+    from stages.marker_fit import Options, run
+
+    rng = np.random.default_rng(5)
+    F = 12
+    recipe, raw, art, kp_art, truth = _session(tmp_path, anny, rng, F=F, swap=False, fingers=True)
+    errs = {}
+    for hands in (True, False):
+        out = FakeWriter(tmp_path / f"out{hands}")
+        ctx = SimpleNamespace(stage="marker_fit", unit="g/take", recipe=recipe,
+                              params=Options(use_hands=hands, compile="interpreted"),
+                              inputs={"shape_fit": {"s1": art}, "keypoints": kp_art}, raw=raw,
+                              out=out, progress=lambda it, **k: it, log=lambda s: None)
+        run(ctx)
+        rep = json.loads((out.dir / "report.json").read_text())
+        assert rep["hands"] is hands
+        fit = dict(np.load(out.dir / "fit.npz"))
+        from body.lbs import forward
+
+        est = forward(anny, fit["betas"], fit["body_pose"], fit["global_orient"], fit["transl"])
+        finger = [j for j in truth.skel.joints if "finger" in anny.joint_names[j]]
+        errs[hands] = (np.linalg.norm(est.joints - truth.joints, axis=2)[:, finger] * 1000).mean()
+    assert errs[True] < 0.5 * errs[False], errs
