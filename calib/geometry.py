@@ -18,7 +18,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from calib.camera import Camera, project, rays_from_pixels, undistort_pixels
+from calib.camera import Camera, project, undistort_pixels
 
 
 def _rigid(cam: Camera):
@@ -64,6 +64,60 @@ class PointEstimate:
     errors_px: np.ndarray
 
 
+def _colmap_views(cams: Sequence[Camera]):
+    return [_pinhole(c) for c in cams], [_rigid(c) for c in cams]
+
+
+def _solve_point(und: np.ndarray, ok: np.ndarray, views, opts: TriangulateOptions):
+    """Core of the triangulation: und (C, 2) undistorted pixels, ok (C,) usable views.
+    Returns (xyz (3,), inliers (C,)) or None."""
+    import pycolmap
+
+    pcams, rigids = views
+    idx = np.flatnonzero(ok)
+    if len(idx) < opts.min_views:
+        return None
+    inl = np.zeros(len(ok), bool)
+    if opts.ransac:
+        o = pycolmap.EstimateTriangulationOptions()
+        o.residual_type = pycolmap.TriangulationResidualType.REPROJECTION_ERROR
+        o.ransac.max_error = float(opts.max_error_px)
+        o.ransac.random_seed = int(opts.seed)
+        o.min_tri_angle = float(np.deg2rad(opts.min_angle_deg))
+        r = pycolmap.estimate_triangulation(und[idx], [rigids[i] for i in idx],
+                                            [pcams[i] for i in idx], o)
+        if r is None:
+            return None
+        xyz = np.asarray(r["xyz"], dtype=np.float64).reshape(3)
+        inl[idx[np.asarray(r["inliers"], bool)]] = True
+    else:
+        xy = np.stack([_normalized(pcams[i], und[i]) for i in idx])
+        rays = np.concatenate([xy, np.ones((len(idx), 1))], axis=1)
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        X = pycolmap.triangulate_multi_view_point([rigids[i].matrix() for i in idx], rays)
+        if X is None:
+            return None
+        xyz = np.asarray(X, dtype=np.float64).reshape(3)
+        inl[idx] = True
+    if inl.sum() < opts.min_views or not np.all(np.isfinite(xyz)):
+        return None
+    return xyz, inl
+
+
+def _normalized(pcam, uv: np.ndarray) -> np.ndarray:
+    fx, fy, cx, cy = pcam.params
+    return np.array([(uv[0] - cx) / fx, (uv[1] - cy) / fy])
+
+
+def _in_front(cams: Sequence[Camera], xyz: np.ndarray, inl: np.ndarray) -> np.ndarray:
+    """(n,) bool: every inlier camera sees the point (n, 3) in front of it."""
+    ok = np.ones(len(xyz), bool)
+    for i, c in enumerate(cams):
+        z = ((xyz - c.T) @ c.R.T)[:, 2]
+        ok &= ~inl[:, i] | (z > 0)
+    return ok
+
+
 def triangulate_point(cams: Sequence[Camera], uv: np.ndarray, valid: np.ndarray | None = None,
                       opts: TriangulateOptions = TriangulateOptions()) -> PointEstimate | None:
     """Triangulate one point seen in several views.
@@ -72,49 +126,12 @@ def triangulate_point(cams: Sequence[Camera], uv: np.ndarray, valid: np.ndarray 
     (default: finite uv). Returns :class:`PointEstimate`, or None when fewer than
     ``min_views`` views agree, the point lands behind a camera, or pycolmap fails.
     """
-    import pycolmap
-
-    uv = np.asarray(uv, dtype=np.float64)
-    C = len(cams)
-    ok = np.all(np.isfinite(uv), axis=1) if valid is None else np.asarray(valid, bool) & np.all(
-        np.isfinite(uv), axis=1)
-    idx = np.flatnonzero(ok)
-    if len(idx) < opts.min_views:
+    t = triangulate(cams, np.concatenate([np.asarray(uv, dtype=np.float64),
+                                          np.ones((len(cams), 1))], axis=1)[:, None],
+                    opts, valid=None if valid is None else np.asarray(valid, bool)[:, None])
+    if not np.all(np.isfinite(t.xyz[0])):
         return None
-    und = np.stack([undistort_pixels(cams[i], uv[i]) for i in idx])
-    good = np.all(np.isfinite(und), axis=1)
-    idx, und = idx[good], und[good]
-    if len(idx) < opts.min_views:
-        return None
-    inl = np.zeros(C, bool)
-    if opts.ransac:
-        o = pycolmap.EstimateTriangulationOptions()
-        o.residual_type = pycolmap.TriangulationResidualType.REPROJECTION_ERROR
-        o.ransac.max_error = float(opts.max_error_px)
-        o.ransac.random_seed = int(opts.seed)
-        o.min_tri_angle = float(np.deg2rad(opts.min_angle_deg))
-        r = pycolmap.estimate_triangulation(und, [_rigid(cams[i]) for i in idx],
-                                            [_pinhole(cams[i]) for i in idx], o)
-        if r is None:
-            return None
-        xyz = np.asarray(r["xyz"], dtype=np.float64).reshape(3)
-        inl[idx[np.asarray(r["inliers"], bool)]] = True
-    else:
-        rays = np.stack([rays_from_pixels(cams[i], uv[i]) for i in idx])
-        X = pycolmap.triangulate_multi_view_point([_rigid(cams[i]).matrix() for i in idx], rays)
-        if X is None:
-            return None
-        xyz = np.asarray(X, dtype=np.float64).reshape(3)
-        inl[idx] = True
-    if inl.sum() < opts.min_views or not np.all(np.isfinite(xyz)):
-        return None
-    depth = np.array([(cams[i].R @ (xyz - cams[i].T))[2] for i in np.flatnonzero(inl)])
-    if np.any(depth <= 0):
-        return None
-    err = np.full(C, np.nan)
-    for i in np.flatnonzero(ok):
-        err[i] = np.linalg.norm(project(cams[i], xyz) - uv[i])
-    return PointEstimate(xyz, inl, err)
+    return PointEstimate(t.xyz[0], t.inliers[0], t.errors_px[0])
 
 
 @dataclass(frozen=True)
@@ -128,12 +145,15 @@ class Triangulation:
 
 
 def triangulate(cams: Sequence[Camera], kp: np.ndarray,
-                opts: TriangulateOptions = TriangulateOptions()) -> Triangulation:
+                opts: TriangulateOptions = TriangulateOptions(),
+                valid: np.ndarray | None = None) -> Triangulation:
     """Triangulate keypoints over the views.
 
     kp: (C, ..., 3) float (x, y pixels, confidence), e.g. ``(C, F, K, 3)`` for one person of
-    ``keypoints.npz``; an observation counts when its confidence >= ``min_conf``.
-    Returns :class:`Triangulation` with leading shape ``...``.
+    ``keypoints.npz``; an observation counts when its confidence >= ``min_conf`` (and
+    ``valid`` (C, ...) bool, if given, is True) and its pixels are finite.
+    Returns :class:`Triangulation` with leading shape ``...``. Observations are undistorted
+    for all points at once; pycolmap then runs once per point.
     """
     kp = np.asarray(kp, dtype=np.float64)
     C = len(cams)
@@ -142,14 +162,26 @@ def triangulate(cams: Sequence[Camera], kp: np.ndarray,
     lead = kp.shape[1:-1]
     flat = kp.reshape(C, -1, 3)
     n = flat.shape[1]
+    und = np.stack([undistort_pixels(c, flat[i, :, :2]) for i, c in enumerate(cams)])  # (C, n, 2)
+    obs = (flat[..., 2] >= opts.min_conf) & np.all(np.isfinite(flat[..., :2]), axis=-1)
+    if valid is not None:
+        obs &= np.asarray(valid, bool).reshape(C, n)
+    usable = obs & np.all(np.isfinite(und), axis=-1)
     xyz = np.full((n, 3), np.nan)
-    err = np.full((n, C), np.nan)
     inl = np.zeros((n, C), bool)
-    valid = flat[..., 2] >= opts.min_conf  # (C, n)
-    for j in np.flatnonzero(valid.sum(axis=0) >= opts.min_views):
-        r = triangulate_point(cams, flat[:, j, :2], valid[:, j], opts)
+    views = _colmap_views(cams)
+    for j in np.flatnonzero(usable.sum(axis=0) >= opts.min_views):
+        r = _solve_point(und[:, j], usable[:, j], views, opts)
         if r is not None:
-            xyz[j], err[j], inl[j] = r.xyz, r.errors_px, r.inliers
+            xyz[j], inl[j] = r
+    bad = np.all(np.isfinite(xyz), axis=1) & ~_in_front(cams, np.nan_to_num(xyz), inl)
+    xyz[bad] = np.nan
+    inl[bad] = False
+    err = np.full((n, C), np.nan)
+    solved = np.all(np.isfinite(xyz), axis=1)
+    for i, c in enumerate(cams):
+        m = solved & obs[i]
+        err[m, i] = np.linalg.norm(project(c, xyz[m]) - flat[i, m, :2], axis=-1)
     return Triangulation(xyz.reshape(lead + (3,)), err.reshape(lead + (C,)), inl.reshape(lead + (C,)))
 
 
