@@ -18,7 +18,6 @@ import scipy.sparse as sp
 
 from formats.errors import InputError
 
-# COCO-WholeBody order of the 23 body keypoints in anny's coco.pth (= KP65[0:23]).
 _PHENO_FEATURES = ("age", "gender", "muscle", "weight", "height", "proportions", "cupsize", "firmness")
 
 # The default fit skeleton: the 52 bones whose local rotation a fit solves (the root's rotation

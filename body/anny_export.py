@@ -111,15 +111,6 @@ def body_slider_labels(all_labels: list[str]) -> list[str]:
     return [s for s in all_labels if not s.startswith(BODY_SLIDER_EXCLUDE)]
 
 
-def phenotype_coeffs_np(phen: np.ndarray, z: dict) -> np.ndarray:
-    """Anny's phenotype -> compact phenotype blendshape coefficients, in numpy.
-
-    phen: (B, 6) in anny's order (``pheno_labels``); z: the export dict/npz. -> (B, 136)."""
-    from body.anny import phenotype_coefficients  # the runtime twin, same code path
-
-    return phenotype_coefficients(phen, z)
-
-
 def sample_coeffs(z: dict, n: int, rng: np.random.Generator) -> np.ndarray:
     """Sample c under the PCA distribution: phenotypes U[0,1] (age U[0.4, 1]), body sliders
     U[-1,1]. -> (n, K)."""

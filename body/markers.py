@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from body.model import BodyModel
+from body.rotations import rodrigues
 from formats.errors import InputError
 
 DEFAULT_OFFSET_M = 0.0095
@@ -313,8 +314,6 @@ def hand_markers(model: BodyModel, offset: float = 0.006) -> MarkerSet:
             # the nail side: the dorsal direction, or for the thumb (rotated about its axis)
             # the direction within 90 degrees of it whose hit is farthest from the bone
             for ang in ((0.0,) if fi > 1 else np.linspace(-np.pi / 2, np.pi / 2, 13)):
-                from body.rotations import rodrigues
-
                 ax = (b - a) / np.linalg.norm(b - a)
                 d = rodrigues(ang * ax) @ _perp(dorsal, ax)
                 h_ = ray_surface(model.v_template, model.faces, o, d, max_dist=0.05)

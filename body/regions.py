@@ -255,8 +255,7 @@ def _assign(parts, part, jside, c, n, lmk) -> np.ndarray:
 
     P = {p: part == i for i, p in enumerate(parts)}
     # head: top / face / back of head
-    hc = head + 0.4 * (neck - pelvis) @ up * 0.0
-    hrel = c - hc
+    hrel = c - head
     top = P["head"] & (hrel @ up > 0.62 * np.max(np.where(P["head"], hrel @ up, -np.inf)))
     put(top, "head_top")
     put(P["head"] & ~top & (hrel @ front > 0.0), "face")
