@@ -148,6 +148,8 @@ def forward(model: BodyModel, betas, body_pose, global_orient, transl, rest: Res
     rest: a precomputed ``rest_state(model, betas)`` (skips the shape part).
     Returns BodyOutput(vertices (F, V, 3), joints (F, J, 3), joint_rot (F, J, 3, 3)), world, metres."""
     if rest is None:
+        if betas is None:
+            raise ValueError("forward: give betas or a precomputed rest state")
         rest = rest_state(model, betas)
     G, t, D = forward_kinematics(model, rest, body_pose, global_orient, transl)
     return BodyOutput(vertices=skin(model, rest, G, t, D), joints=t, joint_rot=G)
