@@ -45,9 +45,15 @@ COHERENT_MARGIN = 0.25
 #: Keypoints with a confidence below this are treated as missing by the selection rules.
 MIN_CONF = 0.1
 
-#: Silhouette mask of the marker wearer: capsule radius along its bones and disc radius at its
-#: markers and keypoints, as a fraction of the wearer's box height.
-MASK_RADIUS_FRAC = 0.05
+#: Silhouette mask of the marker wearer, as fractions of the wearer's crop-box height (~1.3 x
+#: the person's height): capsule radius along its bones and disc radius at its markers and
+#: keypoints (~6 cm, a limb's radius), and the head disc around the face keypoints (~12 cm).
+MASK_RADIUS_FRAC = 0.027
+MASK_HEAD_FRAC = 0.055
+
+#: The isolated wearer crop keeps discs of this radius (fraction of the crop-box height, ~28 cm)
+#: around the wearer's markers and paints everything else.
+ISOLATE_RADIUS_FRAC = 0.125
 
 #: Partner search: margin around the previous frame's partner box (fraction of its larger side).
 TRACK_MARGIN = 0.25
@@ -59,6 +65,11 @@ HAND_ANCHOR_FRAC = 0.6
 #: The person found in the wearer's crop is accepted as the wearer when its keypoints lie
 #: within ANCHOR_FRAC x the wearer's box height (median) of where the markers put them.
 ANCHOR_FRAC = 0.1
+
+#: ... and is rejected as mirrored when its left/right-swapped keypoints lie nearer the anchors
+#: by more than FLIP_MARGIN_FRAC x the box height (profile views, where left and right
+#: overlap in the image, stay within the margin).
+FLIP_MARGIN_FRAC = 0.02
 
 #: The partner counts as found when at least MIN_PARTNER_KP body keypoints have a confidence
 #: of at least ACCEPT_CONF; otherwise the tracked search falls back to the whole image.

@@ -38,3 +38,15 @@ for _s in ("l_hand_", "r_hand_"):
         _chain = [_s + "wrist"] + [f"{_s}{_f}{i}" for i in range(1, 5)]
         _BONES += list(zip(_chain[:-1], _chain[1:], strict=True))
 EDGES = np.array([(IDX[a], IDX[b]) for a, b in _BONES], dtype=np.int64)
+
+#: Filled when painting a person out: the torso quadrilateral; the head as a disc around the
+#: face keypoints.
+TORSO = np.array([IDX[n] for n in ("l_shoulder", "r_shoulder", "r_hip", "l_hip")])
+FACE = np.array([IDX[n] for n in ("nose", "l_eye", "r_eye", "l_ear", "r_ear")])
+
+#: Left/right mirror of KP65 (l_* <-> r_*, the hand blocks swapped).
+FLIP = np.arange(N)
+for _i, _n in enumerate(NAMES):
+    for _a, _b in (("l_", "r_"), ("r_", "l_")):
+        if _n.startswith(_a):
+            FLIP[_i] = IDX[_b + _n[2:]]

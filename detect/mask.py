@@ -23,24 +23,39 @@ def silhouette_mask(
     edges: np.ndarray,
     radius: float,
     points: np.ndarray | None = None,
+    polygons: tuple = (),
+    blobs: tuple = (),
     min_conf: float = K.MIN_CONF,
 ) -> np.ndarray:
     """(H, W) bool mask of a person.
 
     shape : (H, W). kp : (K, 3) keypoints (x, y px, confidence). edges : (E, 2) int keypoint
-    index pairs (bones). radius : capsule/disc radius in pixels. points : (M, 2) extra points
-    (projected markers; NaN rows ignored), each covered by a disc.
+    index pairs (bones), drawn as capsules of ``radius`` pixels; every confident keypoint and
+    every row of ``points`` (M, 2) (projected markers; NaN rows ignored) gets a disc of
+    ``radius``. polygons : index sequences filled when all their keypoints are confident
+    (the torso). blobs : ``(indices, radius_px)`` discs at the mean of the confident ones (the
+    head around the face keypoints).
     """
     h, w = shape
     m = np.zeros((h, w), np.uint8)
     r = max(int(round(radius)), 1)
     kp = np.asarray(kp, dtype=np.float64)
     ok = kp[:, 2] >= min_conf
+
+    def pt(xy):
+        return int(round(xy[0])), int(round(xy[1]))
+
     for a, b in np.asarray(edges, dtype=np.int64).reshape(-1, 2):
         if ok[a] and ok[b]:
-            p = (int(round(kp[a, 0])), int(round(kp[a, 1])))
-            q = (int(round(kp[b, 0])), int(round(kp[b, 1])))
-            cv2.line(m, p, q, 1, thickness=2 * r + 1, lineType=cv2.LINE_8)
+            cv2.line(m, pt(kp[a]), pt(kp[b]), 1, thickness=2 * r + 1, lineType=cv2.LINE_8)
+    for idx in polygons:
+        idx = np.asarray(idx)
+        if ok[idx].all():
+            cv2.fillPoly(m, [np.round(kp[idx, :2]).astype(np.int32)], 1)
+    for idx, rad in blobs:
+        idx = np.asarray(idx)
+        if ok[idx].any():
+            cv2.circle(m, pt(kp[idx][ok[idx], :2].mean(axis=0)), max(int(round(rad)), 1), 1, -1)
     pts = [kp[ok, :2]]
     if points is not None:
         p = np.asarray(points, dtype=np.float64).reshape(-1, 2)

@@ -3,10 +3,12 @@ paper's rule.
 
 The marker wearer (person 0): body from a tight crop around its projected markers
 (:class:`detect.hints.WearerHints`), hands from crops around its projected hand markers.
-The detection is checked against where the markers put some keypoints; if the detector
-locked onto the partner standing in the crop (hugs, or a partner nearer the camera), the crop
-is retried "isolated": everything far from the wearer's markers painted out. The plain crop is
-tried first because painting can clip the wearer's extremities.
+The detection is checked against where the markers put some keypoints (median distance, and
+not mirrored: a person facing the other way matches the markers' left/right swapped); if the
+detector locked onto the partner standing in the crop (hugs, or a partner nearer the camera),
+the crop is retried "isolated": everything far from the wearer's markers painted out. The plain
+crop is tried first because painting can clip the wearer's extremities. When neither passes,
+the wearer is reported missing in that view (never a guess that could be the partner).
 
 The partner (person 1): the paper runs a multi-person detector on the whole image and, per
 keypoint type, drops candidates close to the wearer's keypoint and keeps the most confident
@@ -55,6 +57,8 @@ class PeopleOptions:
 
     near_frac: float = K.NEAR_FRAC
     mask_radius_frac: float = K.MASK_RADIUS_FRAC
+    mask_head_frac: float = K.MASK_HEAD_FRAC
+    isolate_radius_frac: float = K.ISOLATE_RADIUS_FRAC
     track_margin: float = K.TRACK_MARGIN
     body_margin: float = K.BODY_MARGIN
     anchor_frac: float = K.ANCHOR_FRAC
@@ -110,40 +114,42 @@ def _find_wearer(image, hints: WearerHints, det: Detector, o: PeopleOptions, cam
     tol = o.anchor_frac * h
 
     def best(cands):
+        """(kp, err, ok) of the candidate nearest the anchors; ok = it passes the check."""
         if len(cands) == 0:
-            return None, np.inf
+            return None, np.inf, False
         err = anchor_error(cands.kp, hints.anchors)
         if np.any(np.isfinite(err)):
             i = int(np.nanargmin(err))
-            return cands.kp[i], float(err[i])
+            # Mirrored (a person facing the other way: the partner facing the wearer, or the
+            # detector's left/right swapped on the wearer's back): its mirror matches the
+            # anchors better by a clear margin. Rejected, never flipped back: a partner facing
+            # us would then pass for the wearer.
+            flip = anchor_error(cands.kp[i:i + 1, layout.FLIP], hints.anchors)[0]
+            mirrored = np.isfinite(flip) and flip + max(K.FLIP_MARGIN_FRAC * h, 3.0) < err[i]
+            return cands.kp[i], float(err[i]), bool(err[i] <= tol and not mirrored)
         i = int(np.argmax(box_support(cands.kp, hints.box)))
-        return cands.kp[i], np.nan  # no anchors to check against: accept
+        return cands.kp[i], np.nan, True  # no anchors to check against: accept
 
     def attempt(isolated: bool):
         img = image
         if isolated:
             # Keep only the neighbourhood of the wearer's markers: the partner in the crop goes.
             near = silhouette_mask(image.shape[:2], np.zeros((layout.N, 3)), layout.EDGES,
-                                   2.5 * o.mask_radius_frac * h, points=hints.markers)
+                                   o.isolate_radius_frac * h, points=hints.markers)
             img = paint_out(image, ~near)
         return best(det.detect(img, kind="body", box=hints.box, cam=cam, frame=frame))
-
-    def good(err):
-        return not (np.isfinite(err) and err > tol)
 
     order = (True, False) if isolated_first else (False, True)
     if not det.needs_pixels:
         order = (False,)
-    cand, err, used = None, np.inf, False
     for isolated in order:
-        c, e = attempt(isolated)
-        if c is not None and (cand is None or not e > err):
-            cand, err, used = c, e, isolated
-        if c is not None and good(e):
-            break
-    if cand is not None:
-        kp[layout.BODY] = cand[layout.BODY]
-    return kp, used
+        cand, _err, ok = attempt(isolated)
+        if cand is not None and ok:
+            kp[layout.BODY] = cand[layout.BODY]
+            return kp, isolated
+    # Nothing matched the markers: report the wearer missing in this view rather than risk
+    # the partner's (or mirrored) keypoints as the wearer's.
+    return kp, False
 
 
 def _hands(image, person_kp: np.ndarray, boxes: np.ndarray, anchors: np.ndarray, det: Detector,
@@ -207,15 +213,22 @@ def find_people(image: np.ndarray | None, hints: WearerHints, prev_partner_box: 
         _hands(image, kp[0], hints.hand_boxes, anchors, det, o, cam, frame, None, radius)
 
     # -- person 1: the partner
+    # The rule's reference for the wearer: its detected keypoints, and where those are missing
+    # the marker anchors (so the wearer's undetected parts still can't become the partner's).
+    ref = kp[0].copy()
+    fill = (ref[:, 2] < K.MIN_CONF) & np.all(np.isfinite(hints.anchors), axis=1)
+    ref[fill, :2] = hints.anchors[fill]
+    ref[fill, 2] = 1.0
     search = image
     if det.needs_pixels and o.mask_wearer and image is not None and np.isfinite(hw):
         m = silhouette_mask(image.shape[:2], kp[0], layout.EDGES, o.mask_radius_frac * hw,
-                            points=hints.markers)
+                            points=hints.markers, polygons=(layout.TORSO,),
+                            blobs=((layout.FACE, o.mask_head_frac * hw),))
         search = paint_out(image, m)
 
     def look(box):
         cands = det.detect(search, kind="body", box=box, cam=cam, frame=frame)
-        p, _ = select_partner(cands.kp, kp[0], radius)
+        p, _ = select_partner(cands.kp, ref, radius)
         p[layout.HANDS[0]] = 0.0  # hands come from the hand detector below
         p[layout.HANDS[1]] = 0.0
         return p
@@ -246,6 +259,6 @@ def find_people(image: np.ndarray | None, hints: WearerHints, prev_partner_box: 
         # the original image: hands are small and the hand detector returns two per crop, so
         # the wearer's hand next to the partner's (handshake) is told apart by the wrist
         # anchor and the rule; painting the wearer out would also paint the touching hand.
-        _hands(image, kp[1], hb, wr, det, o, cam, frame, kp[0], radius)
+        _hands(image, kp[1], hb, wr, det, o, cam, frame, ref, radius)
     pbox = _person_box(kp[1], o.accept_conf, o.body_margin) if mode else np.full(4, np.nan)
     return ViewPeople(kp, boxes, hand_boxes, pbox, isolated, mode)

@@ -286,3 +286,29 @@ def test_no_markers_no_people():
                     h.anchors * np.nan, h.markers * np.nan)
     r = find_people(img, h, np.array([400.0, 100, 560, 400]), Painted(truth, (0,)))
     assert not r.kp[..., 2].any() and r.partner_mode == 0
+
+
+def test_mirrored_person_is_not_taken_for_the_wearer():
+    """The partner faces the other way right in front of the wearer (its left/right mirror
+    the wearer's anchors) and hides it: the check rejects it in both crops, so the wearer is
+    reported missing instead of getting the partner's keypoints; the partner is still found."""
+    shape = (480, 640)
+    wearer = stick((300, 240), 0.8)
+    partner = stick((302, 236), 1.0)[layout.FLIP]  # facing the other way
+    truth = np.stack([wearer, partner])[None, None]
+    img = draw(shape, truth[0, 0])  # partner drawn last: in front
+    det = Painted(truth, (0,))
+    r = find_people(img, hints_for(wearer, margin=0.3), None, det)
+    assert not r.kp[0, layout.BODY, 2].any()
+    hand = r.kp[0, 23:, 2] > 0  # hands found at the wearer's wrist markers are its own
+    np.testing.assert_allclose(r.kp[0, 23:][hand, :2], wearer[23:][hand, :2])
+    ok = r.kp[1, layout.BODY, 2] > 0
+    assert ok.sum() >= 15
+    np.testing.assert_allclose(r.kp[1, layout.BODY][ok, :2], partner[layout.BODY][ok, :2])
+    # the same partner facing the same way as the wearer would pass as the wearer in this
+    # drawing (same place, same sides): the check is about sides, so only the mirror is caught
+    same = stick((302, 236), 1.0)
+    img2 = draw(shape, [wearer, same])
+    r2 = find_people(img2, hints_for(wearer, margin=0.3), None,
+                     Painted(np.stack([wearer, same])[None, None], (0,)))
+    assert r2.kp[0, layout.BODY, 2].all()
