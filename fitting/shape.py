@@ -233,7 +233,8 @@ def _scan_residuals(model, skel, b, x, rest, corr):
 
 
 def fit_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | None,
-             rng: np.random.Generator, opts: ScanFitOptions = ScanFitOptions(), log=None) -> ScanFit:
+             rng: np.random.Generator, opts: ScanFitOptions = ScanFitOptions(), log=None,
+             init: tuple[np.ndarray, np.ndarray] | None = None) -> ScanFit:
     """Fit shape and neutral pose to a scan.
 
     points : (N, 3) metres, the scan's frame; normals : (N, 3) unit or None (then the model's
@@ -246,8 +247,14 @@ def fit_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | None,
     S = min(opts.num_betas, model.num_betas)
     skel = skinned.fit_skeleton(model, body_joints(model))
     n = skel.n
-    x = _rigid_start(model, skel, points, rng, opts)
-    betas = np.zeros(S)
+    if init is None:
+        x = _rigid_start(model, skel, points, rng, opts)
+        betas = np.zeros(S)
+    else:
+        betas = np.zeros(S)
+        b0 = np.asarray(init[0], float)[:S]
+        betas[:len(b0)] = b0
+        x = np.array(init[1], dtype=float)
     tree = cKDTree(points)
     faces = np.asarray(model.faces)
     lam = 1e-3
