@@ -60,7 +60,8 @@ class SequenceKeypoints:
     boxes : (C, F, 2, 4) body crop boxes (x0, y0, x1, y1). hand_boxes : (C, F, 2, 2, 4).
     frames : (F,) video frame indices. wearer_retry : (C, F) bool. partner_mode : (C, F) int8
     (0 not found, 1 tracked, 2 whole image). cpu_s : CPU seconds spent in the workers
-    (all their threads); wall_s : wall-clock seconds.
+    (all their threads); wall_s : wall-clock seconds. meter : detector calls and their CPU
+    seconds per kind (``body_calls``, ``hands_calls``, ``body_cpu_s``, ``hands_cpu_s``).
     """
 
     kp: np.ndarray
@@ -71,6 +72,7 @@ class SequenceKeypoints:
     partner_mode: np.ndarray
     cpu_s: float
     wall_s: float
+    meter: dict
 
 
 def _run_chunk(source: FrameSource, factory: DetectorFactory, hints: WearerHints,
@@ -80,9 +82,30 @@ def _run_chunk(source: FrameSource, factory: DetectorFactory, hints: WearerHints
         return _run_chunk_loud(source, factory, hints, frames, n_cam, opts)
 
 
+class _Metered:
+    """A detector wrapper counting calls and their CPU seconds per kind (for the report)."""
+
+    def __init__(self, det):
+        self.det = det
+        self.name = det.name
+        self.needs_pixels = det.needs_pixels
+        self.calls = {"body": 0, "hands": 0}
+        self.cpu_s = {"body": 0.0, "hands": 0.0}
+
+    def detect(self, image, *, kind, box=None, cam=0, frame=0):
+        t = time.process_time()
+        out = self.det.detect(image, kind=kind, box=box, cam=cam, frame=frame)
+        self.cpu_s[kind] += time.process_time() - t
+        self.calls[kind] += 1
+        return out
+
+    def close(self):
+        self.det.close()
+
+
 def _run_chunk_loud(source, factory, hints, frames, n_cam, opts):
     t0 = time.process_time()
-    det = factory.build()
+    det = _Metered(factory.build())
     reader = source.open() if det.needs_pixels else None
     n = len(frames)
     kp = np.zeros((n_cam, n, 2, layout.N, 3), np.float32)
@@ -107,7 +130,10 @@ def _run_chunk_loud(source, factory, hints, frames, n_cam, opts):
             reader.close()
         det.close()
     out = dict(kp=kp, boxes=boxes, hand_boxes=hand_boxes, wearer_retry=retry, partner_mode=mode)
-    return out, time.process_time() - t0
+    meter = {f"{k}_calls": v for k, v in det.calls.items()}
+    meter.update({f"{k}_cpu_s": v for k, v in det.cpu_s.items()})
+    meter["cpu_s"] = time.process_time() - t0
+    return out, meter
 
 
 def _silence_native_stderr() -> None:
@@ -149,7 +175,7 @@ def detect_sequence(source: FrameSource, factory: DetectorFactory, hints: Wearer
         raise ValueError(f"detect_sequence: hints cover {n} frames, got {len(frames)} frame indices")
     parts = chunks(n, chunk)
     t0 = time.perf_counter()
-    results: dict[int, tuple[dict, float]] = {}
+    results: dict[int, tuple[dict, dict]] = {}
     if workers <= 1:
         for j, sl in enumerate(progress(parts, total=len(parts), desc="keypoints")):
             results[j] = _run_chunk(source, factory, hints.frames(sl), frames[sl], n_cam, opts)
@@ -172,10 +198,14 @@ def detect_sequence(source: FrameSource, factory: DetectorFactory, hints: Wearer
         z = np.zeros((n_cam, 0), bool)
         return SequenceKeypoints(np.zeros((n_cam, 0, 2, layout.N, 3), np.float32),
                                  np.zeros((n_cam, 0, 2, 4)), np.zeros((n_cam, 0, 2, 2, 4)),
-                                 frames, z, z.astype(np.int8), 0.0, wall)
+                                 frames, z, z.astype(np.int8), 0.0, wall, {})
+    meter: dict = {}
+    for _, m in results.values():
+        for k, v in m.items():
+            meter[k] = meter.get(k, 0) + v
     return SequenceKeypoints(cat("kp"), cat("boxes"), cat("hand_boxes"), frames,
                              cat("wearer_retry"), cat("partner_mode"),
-                             float(sum(r[1] for r in results.values())), wall)
+                             float(meter.pop("cpu_s")), wall, meter)
 
 
 @dataclass(frozen=True)

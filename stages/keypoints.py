@@ -221,6 +221,8 @@ def run(ctx: StageContext) -> None:
               "partner_mode_counts": {m: int((res.partner_mode == i).sum())
                                       for i, m in enumerate(("missing", "tracked", "whole_image"))},
               "overlays": overlays, "mcap": mcap_name,
+              "detector_calls": {k: (round(v, 3) if isinstance(v, float) else int(v))
+                                 for k, v in res.meter.items()},
               **summary(res.kp, res.cpu_s, res.wall_s, len(frames))}
     ctx.out.save_json("report", report)
     ctx.log(f"keypoints: {report['fps_per_core']} frames/s per core (all {len(cams)} views), "
