@@ -74,7 +74,7 @@ AMBIENT_LIGHT = 0.45
 # ------------------------------------------------------------------------------------ motion
 #: IK iterations per sample and synthesis passes (IK -> measure -> correct).
 IK_ITERS = 10
-SYNTH_PASSES = 3
+SYNTH_PASSES = 4
 #: At a contact the surfaces are pressed together by this much (metres): soft tissue.
 CONTACT_PRESS_M = 0.0015
 #: Interpenetration outside the contacts deeper than this is resolved by pushing apart,
@@ -89,4 +89,22 @@ NEAR_M = 0.05
 FLESH_M = 0.16
 REFINE_TOL_M = 0.0003
 #: Vertices nearer than this to the other body get exact (libigl) signed distances.
-EXACT_BAND_M = 0.025
+EXACT_BAND_M = 0.008
+EXACT_PATCH_K = 12
+#: Limb interpenetration is undone by IK goals on at most this many points (distinct bones)
+#: per contact and sample, with this weight.
+REPEL_POINTS = 3
+REPEL_WEIGHT = 0.7
+
+# ------------------------------------------------------------------------------------ contact
+#: Surfaces closer than this (metres) touch (contact interval); annotated facets have their
+#: centroid this close to the other surface; 3-6 of them per signature.
+TOUCH_M = 0.005
+SIGNATURE_DIST_M = 0.006
+SIGNATURE_PAIRS = (3, 6)
+
+# ------------------------------------------------------------------------------------ placement
+#: The pair is rotated by a random heading and shifted by up to this much (metres).
+PAIR_SHIFT_M = 0.25
+#: Scan: random heading, shift (metres) of the subject in the scanner's frame.
+SCAN_SHIFT_M = 0.3

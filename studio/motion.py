@@ -151,8 +151,8 @@ class Contact:
     own thickness; refined on the true surfaces). weight: (N,) in [0, 1] on the master
     timeline (1 = in contact). eff_normal: optional (3,) outward normal of the effector surface
     in its frame, turned to face the anchor (orient_weight). poles: extra goals
-    ``(joint, offset, fn(idx) -> (len(idx), 3) world targets, weight)`` (e.g. an elbow kept
-    outside the partner). region: (n,) vertex ids of the effector's body part (for gap
+    ``(joint, offset, fn(i, tracks) -> (3,) world target at master sample i, weight)`` (e.g. an
+    elbow kept outside the partner). region: (n,) vertex ids of the effector's body part (for gap
     measurement). name: for reports (``"hand.R->back"``)."""
 
     who: int
@@ -167,7 +167,10 @@ class Contact:
     poles: list = field(default_factory=list)
     name: str = ""
     anchor_region: np.ndarray | None = None
-    refine: bool = True  # measure the true gap and correct the target (False: fixed target)
+    refine: bool = True
+    chain_vertices: np.ndarray | None = None  # vertices moved by the IK joints (set by synthesize)
+    vertex_bone: np.ndarray | None = None  # (V,) dominant bone of each vertex (set by synthesize)
+    repel: dict = field(default_factory=dict)  # sample -> {key: (joint, offset, world target)}  # measure the true gap and correct the target (False: fixed target)
     adjust: np.ndarray | None = None  # (N,) learned clearance corrections
 
 
@@ -204,7 +207,10 @@ def _solve_contacts(people: list[Person], tracks: list[Track], nominal: list[Tra
                 goals.append(Goal(joint, tuple(off + en), tuple(goal - a_n[k] * 0.05),
                                   c.orient_weight * w))
             for pj, poff, fn, pw in c.poles:
-                goals.append(Goal(pj, tuple(poff), tuple(fn(np.array([i]))[0]), pw * w))
+                goals.append(Goal(pj, tuple(poff), tuple(fn(i, tracks)), pw * w))
+            for bj, boff, banc in c.repel.get(i, {}).values():
+                btarget = banc.world(people[other], tracks[other], np.array([i]))[0][0]
+                goals.append(Goal(bj, tuple(boff), tuple(btarget), C.REPEL_WEIGHT))
             start = tr.pose[i] if (prev is None or warm_pass) else _carry(tr.pose[i], prev, c.dofs)
             sol = solve_ik(P, start, tr.R[i], tr.T[i], goals, c.dofs, nominal=nom.pose[i],
                            iters=C.IK_ITERS)
@@ -230,26 +236,31 @@ def skin_all(people: list[Person], tracks: list[Track], idx: np.ndarray) -> list
 
 
 def pair_distances(V0: np.ndarray, V1: np.ndarray, faces: np.ndarray, normals: VertexNormals,
-                   near: float = C.NEAR_M) -> list[np.ndarray]:
+                   near: float = C.NEAR_M) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Signed distance of every vertex of each body to the other body's surface (negative
     inside), where it matters: vertices within ``near`` of the other's bounding box.
 
-    V0, V1: (V, 3) metres. Returns [d0 (V,), d1 (V,)], +inf for vertices far from the other
-    body. Exact (libigl, pseudonormal sign, on the other body's local faces) for vertices within
-    constants.EXACT_BAND_M of the other's nearest vertex; further vertices get that nearest-vertex
-    distance, signed by the vertex normal there (only deep penetrations reach this case).
+    V0, V1: (V, 3) metres. Returns ([d0 (V,), d1 (V,)], [c0 (V, 3), c1 (V, 3)]): distances
+    (+inf for vertices far from the other body) and the closest points on the other body (NaN
+    where far). Exact (libigl, pseudonormal sign, on the other body's local faces) for vertices
+    less than constants.EXACT_BAND_M outside the other body by a first estimate (the
+    nearest vertex, signed by its normal), on a patch of the other surface around them
+    (constants.EXACT_PATCH_K nearest vertices); further vertices get that
+    nearest-vertex distance, signed by the vertex normal there (only deep penetrations reach
+    this case).
     """
     import igl
 
     V = [V0, V1]
     out = [np.full(len(V0), np.inf), np.full(len(V1), np.inf)]
+    cps = [np.full((len(V0), 3), np.nan), np.full((len(V1), 3), np.nan)]
     lo = np.maximum(V0.min(0), V1.min(0)) - near
     hi = np.minimum(V0.max(0), V1.max(0)) + near
     if np.any(lo > hi):
-        return out
+        return out, cps
     inbox = [np.all((v > lo) & (v < hi), axis=1) for v in V]
     if not inbox[0].any() or not inbox[1].any():
-        return out
+        return out, cps
     for a in range(2):
         b = 1 - a
         qa = np.flatnonzero(inbox[a])
@@ -259,15 +270,21 @@ def pair_distances(V0: np.ndarray, V1: np.ndarray, faces: np.ndarray, normals: V
         Nb = normals(V[b])
         sign = np.sign(np.einsum("md,md->m", V[a][qa] - V[b][vb[k]], Nb[vb[k]]))
         d = dnn * np.where(sign == 0, 1.0, sign)
-        band = dnn < C.EXACT_BAND_M
+        cp = V[b][vb[k]].copy()
+        band = (d < C.EXACT_BAND_M) & (dnn < 2 * C.EXACT_BAND_M)
         if band.any():
-            fb = faces[inbox[b][faces].all(1)]
-            if len(fb):
-                sd = igl.signed_distance(V[a][qa[band]], V[b], fb,
-                                         igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)[0]
-                d[band] = sd
+            # a local patch of the other surface around the queried points is enough
+            _, nb = tree.query(V[a][qa[band]], k=C.EXACT_PATCH_K)
+            inset = np.zeros(len(V[b]), bool)
+            inset[vb[np.unique(nb)]] = True
+            fb = faces[inset[faces].any(1)]
+            sd, _, cc, _ = igl.signed_distance(V[a][qa[band]], V[b], fb,
+                                               igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
+            d[band] = sd
+            cp[band] = cc
         out[a][qa] = d
-    return out
+        cps[a][qa] = cp
+    return out, cps
 
 
 class VertexNormals:
@@ -315,6 +332,61 @@ def synthesize(people: list[Person], nominal: list[Track], contacts: list[Contac
         return _synthesize(people, nominal, contacts, movable, passes, check_samples)
 
 
+def _add_repulsion(c: Contact, people: list[Person], tracks: list[Track], i: int,
+                   V: list[np.ndarray], d: np.ndarray, cp: np.ndarray) -> bool:
+    """Where the contact's limb (``c.chain_vertices``) is inside the other body at sample i,
+    add IK goals that pull the deepest points out along the way to the closest surface point
+    (kept for later passes, updated if the point is still inside). The goal's target is
+    attached to the other body (an :class:`Anchor` on its nearest vertex's bone), so it follows
+    that body when it moves."""
+    person, track = people[c.who], tracks[c.who]
+    other, otrack = people[1 - c.who], tracks[1 - c.who]
+    Vm, Vo = V[c.who], V[1 - c.who]
+    if c.chain_vertices is None:
+        return False
+    cv = c.chain_vertices
+    depth = -d[cv]
+    tol = np.where(np.isin(cv, c.region), C.CONTACT_PRESS_M + C.PENETRATION_TOL_M, C.PENETRATION_TOL_M)
+    bad = depth > tol
+    if not bad.any():
+        return False
+    t, G = person.fk(track.pose[i:i + 1], track.R[i:i + 1], track.T[i:i + 1])
+    to, Go = other.fk(otrack.pose[i:i + 1], otrack.R[i:i + 1], otrack.T[i:i + 1])
+    tree = cKDTree(Vo)
+    goals = c.repel.setdefault(i, {})
+    order = np.argsort(-depth)
+    used = set()
+    for q in order[: 4 * C.REPEL_POINTS]:
+        if not bad[q]:
+            break
+        v = cv[q]
+        bone = int(c.vertex_bone[v])
+        if bone in used:
+            continue
+        used.add(bone)
+        out = cp[v] - Vm[v]
+        n = np.linalg.norm(out)
+        if not np.isfinite(n) or n < 1e-9:
+            continue
+        target = cp[v] + out / n * C.SEPARATION_MARGIN_M
+        off = G[0, bone].T @ (Vm[v] - t[0, bone])
+        ob = int(c.vertex_bone[tree.query(cp[v])[1]])
+        anc = Anchor(ob, Go[0, ob].T @ (target - to[0, ob]), np.zeros(3))
+        goals[(bone, v)] = (bone, off, anc)
+        if len(used) >= C.REPEL_POINTS:
+            break
+    return bool(used)
+
+
+def _is_desc(j: int, anc: int, parents: np.ndarray) -> bool:
+    """True if joint j is anc or below it."""
+    while j >= 0:
+        if j == anc:
+            return True
+        j = parents[j]
+    return False
+
+
 def _near_samples(people: list[Person], tracks: list[Track]) -> np.ndarray:
     """(N,) bool: samples where the two bodies' joint boxes, grown by constants.FLESH_M (the
     most flesh around a joint), overlap (a cheap broad phase)."""
@@ -335,14 +407,22 @@ def _synthesize(people, nominal, contacts, movable, passes, check_samples):
     base_T = nominal[movable].T.copy()
     # contact regions: their vertices are allowed to touch
     allowed = [np.zeros(people[i].model.num_vertices, bool) for i in range(2)]
+    dom = np.asarray(people[0].model.weights.argmax(axis=1)).ravel()
+    par = people[0].model.parents
     for c in contacts:
         allowed[c.who][c.region] = True
         c.adjust = np.zeros(N)
+        c.repel = {}
+        c.vertex_bone = dom
+        moved = {d.joint for d in c.dofs}
+        sub = np.array([any(_is_desc(j, m, par) for m in moved) for j in range(len(par))])
+        c.chain_vertices = np.flatnonzero(sub[dom])
     report = None
     todo = np.ones(N, bool)
     faces = people[0].model.faces
     check = np.zeros(N, bool)  # measure at the video frames only (the ground truth's samples)
     check[check_samples] = True
+    spread = int(np.min(np.diff(check_samples))) - 1 if len(check_samples) > 1 else 0
     for it in range(passes + 1):
         tracks[movable].T = base_T + push
         if todo.any():
@@ -353,10 +433,11 @@ def _synthesize(people, nominal, contacts, movable, passes, check_samples):
         gaps = np.full((len(contacts), N), np.nan)
         pen = np.zeros(N)
         need = np.zeros((N, 3))
+        repelled = np.zeros(N, bool)
         verts = skin_all(people, tracks, idx) if len(idx) else None
         for k, i in enumerate(idx):
             V = [verts[0][k], verts[1][k]]
-            d = pair_distances(V[0], V[1], faces, normals)
+            d, cp = pair_distances(V[0], V[1], faces, normals)
             for ci, c in enumerate(contacts):
                 if c.weight[i] > 0.05 and c.refine:
                     g = d[c.who][c.region].min()
@@ -364,16 +445,28 @@ def _synthesize(people, nominal, contacts, movable, passes, check_samples):
                         g = min(g, d[1 - c.who][c.anchor_region].min())
                     gaps[ci, i] = g
             pen[i] = max(0.0, -min(d[0].min(), d[1].min()))
+            for c in contacts:
+                if _add_repulsion(c, people, tracks, i, V, d[c.who], cp[c.who]):
+                    lo_i, hi_i = max(0, i - spread), min(N, i + spread + 1)
+                    for j2 in range(lo_i, hi_i):
+                        if j2 != i:
+                            c.repel.setdefault(j2, {}).update(c.repel[i])
+                    repelled[lo_i:hi_i] = True
             free = min(np.min(d[0][~allowed[0]], initial=np.inf), np.min(d[1][~allowed[1]], initial=np.inf))
             if -free > C.PENETRATION_TOL_M:
                 # push the movable person away from the other along the horizontal line
-                cm = V[movable].mean(0) - V[1 - movable].mean(0)
+                cm = (tracks[movable].T[i] + people[movable].rest.joints[0, 0]) - (
+                    tracks[1 - movable].T[i] + people[1 - movable].rest.joints[0, 0])
                 cm[2] = 0
                 need[i] = cm / np.linalg.norm(cm) * (-free + C.SEPARATION_MARGIN_M)
         report = SynthReport(gaps, pen)
+        import os
+        if os.environ.get("STUDIO_DEBUG"):
+            mid = check_samples[len(check_samples) // 2]
+            print("DEBUG pass", it, "pen", round(pen[mid] * 1000, 1), [(c.name, round(gaps[ci, mid] * 1000, 1), round(c.adjust[mid] * 1000, 1), len(c.repel.get(mid, {}))) for ci, c in enumerate(contacts)])
         if it == passes:
             break
-        todo = np.zeros(N, bool)
+        todo = repelled.copy()
         # contact refinement: move each target along its normal by the measured gap
         for ci, c in enumerate(contacts):
             g = gaps[ci]

@@ -72,6 +72,7 @@ class SequencePlan:
     partner: str
     frames: int
     text: str
+    actor: int = 0
 
     @property
     def seq_id(self) -> str:
@@ -160,7 +161,7 @@ def make_plan(seed: int, frames: int | None = None, scenarios: tuple[str, ...] |
         seqs.append(SequencePlan(index=i, scenario=sc, group=group,
                                  action=f"{SCENARIOS[sc]} {takes[sc]}",
                                  markers_on=subjects[wearer], partner=subjects[1 - wearer],
-                                 frames=int(frames), text=sentence(sc, actor, rng)))
+                                 frames=int(frames), text=sentence(sc, actor, rng), actor=actor))
     session = f"studio_{preset}" if preset else f"studio_seed{seed}"
     return SessionPlan(session=session, seed=int(seed), group=group, subjects=subjects,
                        cameras=C.CAMERA_NAMES, sequences=tuple(seqs), preset=preset)

@@ -49,6 +49,7 @@ class Anatomy:
     hand_vertices: dict  # side -> (n,) vertex ids of the hand
     foot_vertices: dict  # side -> (n,) vertex ids of the foot
     instep_offset: dict  # side -> (3,) instep point relative to the foot joint
+    pose0_vertices: np.ndarray  # (V, 3) mesh at pose 0
 
 
 def anatomy(person: Person) -> Anatomy:
@@ -95,7 +96,7 @@ def anatomy(person: Person) -> Anatomy:
     f_ = J0[n("wrist.L")] - J0[n("lowerarm01.L")]
     flex0 = float(np.arccos(np.clip(_unit(u) @ _unit(f_), -1, 1)))
     return Anatomy(J0, hands, elbow_axis, flex0, LEFT.copy(), float(V0[:, 2].max() - V0[:, 2].min()),
-                   hand_v, foot_v, instep)
+                   hand_v, foot_v, instep, V0)
 
 
 # --------------------------------------------------------------------------------- postures

@@ -138,12 +138,14 @@ class Renderer:
             self.scene.remove_node(n)
         self._people = [self.scene.add(self._mesh(p.vertices, p.faces, p.colors)) for p in people]
 
-    def _each_view(self, flags, warp_interp, seg_node_map=None):
+    def _each_view(self, flags, warp_interp, seg_node_map=None, views=None):
         import cv2
 
         out = []
         kw = {} if seg_node_map is None else {"seg_node_map": seg_node_map}
-        for node, w in zip(self._cam_nodes, self._warps, strict=True):
+        views = range(len(self.cams)) if views is None else views
+        for c in views:
+            node, w = self._cam_nodes[c], self._warps[c]
             self.scene.main_camera_node = node
             img = self._renderer.render(self.scene, flags=flags, **kw)
             img = img[0] if isinstance(img, tuple) else img
@@ -151,19 +153,20 @@ class Renderer:
                                  borderMode=cv2.BORDER_REPLICATE))
         return out
 
-    def render(self, people: list[PersonMesh]) -> list[np.ndarray]:
-        """One RGB frame per camera: list of (H, W, 3) uint8."""
+    def render(self, people: list[PersonMesh], views: list[int] | None = None) -> list[np.ndarray]:
+        """One RGB frame per camera (or per camera index in ``views``): list of (H, W, 3) uint8."""
         import cv2
 
         self._set_people(people)
-        return self._each_view(self._pr.RenderFlags.FLAT, cv2.INTER_LINEAR)
+        return self._each_view(self._pr.RenderFlags.FLAT, cv2.INTER_LINEAR, views=views)
 
-    def render_ids(self, people: list[PersonMesh]) -> list[np.ndarray]:
-        """Person id per pixel, one (H, W) int8 per camera: i for ``people[i]``, -1 elsewhere."""
+    def render_ids(self, people: list[PersonMesh], views: list[int] | None = None) -> list[np.ndarray]:
+        """Person id per pixel, one (H, W) int8 per camera (or per index in ``views``): i for
+        ``people[i]``, -1 elsewhere."""
         import cv2
 
         self._set_people(people)
         seg = {self._floor: (0, 0, 0)}
         seg.update({n: (i + 1, 0, 0) for i, n in enumerate(self._people)})
-        views = self._each_view(self._pr.RenderFlags.SEG, cv2.INTER_NEAREST, seg)
-        return [v[..., 0].astype(np.int8) - 1 for v in views]
+        imgs = self._each_view(self._pr.RenderFlags.SEG, cv2.INTER_NEAREST, seg, views)
+        return [v[..., 0].astype(np.int8) - 1 for v in imgs]

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from studio import posture as P
-from studio.kin import Person, heading_rotation
-from studio.motion import Anchor, Contact, Fixed, Timeline, Track, pulse, ramp
+from studio.kin import FWD, LEFT, UP, Person, heading_rotation
+from studio.motion import Anchor, Contact, Fixed, Timeline, Track, anchor_at, pulse, ramp
 from studio.posture import Anatomy
 
 
@@ -143,4 +143,259 @@ def handshake(cast: Cast) -> Scene:
     return Scene([ta, tb], [ca, cb], movable=1, contact_hint=(0.4, 0.7))
 
 
-SCENES = {"handshake": handshake}
+def _front(person: Person, an: Anatomy, prefixes=("root", "pelvis", "spine", "breast", "clavicle")) -> float:
+    """How far the torso surface reaches in front of the root joint (body frame, metres)."""
+    m = person.model
+    dom = np.asarray(m.weights.argmax(axis=1)).ravel()
+    torso = np.array([m.joint_names[d].startswith(prefixes) for d in dom])
+    V0 = an.pose0_vertices
+    return float(((V0[torso] - an.joints0[0]) @ FWD).max())
+
+
+def _anchor(cast: Cast, role: int, pose: np.ndarray, joint: str, start_body, direction) -> Anchor:
+    p = cast.people[role]
+    return anchor_at(p, pose, np.asarray(start_body, float), p.j(joint), np.asarray(direction, float))
+
+
+def _joint0(cast: Cast, role: int, name: str) -> np.ndarray:
+    return cast.an[role].joints0[cast.people[role].j(name)].copy()
+
+
+def _region(cast: Cast, role: int, prefixes, side: str | None = None) -> np.ndarray:
+    m = cast.people[role].model
+    dom = np.asarray(m.weights.argmax(axis=1)).ravel()
+    ok = [m.joint_names[d].startswith(prefixes) and (side is None or m.joint_names[d].endswith("." + side))
+          for d in dom]
+    return np.flatnonzero(ok)
+
+
+def _pole_body(cast: Cast, role_of_frame: int, point_body) -> callable:
+    """A pole target fixed in the body frame of person ``role_of_frame``."""
+    person = cast.people[role_of_frame]
+    pb = np.asarray(point_body, float)
+
+    def fn(i, tracks):
+        return body_to_world(tracks[role_of_frame], i, pb, person)
+
+    return fn
+
+
+def hug(cast: Cast) -> Scene:
+    rng, u, N = cast.rng, cast.u, cast.N
+    (pa, pb), (aa, ab) = cast.people, cast.an
+    s = _front(pa, aa) + _front(pb, ab) + rng.uniform(0.0, 0.02)
+    base = [P.standing(p, a, rng) for p, a in zip(cast.people, cast.an, strict=True)]
+    w_lean = pulse(u, 0.05, 0.35, 0.78, 0.97)
+    lean = [P.bend(p, P.bend(p, b, P.SPINE, LEFT * 0.12), P.NECK, UP * 0.5 + LEFT * 0.05)
+            for p, b in zip(cast.people, base, strict=True)]
+    # arms open first (wide, forward), then close around the partner
+    open_ = []
+    for role, up in ((0, 0.15), (1, -0.35)):
+        o = lean[role]
+        for side, sgn in (("L", 1.0), ("R", -1.0)):
+            o = P.arm_directions(cast.people[role], cast.an[role], o, side,
+                                 LEFT * sgn * 0.8 + FWD * 0.6 + UP * up, 0.7)
+        open_.append(o)
+    ta = place(pa, (-s / 2, 0), (1, 0), N, base[0])
+    tb = place(pb, (s / 2, 0), (-1, 0), N, base[1])
+    w_a = pulse(u, 0.12, 0.4, 0.76, 0.95)
+    w_b = pulse(u, 0.15, 0.42, 0.74, 0.93)
+    w_open_a = pulse(u, 0.0, 0.25, 0.85, 1.0)
+    w_open_b = pulse(u, 0.03, 0.28, 0.83, 1.0)
+    ta.pose = living(cast, 0, blend(blend(base[0], lean[0], w_lean), open_[0], w_open_a), 0.5)
+    ta.pose = with_fingers(cast, 0, with_fingers(cast, 0, ta.pose, "L", 0.15, w_a), "R", 0.15, w_a)
+    tb.pose = living(cast, 1, blend(blend(base[1], lean[1], w_lean), open_[1], w_open_b), 0.5)
+    contacts = []
+    # actor: arms over the partner's shoulders, hands on their upper back; receiver: arms
+    # under them, around the actor's waist
+    po, ao = pb, ab
+    half = 0.5 * _shoulder_width(ao, po)
+    for side, sgn in (("L", 1.0), ("R", -1.0)):
+        # my left hand goes to the partner's right side of the back (they face me)
+        start = _joint0(cast, 1, "spine01") + LEFT * (-sgn) * 0.08 + UP * 0.05
+        anc = _anchor(cast, 1, lean[1], "spine01", start, -FWD + UP * 0.3)
+        eff, nrm = palm(cast, 0, side)
+        elbow_pt = _joint0(cast, 1, "spine01") + LEFT * (-sgn) * (half + 0.1) + UP * 0.12
+        poles = [(pa.j(f"lowerarm01.{side}"), np.zeros(3), _pole_body(cast, 1, elbow_pt), 0.3)]
+        contacts.append(Contact(0, P.arm_dofs(pa, aa, side), eff, anc, clearance=0.012, weight=w_a,
+                                region=hand_region(cast, 0, side), eff_normal=nrm, poles=poles,
+                                name=f"hand.{side}->back"))
+    half_a = 0.5 * _shoulder_width(aa, pa)
+    for side, sgn in (("L", 1.0), ("R", -1.0)):
+        start = _joint0(cast, 0, "spine05") - LEFT * sgn * 0.04
+        anc = _anchor(cast, 0, lean[0], "spine05", start, -LEFT * sgn - FWD * 0.25)
+        eff, nrm = palm(cast, 1, side)
+        elbow_pt = _joint0(cast, 0, "spine05") - LEFT * sgn * (half_a + 0.1) + FWD * 0.05
+        poles = [(pb.j(f"lowerarm01.{side}"), np.zeros(3), _pole_body(cast, 0, elbow_pt), 0.3)]
+        contacts.append(Contact(1, P.arm_dofs(pb, ab, side), eff, anc, clearance=0.012, weight=w_b,
+                                region=hand_region(cast, 1, side), eff_normal=nrm, poles=poles,
+                                name=f"hand.{side}->waist"))
+    return Scene([ta, tb], contacts, movable=1, contact_hint=(0.42, 0.72))
+
+
+def push(cast: Cast) -> Scene:
+    rng, u, N = cast.rng, cast.u, cast.N
+    (pa, pb), (aa, ab) = cast.people, cast.an
+    s = _front(pb, ab) + 0.62 * _arm_len(aa, pa) + rng.uniform(0.1, 0.16)
+    base = [P.standing(p, a, rng) for p, a in zip(cast.people, cast.an, strict=True)]
+    ta = place(pa, (-s / 2, 0), (1, 0), N, base[0])
+    tb = place(pb, (s / 2, 0), (-1, 0), N, base[1])
+    w = pulse(u, 0.08, 0.33, 0.58, 0.8)
+    recoil = ramp(u, 0.36, 0.6) * (1 - 0.6 * ramp(u, 0.7, 0.95))
+    back = P.bend(pb, base[1], P.SPINE, -LEFT * 0.22)
+    tb.pose = living(cast, 1, blend(base[1], back, recoil), 0.6)
+    tb.T = tb.T + recoil[:, None] * np.array([rng.uniform(0.1, 0.16), 0.0, 0.0])
+    fwd = P.bend(pa, base[0], P.SPINE, LEFT * 0.12)
+    ta.pose = living(cast, 0, blend(base[0], fwd, w), 0.6)
+    contacts = []
+    for side, sgn in (("L", 1.0), ("R", -1.0)):
+        start = _joint0(cast, 1, "spine02") + LEFT * (-sgn) * 0.09 + UP * 0.08
+        anc = _anchor(cast, 1, base[1], "spine02", start, FWD)
+        eff, nrm = palm(cast, 0, side)
+        contacts.append(Contact(0, P.arm_dofs(pa, aa, side), eff, anc, clearance=0.012, weight=w,
+                                region=hand_region(cast, 0, side), eff_normal=nrm,
+                                name=f"hand.{side}->chest"))
+    return Scene([ta, tb], contacts, movable=1, contact_hint=(0.36, 0.56))
+
+
+def hit(cast: Cast) -> Scene:
+    rng, u, N = cast.rng, cast.u, cast.N
+    (pa, pb), (aa, ab) = cast.people, cast.an
+    s = _front(pb, ab) + 0.75 * _arm_len(aa, pa) + rng.uniform(0.1, 0.15)
+    base = [P.standing(p, a, rng) for p, a in zip(cast.people, cast.an, strict=True)]
+    guard = P.fist(pa, aa, P.arm_directions(pa, aa, base[0], "R", -UP + FWD * 0.3 - LEFT * 0.2, 1.9), "R")
+    ta = place(pa, (-s / 2, 0), (1, 0), N, base[0])
+    tb = place(pb, (s / 2, 0), (-1, 0), N, base[1])
+    w_guard = pulse(u, 0.02, 0.2, 0.75, 0.95)
+    ta.pose = living(cast, 0, blend(base[0], guard, w_guard), 0.6)
+    w = pulse(u, 0.25, 0.42, 0.5, 0.68)
+    flinch = ramp(u, 0.44, 0.56) * (1 - ramp(u, 0.7, 0.95))
+    away = P.bend(pb, P.bend(pb, base[1], P.SPINE, -UP * 0.35 - LEFT * 0.12), P.NECK, -UP * 0.3)
+    tb.pose = living(cast, 1, blend(base[1], away, flinch), 0.6)
+    start = _joint0(cast, 1, "upperarm01.L") - UP * 0.03
+    anc = _anchor(cast, 1, base[1], "upperarm01.L", start, FWD + LEFT * 0.5)
+    h = cast.an[0].hands["R"]
+    fwd_hand = h.knuckle_offset / np.linalg.norm(h.knuckle_offset)
+    c = Contact(0, P.arm_dofs(pa, aa, "R"), (h.wrist, h.knuckle_offset + fwd_hand * 0.01), anc,
+                clearance=0.01, weight=w, region=hand_region(cast, 0, "R"), eff_normal=fwd_hand,
+                orient_weight=0.15, name="fist.R->shoulder.L")
+    return Scene([ta, tb], [c], movable=1, contact_hint=(0.43, 0.5))
+
+
+def kick(cast: Cast) -> Scene:
+    rng, u, N = cast.rng, cast.u, cast.N
+    (pa, pb), (aa, ab) = cast.people, cast.an
+    leg = float(aa.joints0[pa.j("upperleg01.R"), 2] - aa.joints0[pa.j("foot.R"), 2])
+    s = 0.8 * leg + 0.5 * _front(pb, ab) + rng.uniform(0.05, 0.1)
+    base = [P.standing(p, a, rng) for p, a in zip(cast.people, cast.an, strict=True)]
+    ta = place(pa, (-s / 2, 0.05), (1, 0), N, base[0])
+    tb = place(pb, (s / 2, 0), (-1, 0), N, base[1])
+    w = pulse(u, 0.15, 0.42, 0.5, 0.78)
+    balance = P.bend(pa, base[0], P.SPINE, -LEFT * 0.15)
+    for side, sgn in (("L", 1.0), ("R", -1.0)):
+        balance = P.arm_directions(pa, aa, balance, side, -UP + LEFT * sgn * 0.8 + FWD * 0.2, 0.5)
+    ta.pose = living(cast, 0, blend(base[0], balance, pulse(u, 0.1, 0.4, 0.55, 0.85)), 0.5)
+    flinch = ramp(u, 0.46, 0.6) * (1 - ramp(u, 0.75, 0.97))
+    away = P.bend(pb, base[1], P.SPINE, LEFT * 0.2 - UP * 0.15)
+    tb.pose = living(cast, 1, blend(base[1], away, flinch), 0.6)
+    mid = 0.5 * (_joint0(cast, 1, "upperleg01.L") + _joint0(cast, 1, "lowerleg01.L"))
+    anc = _anchor(cast, 1, base[1], "upperleg01.L", mid, LEFT + FWD * 0.8)
+    c = Contact(0, P.leg_dofs(pa, aa, "R"), (pa.j("foot.R"), aa.instep_offset["R"]), anc,
+                clearance=0.01, weight=w, region=aa.foot_vertices["R"], name="foot.R->thigh.L")
+    return Scene([ta, tb], [c], movable=1, contact_hint=(0.43, 0.5))
+
+
+def grab(cast: Cast) -> Scene:
+    rng, u, N = cast.rng, cast.u, cast.N
+    (pa, pb), (aa, ab) = cast.people, cast.an
+    s = 0.55 * (_arm_len(aa, pa) + _arm_len(ab, pb)) + 0.25
+    base = [P.standing(p, a, rng) for p, a in zip(cast.people, cast.an, strict=True)]
+    # the receiver holds the left forearm forward; later pulls it back a little
+    offer = P.arm_directions(pb, ab, base[1], "L", -UP + FWD * 0.45 + LEFT * 0.1, 1.2)
+    pull = P.arm_directions(pb, ab, base[1], "L", -UP + FWD * 0.15 + LEFT * 0.15, 1.5)
+    ta = place(pa, (-s / 2, 0), (1, 0), N, base[0])
+    tb = place(pb, (s / 2, 0), (-1, 0), N, base[1])
+    w_off = pulse(u, 0.0, 0.25, 0.85, 1.0)
+    w_pull = ramp(u, 0.5, 0.7) * (1 - ramp(u, 0.85, 1.0))
+    tb.pose = living(cast, 1, blend(blend(base[1], offer, w_off), pull, w_pull), 0.5)
+    w = pulse(u, 0.12, 0.4, 0.72, 0.92)
+    ta.pose = with_fingers(cast, 0, living(cast, 0, base[0], 0.5), "R", 0.3, w)
+    mid = 0.4 * _joint0(cast, 1, "lowerarm01.L") + 0.6 * _joint0(cast, 1, "wrist.L")
+    # anchor on the top of the forearm in the offering pose
+    t, G = pb.fk(offer[None], np.eye(3)[None], np.zeros((1, 3)))
+    mid = 0.4 * t[0, pb.j("lowerarm01.L")] + 0.6 * t[0, pb.j("wrist.L")]
+    anc = _anchor(cast, 1, offer, "lowerarm02.L", mid, UP)
+    eff, nrm = palm(cast, 0, "R")
+    c = Contact(0, P.arm_dofs(pa, aa, "R"), eff, anc, clearance=0.012, weight=w,
+                region=hand_region(cast, 0, "R"), eff_normal=nrm,
+                anchor_region=_region(cast, 1, ("lowerarm", "wrist"), "L"), name="hand.R->forearm.L")
+    return Scene([ta, tb], [c], movable=1, contact_hint=(0.42, 0.7))
+
+
+def holding_hands(cast: Cast) -> Scene:
+    rng, u, N = cast.rng, cast.u, cast.N
+    (pa, pb), (aa, ab) = cast.people, cast.an
+    s = 0.5 * (_shoulder_width(aa, pa) + _shoulder_width(ab, pb)) + rng.uniform(0.3, 0.38)
+    base = [P.standing(p, a, rng) for p, a in zip(cast.people, cast.an, strict=True)]
+    ta = place(pa, (0, -s / 2), (1, 0), N, base[0])
+    tb = place(pb, (0, s / 2), (1, 0), N, base[1])
+    w_a = pulse(u, 0.05, 0.32, 0.8, 0.97)
+    w_b = pulse(u, 0.08, 0.34, 0.78, 0.95)
+    ta.pose = with_fingers(cast, 0, living(cast, 0, base[0], 0.6), "L", 0.1, w_a)
+    tb.pose = with_fingers(cast, 1, living(cast, 1, base[1], 0.6), "R", 0.1, w_b)
+    za = _floor_height(ta, pa, pa.j("wrist.L"), aa)
+    zb = _floor_height(tb, pb, pb.j("wrist.R"), ab)
+    swing = 0.07 * np.sin(2 * np.pi * 0.9 * cast.tl.t + rng.uniform(0, 6)) * ramp(u, 0.35, 0.45)
+    M = np.stack([rng.uniform(0.0, 0.06) + swing, np.zeros(N), np.full(N, 0.5 * (za + zb) + 0.08)], 1)
+    eff_a, n_a = palm(cast, 0, "L")
+    eff_b, n_b = palm(cast, 1, "R")
+    ca = Contact(0, P.arm_dofs(pa, aa, "L"), eff_a, Fixed(M, np.array([0.0, -1.0, 0.0])),
+                 clearance=0.012, weight=w_a, region=hand_region(cast, 0, "L"), eff_normal=n_a,
+                 name="hand.L->hand.R", refine=False)
+    cb = Contact(1, P.arm_dofs(pb, ab, "R"), eff_b, Anchor(eff_a[0], eff_a[1], n_a),
+                 clearance=0.0, weight=w_b, region=hand_region(cast, 1, "R"), eff_normal=n_b,
+                 anchor_region=hand_region(cast, 0, "L"), name="hand.R->hand.L")
+    return Scene([ta, tb], [ca, cb], movable=1, contact_hint=(0.4, 0.75))
+
+
+def posing(cast: Cast) -> Scene:
+    rng, u, N = cast.rng, cast.u, cast.N
+    (pa, pb), (aa, ab) = cast.people, cast.an
+    s = 0.5 * (_shoulder_width(aa, pa) + _shoulder_width(ab, pb)) + rng.uniform(0.12, 0.18)
+    base = [P.standing(p, a, rng) for p, a in zip(cast.people, cast.an, strict=True)]
+    ta = place(pa, (0, -s / 2), (1, 0), N, base[0])
+    tb = place(pb, (0, s / 2), (1, 0), N, base[1])
+    w_a = pulse(u, 0.06, 0.36, 0.8, 0.97)
+    w_b = pulse(u, 0.1, 0.4, 0.78, 0.95)
+    ta.pose = living(cast, 0, base[0], 0.4)
+    tb.pose = living(cast, 1, base[1], 0.4)
+    # actor: left arm over the partner's shoulders, hand on their far (left) shoulder
+    anc_a = _anchor(cast, 1, base[1], "clavicle.L", _joint0(cast, 1, "upperarm01.L") - LEFT * 0.04, UP)
+    eff, nrm = palm(cast, 0, "L")
+    neck_back = _joint0(cast, 1, "neck01") - FWD * 0.14 + UP * 0.02
+    ca = Contact(0, P.arm_dofs(pa, aa, "L"), eff, anc_a, clearance=0.012, weight=w_a,
+                 region=hand_region(cast, 0, "L"), eff_normal=nrm,
+                 poles=[(pa.j("lowerarm01.L"), np.zeros(3), _pole_body(cast, 1, neck_back), 0.3)],
+                 name="hand.L->shoulder.L")
+    # receiver: right arm around the actor's waist, hand on their far (right) hip
+    hip = _joint0(cast, 0, "upperleg01.R") + UP * 0.1
+    anc_b = _anchor(cast, 0, base[0], "root", hip, -LEFT)
+    eff, nrm = palm(cast, 1, "R")
+    waist_back = _joint0(cast, 0, "spine05") - FWD * 0.2
+    cb = Contact(1, P.arm_dofs(pb, ab, "R"), eff, anc_b, clearance=0.012, weight=w_b,
+                 region=hand_region(cast, 1, "R"), eff_normal=nrm,
+                 poles=[(pb.j("lowerarm01.R"), np.zeros(3), _pole_body(cast, 0, waist_back), 0.3)],
+                 name="hand.R->hip.R")
+    return Scene([ta, tb], [ca, cb], movable=1, contact_hint=(0.42, 0.75))
+
+
+SCENES = {
+    "grab": grab,
+    "handshake": handshake,
+    "hit": hit,
+    "holding_hands": holding_hands,
+    "hug": hug,
+    "kick": kick,
+    "posing": posing,
+    "push": push,
+}

@@ -1,0 +1,97 @@
+"""Contact annotations from the true geometry, as CHI3D's annotators would make them: the
+contact interval (frames where the two surfaces touch), one annotated frame, and a signature
+of 3-6 facet-to-facet correspondences that really touch, spread over the contact area, with
+their region ids."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from studio import constants as C
+from studio.motion import VertexNormals, pair_distances
+
+
+@dataclass(frozen=True)
+class ContactTruth:
+    """min_dist: (F,) smallest signed distance between the bodies per video frame (metres,
+    negative = interpenetration); touching: (F,) int vertices within constants.TOUCH_M of the
+    other body; start, end: contact interval (inclusive video frames) or -1; fr_id: annotated
+    frame or -1; faces: (P, 2) facet pairs (person 0, person 1); regions: (P, 2); dist: (P,)
+    distance from each person-0 facet's centroid to its person-1 facet, metres (an upper
+    bound of the facet-to-facet distance)."""
+
+    min_dist: np.ndarray
+    touching: np.ndarray
+    start: int
+    end: int
+    fr_id: int
+    faces: np.ndarray
+    regions: np.ndarray
+    dist: np.ndarray
+
+
+def longest_run(mask: np.ndarray) -> tuple[int, int]:
+    """(start, end) inclusive of the longest run of True, or (-1, -1)."""
+    best, cur, s0 = (-1, -1), 0, 0
+    for i, m in enumerate(mask):
+        if m:
+            if cur == 0:
+                s0 = i
+            cur += 1
+            if cur > best[1] - best[0] + 1 or best[0] < 0:
+                best = (s0, i)
+        else:
+            cur = 0
+    return best
+
+
+def annotate(verts0: np.ndarray, verts1: np.ndarray, faces: np.ndarray, face_region: np.ndarray,
+             rng: np.random.Generator, hint: tuple[int, int] | None = None) -> ContactTruth:
+    """Contact truth of one sequence.
+
+    verts0, verts1: (F, V, 3) vertices of person 0 (marker wearer) and person 1 at the video
+    frames, metres; faces: (T, 3); face_region: (T,) region id per facet; hint: optional
+    (first, last) frames where the motion plans contact (the search for the annotated frame
+    prefers them). Returns a :class:`ContactTruth`.
+    """
+    import igl
+
+    F = len(verts0)
+    normals = VertexNormals(faces, verts0.shape[1])
+    min_dist = np.full(F, np.inf)
+    touching = np.zeros(F, int)
+    for f in range(F):
+        d, _ = pair_distances(verts0[f], verts1[f], faces, normals)
+        min_dist[f] = min(d[0].min(), d[1].min())
+        touching[f] = int((d[0] < C.TOUCH_M).sum() + (d[1] < C.TOUCH_M).sum())
+    start, end = longest_run(min_dist < C.TOUCH_M)
+    empty = np.zeros((0, 2), np.int64)
+    if start < 0:
+        return ContactTruth(min_dist, touching, -1, -1, -1, empty, empty, np.zeros(0))
+    # the annotated frame: most touching area, preferring the planned contact phase
+    score = touching[start:end + 1].astype(float)
+    if hint is not None:
+        fr = np.arange(start, end + 1)
+        score = score * np.where((fr >= hint[0]) & (fr <= hint[1]), 1.0, 0.5)
+    fr_id = int(start + np.argmax(score))
+    V0, V1 = verts0[fr_id], verts1[fr_id]
+    cen = V0[faces].mean(1)
+    sq, partner, _ = igl.point_mesh_squared_distance(cen, V1, faces)
+    d1 = np.sqrt(sq)
+    cand = np.flatnonzero(d1 < C.SIGNATURE_DIST_M)
+    if not len(cand):
+        return ContactTruth(min_dist, touching, start, end, fr_id, empty, empty, np.zeros(0))
+    want = int(rng.integers(C.SIGNATURE_PAIRS[0], C.SIGNATURE_PAIRS[1] + 1))
+    # spread like an annotator: farthest-point sampling over the candidate centroids
+    pick = [int(cand[np.argmin(d1[cand])])]
+    while len(pick) < min(want, len(cand)):
+        dd = np.min(np.linalg.norm(cen[cand][:, None] - cen[pick][None], axis=2), axis=1)
+        if dd.max() <= 0:
+            break
+        pick.append(int(cand[np.argmax(dd)]))
+    pick = np.array(pick)
+    pairs = np.stack([pick, partner[pick]], 1).astype(np.int64)
+    regions = face_region[pairs]
+    return ContactTruth(min_dist, touching, start, end, fr_id, pairs, regions.astype(np.int64),
+                        d1[pick])

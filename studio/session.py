@@ -1,0 +1,294 @@
+"""Generate a whole capture session from a :class:`studio.plan.SessionPlan`: subjects and their
+scans, then per sequence the motion, the C3D, the calibration, the videos, the contact
+annotation, the ground truth and a contact sheet; finally the recipe.
+
+Ground truth (``<out>/gt/``, never read by the pipeline):
+
+- ``gt/session.json``: seed, plan, per-sequence facts (who wears the markers, contact frames,
+  measured contact gaps and interpenetration), the studio's source hash;
+- ``gt/subjects/<id>.npz``: ``betas (S,)``, ``phenotypes (6,)``, ``local_changes (L,)``,
+  the scan's pose (``scan_R (3, 3)``, ``scan_T (3,)``, pose 0) and ``scan_vertices (V, 3)``;
+  ``gt/subjects/<id>_markers.json``: the subject's true marker placement (body.markers JSON);
+- ``gt/<group>/<action>.npz`` per sequence, person axis first, person 0 = the marker wearer
+  (CHI3D): ``subjects (2,)``, ``betas (2, S)``, ``body_pose (2, F, J, 3)`` local axis-angle,
+  ``global_orient (2, F, 3, 3)``, ``transl (2, F, 3)``, ``joints (2, F, J, 3)``,
+  ``joints3d_25 (2, F, 25, 3)``, ``vertices (2, F, V, 3) float32``, ``faces (T, 3)``;
+  ``frames (F,)``, ``fps``; mocap: ``marker_names (M,)``, ``markers_true (Fm, M, 3)`` (no
+  noise), ``markers_gap (Fm, M)``, ``mocap_hz``, ``sync_offset_s``, ``mocap_of_frame (F,)``
+  (the C3D sample of each video frame); contact: ``contact_start``, ``contact_end``,
+  ``contact_frame``, ``signature_faces (P, 2)``, ``signature_regions (P, 2)``,
+  ``signature_dist (P,)``, ``min_dist (F,)``;
+- ``gt/<group>/joints3d_25/<action>.json``: the same joints in CHI3D's file format.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from body import forward, load_model
+from body.joints import regress, regressor
+from body.markers import (
+    closest_surface_points,
+    make_markerset,
+    marker_positions,
+    plug_in_gait,
+    save_json,
+)
+from body.regions import region_map
+from calib.io import write_chi3d_cameras
+from formats.c3d import Markers, write_c3d
+from formats.chi3d import write_joints3d_25
+from formats.video import write_mp4
+from studio import constants as C
+from studio import plan as PL
+from studio.contact import annotate
+from studio.kin import UP, yaw
+from studio.mocap import observe_markers
+from studio.motion import Track, make_timeline, synthesize
+from studio.posture import anatomy
+from studio.render import PersonMesh, Renderer
+from studio.rig import make_rig
+from studio.scan import sample_scan, write_ply
+from studio.scenarios import SCENES, Cast
+from studio.sheet import contact_sheet, write_png
+from studio.subjects import Subject, make_subjects
+
+STUDIO_DIR = Path(__file__).resolve().parent
+
+
+def source_hash(extra_dirs: tuple[str, ...] = ("body", "calib", "formats")) -> str:
+    """sha256 (16 hex) of the studio's source and of the packages whose code shapes its output."""
+    h = hashlib.sha256()
+    root = STUDIO_DIR.parent
+    for d in ("studio",) + extra_dirs:
+        for f in sorted((root / d).rglob("*.py")):
+            h.update(str(f.relative_to(root)).encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _log(msg: str) -> None:
+    print(f"[studio] {msg}", flush=True)
+
+
+# ------------------------------------------------------------------------------ subjects
+def perturbed_markerset(model, subject: Subject, base, rng: np.random.Generator):
+    """The nominal marker set slid on the subject's surface (constants.MARKER_SLIDE_SD_M) with
+    per-marker offset changes: how one lab places the set on one person."""
+    V0 = forward(model, subject.betas, np.zeros((1, model.num_joints, 3)), np.eye(3)[None],
+                 np.zeros((1, 3)), rest=subject.person.rest).vertices[0]
+    p = marker_positions(V0, model.faces, base.with_offsets(0.0))
+    p = p + rng.normal(0, C.MARKER_SLIDE_SD_M, p.shape)
+    faces, bary, _ = closest_surface_points(V0, model.faces, p)
+    off = base.offsets + rng.normal(0, C.MARKER_OFFSET_SD_M, len(base))
+    return make_markerset(base.names, faces, bary, off)
+
+
+def make_scan(model, subject: Subject, rng: np.random.Generator, out: Path) -> dict:
+    """Write the subject's scan (pose 0, random heading and shift on the scanner's floor)."""
+    person = subject.person
+    R = yaw(rng.uniform(0, 2 * np.pi))
+    T = np.array([*rng.uniform(-C.SCAN_SHIFT_M, C.SCAN_SHIFT_M, 2), person.floor_z])
+    J = model.num_joints
+    o = forward(model, subject.betas, np.zeros((1, J, 3)), R[None], T[None], rest=person.rest)
+    V = o.vertices[0]
+    holes = []
+    for s in ("L", "R"):
+        sh = o.joints[0, model.joint_index(f"upperarm01.{s}")]
+        centre = o.joints[0, model.joint_index("spine02")]
+        lateral = (centre - sh) * np.array([1, 1, 0])
+        holes.append(sh - UP * 0.07 + 0.25 * lateral)
+    pts, nrm = sample_scan(V, model.faces, np.array(holes), rng)
+    write_ply(out, pts, nrm)
+    return {"scan_R": R, "scan_T": T, "scan_vertices": V.astype(np.float32),
+            "scan_holes": np.array(holes)}
+
+
+# ------------------------------------------------------------------------------ sequences
+def place_pair(tracks: list[Track], people, R_pair: np.ndarray, t_pair: np.ndarray) -> list[Track]:
+    """Rigidly move both tracks: v -> R_pair v + t_pair (body model convention: the root
+    rotation acts about the rest root joint h0)."""
+    out = []
+    for tr, p in zip(tracks, people, strict=True):
+        h0 = p.rest.joints[0, 0]
+        R = R_pair[None] @ tr.R
+        T = (tr.T + h0) @ R_pair.T + t_pair - h0
+        out.append(Track(tr.pose.copy(), R, T))
+    return out
+
+
+def generate_sequence(out: Path, plan: PL.SessionPlan, seq: PL.SequencePlan, model, subjects,
+                      cams, renderer: Renderer, markersets, reg25, regions) -> dict:
+    t0 = time.time()
+    rng = np.random.default_rng([plan.seed, 100 + seq.index])
+    tl = make_timeline(seq.frames, plan.fps, plan.mocap_hz, plan.sync_offset_s)
+    by_id = {s.id: s for s in subjects}
+    actor = subjects[seq.actor]
+    receiver = subjects[1 - seq.actor]
+    cast = Cast([actor.person, receiver.person], [anatomy(actor.person), anatomy(receiver.person)],
+                tl, rng)
+    scene = SCENES[seq.scenario](cast)
+    vs = tl.video_samples
+    tracks, rep = synthesize(cast.people, scene.nominal, scene.contacts, scene.movable, vs)
+    ang = rng.uniform(0, 2 * np.pi)
+    shift = np.array([*rng.uniform(-1, 1, 2) * C.PAIR_SHIFT_M, 0.0])
+    tracks = place_pair(tracks, cast.people, yaw(ang), shift)
+    role_of = {actor.id: 0, receiver.id: 1}
+    # person order of the ground truth: 0 = marker wearer (CHI3D)
+    order = [by_id[seq.markers_on], by_id[seq.partner]]
+    trk = [tracks[role_of[s.id]] for s in order]
+    F = seq.frames
+    outs = [forward(model, s.betas, t.pose[vs], t.R[vs], t.T[vs], rest=s.person.rest)
+            for s, t in zip(order, trk, strict=True)]
+    verts = [o.vertices for o in outs]
+    j25 = np.stack([regress(reg25, o.vertices, o.joints) for o in outs])
+    # markers of the wearer at every mocap sample
+    wear = order[0]
+    mv = forward(model, wear.betas, trk[0].pose, trk[0].R, trk[0].T, rest=wear.person.rest).vertices
+    ms = markersets[wear.id]
+    m_true = marker_positions(mv, model.faces, ms)
+    m_obs, m_gap = observe_markers(m_true, rng)
+    c3d = out / PL.c3d_path(seq)
+    write_c3d(c3d, Markers(ms.names, m_obs, plan.mocap_hz, 0, wear.id))
+    write_chi3d_cameras(out / seq.group, seq.action, cams)
+    # contact truth and annotation
+    hint = tuple(int(round(h * (F - 1))) for h in scene.contact_hint)
+    ct = annotate(verts[0], verts[1], model.faces, regions.face_region, rng, hint)
+    # videos
+    colors = [s.colors for s in order]
+    for c, cam in enumerate(cams):
+        def frames(c=c):
+            for f in range(F):
+                people = [PersonMesh(verts[k][f], model.faces, colors[k]) for k in range(2)]
+                yield renderer.render(people, views=[c])[0]
+        write_mp4(out / PL.video_path(seq, cam.name), frames(), plan.fps)
+    # contact sheet at the annotated frame (or the middle frame without contact)
+    fr = ct.fr_id if ct.fr_id >= 0 else F // 2
+    imgs = renderer.render([PersonMesh(verts[k][fr], model.faces, colors[k]) for k in range(2)])
+    pts = verts[0][fr][model.faces[ct.faces[:, 0]]].mean(1) if len(ct.faces) else None
+    write_png(out / PL.preview_path(seq), contact_sheet(imgs, cams, f"{seq.seq_id}  frame {fr}", pts))
+    # ground truth
+    gt = out / PL.gt_path(seq)
+    gt.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(
+        gt,
+        subjects=np.array([s.id for s in order]),
+        betas=np.stack([s.betas for s in order]),
+        body_pose=np.stack([t.pose[vs] for t in trk]),
+        global_orient=np.stack([t.R[vs] for t in trk]),
+        transl=np.stack([t.T[vs] for t in trk]),
+        joints=np.stack([o.joints for o in outs]),
+        joints3d_25=j25,
+        vertices=np.stack(verts).astype(np.float32),
+        faces=np.asarray(model.faces, np.int32),
+        frames=np.arange(F),
+        fps=plan.fps,
+        marker_names=np.array(ms.names),
+        markers_true=m_true,
+        markers_gap=m_gap,
+        mocap_hz=plan.mocap_hz,
+        sync_offset_s=plan.sync_offset_s,
+        mocap_of_frame=vs,
+        contact_start=ct.start,
+        contact_end=ct.end,
+        contact_frame=ct.fr_id,
+        signature_faces=ct.faces,
+        signature_regions=ct.regions,
+        signature_dist=ct.dist,
+        min_dist=ct.min_dist,
+    )
+    write_joints3d_25(out / "gt" / seq.group / "joints3d_25" / f"{seq.action}.json", j25)
+    info = {
+        "markers_on": seq.markers_on, "partner": seq.partner, "actor": plan.subjects[seq.actor],
+        "scenario": seq.scenario, "frames": F, "contact_start": ct.start, "contact_end": ct.end,
+        "contact_frame": ct.fr_id, "signature_pairs": int(len(ct.faces)),
+        "max_penetration_mm": float(max(0.0, -ct.min_dist.min()) * 1000),
+        "seconds": round(time.time() - t0, 1),
+    }
+    _log(f"{seq.seq_id}: {F} frames, contact {ct.start}..{ct.end} (frame {ct.fr_id}, "
+         f"{len(ct.faces)} pairs), deepest interpenetration {info['max_penetration_mm']:.1f} mm, "
+         f"{info['seconds']} s")
+    return info, ct
+
+
+def signature_json(seqs, cts, regions) -> dict:
+    """The group's interaction_contact_signature.json: CHI3D's layout (``fr_id``, ``start_fr``,
+    ``end_fr``, ``smplx_signature`` / ``ghum_signature`` left empty: those meshes are not
+    ours) plus ``anny_signature`` with the facets and region ids of the Anny mesh (person 0 =
+    the marker wearer)."""
+    d = {}
+    for seq, ct in zip(seqs, cts, strict=True):
+        fr = ct.fr_id if ct.fr_id >= 0 else 0
+        e = {"fr_id": int(fr)}
+        if ct.start >= 0:
+            e["start_fr"], e["end_fr"] = int(ct.start), int(ct.end)
+        e["smplx_signature"] = {"region_id": [], "face_id": []}
+        e["ghum_signature"] = {"region_id": [], "face_id": []}
+        e["anny_signature"] = {"region_id": ct.regions.tolist(), "face_id": ct.faces.tolist(),
+                               "region_names": [[regions.names[a], regions.names[b]]
+                                                for a, b in ct.regions]}
+        d[seq.action] = e
+    return d
+
+
+def generate(out: str | Path, plan: PL.SessionPlan) -> Path:
+    """Write the whole session into ``out`` (created). Returns the recipe path."""
+    t0 = time.time()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    model = load_model("anny")
+    cams = make_rig(np.random.default_rng([plan.seed, 1]))
+    subjects = make_subjects(model, plan.subjects, np.random.default_rng([plan.seed, 2]))
+    base = plug_in_gait(model)
+    reg25 = regressor(model, "joints3d_25")
+    regions = region_map(model)
+    markersets = {}
+    rng_s = np.random.default_rng([plan.seed, 3])
+    for s in subjects:
+        markersets[s.id] = perturbed_markerset(model, s, base, rng_s)
+        scan = make_scan(model, s, rng_s, out / PL.scan_path(s.id))
+        gdir = out / "gt" / "subjects"
+        gdir.mkdir(parents=True, exist_ok=True)
+        np.savez(gdir / f"{s.id}.npz", betas=s.betas, phenotypes=s.phenotypes,
+                 local_changes=s.local_changes, **scan)
+        save_json(markersets[s.id], gdir / f"{s.id}_markers.json", model="anny",
+                  num_faces=len(model.faces))
+    _log(f"subjects and scans ready ({time.time() - t0:.1f} s)")
+    infos, cts = {}, []
+    with Renderer(cams) as renderer:
+        for seq in plan.sequences:
+            info, ct = generate_sequence(out, plan, seq, model, subjects, cams, renderer,
+                                         markersets, reg25, regions)
+            infos[seq.seq_id] = info
+            cts.append(ct)
+    groups = sorted({s.group for s in plan.sequences})
+    for g in groups:
+        seqs = [s for s in plan.sequences if s.group == g]
+        sig = signature_json(seqs, [c for s, c in zip(plan.sequences, cts, strict=True) if s.group == g],
+                             regions)
+        (out / g / "interaction_contact_signature.json").write_text(json.dumps(sig))
+    meta = {"plan": _plan_dict(plan), "sequences": infos, "studio_source": source_hash(),
+            "seconds": round(time.time() - t0, 1)}
+    (out / "gt" / "session.json").write_text(json.dumps(meta, indent=1))
+    recipe = out / "recipe.yaml"
+    write_recipe(recipe, PL.recipe_dict(plan))
+    _log(f"session {plan.session} written to {out} in {time.time() - t0:.0f} s")
+    return recipe
+
+
+def _plan_dict(plan: PL.SessionPlan) -> dict:
+    d = asdict(plan)
+    d["sequences"] = [asdict(s) for s in plan.sequences]
+    return d
+
+
+def write_recipe(path: Path, recipe: dict, header: str = "") -> Path:
+    text = yaml.safe_dump(recipe, sort_keys=False, allow_unicode=True, width=100)
+    path.write_text((header + "\n" if header else "") + text)
+    return path
