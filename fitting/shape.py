@@ -34,6 +34,7 @@ from fitting import marker_fit, robust, skinned
 # constants
 FD_STEP = 1e-6
 COARSE_BETAS = 10  # scan fit: betas fitted in the first third of the iterations
+SIZE_GRID = (-3.0, -2.0, -1.0, 0.0, 1.0, 2.0, 3.0)  # marker-based shape: start grid (betas 0, 1)
 
 
 @dataclass(frozen=True)
@@ -347,7 +348,7 @@ class PlacementOptions:
     data_sd_m: float = 0.002
     pose_iters: int = 30
     num_betas: int = 20
-    beta_weight: float = 1e-5
+    beta_weight: float = 1e-4
     beta_steps: int = 3
     beta_sigma_m: float = 0.03
 
@@ -434,6 +435,29 @@ def _beta_step(model, skel, betas, pl, X, obs, vis, opts):
     return betas - np.linalg.solve(H + 1e-3 * np.diag(np.diag(H)), J.T @ r + w * betas)
 
 
+def _size_start(model, skel, betas, pl, obs, vis, make_solver) -> np.ndarray:
+    """Marker-based shape start: the mean body can be far from the subject (anny's mean
+    spans children to adults), and poses fitted with a wrong size fold limbs. Try a grid over
+    the first two betas (the largest size/build modes of the whitened basis) and keep the
+    body whose per-frame pose fits leave the smallest robust marker residual."""
+    best = (np.inf, betas)
+    for b0 in SIZE_GRID:
+        for b1 in SIZE_GRID[::2]:
+            cand = betas.copy()
+            cand[0] = b0
+            if len(cand) > 1:
+                cand[1] = b1
+            rest = rest_state(model, cand)
+            u, _ = skinned.reduced_offsets(model, rest, skel)
+            Hm = marker_coeffs(model, rest, skel, pl)
+            solver = make_solver(rest, skel, u, Hm)
+            cost = sum(solver.solve(marker_fit.initial_pose(skel, u, Hm, o, v), o, v,
+                                    first=True).cost for o, v in zip(obs, vis, strict=True))
+            if cost < best[0]:
+                best = (cost, cand)
+    return best[1]
+
+
 @dataclass
 class PlacementFit:
     """placement, betas (S,), poses X (K, n) of the frames used, residual_mm (K, M) NaN where
@@ -455,8 +479,11 @@ def refine_placement(model: BodyModel, betas: np.ndarray, pl: Placement, obs: np
     """
     betas = np.array(betas, dtype=float)
     skel = skinned.fit_skeleton(model, body_joints(model))
+    if fit_betas:
+        betas = _size_start(model, skel, betas, pl, obs, vis, make_solver)
     X = None
-    for k in range(opts.rounds):
+    rounds = 2 * opts.rounds if fit_betas else opts.rounds  # shape, placement, poses: slower
+    for k in range(rounds):
         rest = rest_state(model, betas)
         u, _ = skinned.reduced_offsets(model, rest, skel)
         Hm = marker_coeffs(model, rest, skel, pl)
@@ -467,7 +494,7 @@ def refine_placement(model: BodyModel, betas: np.ndarray, pl: Placement, obs: np
             for _ in range(opts.beta_steps):
                 betas = _beta_step(model, skel, betas, pl, X, obs, vis, opts)
         if log:
-            log(f"placement round {k + 1}/{opts.rounds}")
+            log(f"placement round {k + 1}/{rounds}")
     rest = rest_state(model, betas)
     u, _ = skinned.reduced_offsets(model, rest, skel)
     Hm = marker_coeffs(model, rest, skel, pl)
