@@ -55,6 +55,10 @@ MASK_HEAD_FRAC = 0.055
 #: around the wearer's markers and paints everything else.
 ISOLATE_RADIUS_FRAC = 0.125
 
+#: A partner candidate found in the painted image is dropped when more than this fraction of
+#: its confident body keypoints lie on painted pixels (a person hallucinated from leftovers).
+HALLUCINATED_FRAC = 0.5
+
 #: Partner search: margin around the previous frame's partner box (fraction of its larger side).
 TRACK_MARGIN = 0.25
 

@@ -12,18 +12,25 @@ the wearer is reported missing in that view (never a guess that could be the par
 
 The partner (person 1): the paper runs a multi-person detector on the whole image and, per
 keypoint type, drops candidates close to the wearer's keypoint and keeps the most confident
-(:func:`detect.rule.select_partner`). mediapipe is single-person, so we first paint the
-wearer out (:mod:`detect.mask`) — otherwise it would often return the wearer again — and
-then search:
+(:func:`detect.rule.select_partner`). mediapipe is single-person, so it would often return the
+wearer again. Two images are tried, and the rule rejects the wearer found again:
 
-1. around the partner's box from the previous frame (when there is one) — a crop gives the
-   detector more pixels than the whole image, and the previous box is nearly always right at
-   video rates;
-2. otherwise over the whole (painted) image, then once more in a crop around what it found.
+- the wearer painted out (:mod:`detect.mask`): finds a partner the wearer would hide from
+  the detector (partner behind or beside the wearer);
+- the plain image: needed when the partner stands in front of the wearer, since painting the
+  wearer's silhouette would then paint over the partner too.
 
-Painting out alone would work on the whole image but at lower resolution; tracking alone
-could not start or recover. Precomputed multi-person detections go through the same code:
-painting changes nothing for them and the rule does the separating, exactly as in the paper.
+Whichever worked in a view is tried first there in the next frame (painted first at the
+start). Where to look:
+
+1. around the partner's box from the previous frame (when there is one): a crop gives the
+   detector more pixels than the whole image, and the box is nearly always right at video
+   rates;
+2. otherwise over the whole image, then once more in a crop around what it found.
+
+Tracking alone could not start or recover; the whole image alone would run the detector at a
+lower resolution. Precomputed multi-person detections go through the same code: painting does
+not apply to them and the rule does the separating, exactly as in the paper.
 """
 from __future__ import annotations
 
@@ -81,6 +88,7 @@ class ViewPeople:
     wearer_retry : the wearer's keypoints come from its isolated crop (the plain crop's
         detection failed the marker check: the partner stood in it).
     partner_mode : 0 not found, 1 found by tracking, 2 found over the whole image.
+    partner_masked : the partner was found with the wearer painted out.
     """
 
     kp: np.ndarray
@@ -89,6 +97,7 @@ class ViewPeople:
     partner_box: np.ndarray
     wearer_retry: bool
     partner_mode: int
+    partner_masked: bool = False
 
 
 def _height(box: np.ndarray) -> float:
@@ -105,30 +114,59 @@ def _person_box(kp: np.ndarray, conf: float, margin: float) -> np.ndarray:
                       min_side=K.MIN_BODY_BOX_PX, square=True)
 
 
+def wearer_check(cands: np.ndarray, anchors: np.ndarray, box_height: float, o: PeopleOptions
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Does each candidate match the wearer's markers? cands (N, 65, 3), anchors (65, 2).
+
+    Returns (err (N,) median pixel distance to the anchors, NaN without 3 shared keypoints;
+    ok (N,) bool: err <= anchor_frac x box height and not mirrored). Mirrored = its
+    left/right-swapped keypoints lie nearer the anchors by more than FLIP_MARGIN_FRAC x the
+    box height: a person facing the other way (the partner facing the wearer, or the
+    detector's left/right swapped on the wearer's back). Mirrored candidates are rejected,
+    never flipped back: a partner facing us would then pass for the wearer.
+    """
+    cands = np.asarray(cands)
+    err = anchor_error(cands, anchors)
+    flip = anchor_error(cands[:, layout.FLIP], anchors)
+    with np.errstate(invalid="ignore"):
+        mirrored = flip + max(K.FLIP_MARGIN_FRAC * box_height, 3.0) < err
+        ok = (err <= o.anchor_frac * box_height) & ~mirrored
+    return err, ok
+
+
+def _on_mask_frac(cands: np.ndarray, mask: np.ndarray, conf: float = K.ACCEPT_CONF) -> np.ndarray:
+    """(N,) fraction of each candidate's confident body keypoints on ``mask`` (H, W) pixels."""
+    h, w = mask.shape
+    out = np.zeros(len(cands))
+    for i, c in enumerate(cands):
+        ok = c[layout.BODY, 2] >= conf
+        if not ok.any():
+            continue
+        xy = np.round(c[layout.BODY][ok, :2]).astype(int)
+        inside = (xy[:, 0] >= 0) & (xy[:, 0] < w) & (xy[:, 1] >= 0) & (xy[:, 1] < h)
+        on = np.zeros(len(xy), bool)
+        on[inside] = mask[xy[inside, 1], xy[inside, 0]]
+        out[i] = on.mean()
+    return out
+
+
 def _find_wearer(image, hints: WearerHints, det: Detector, o: PeopleOptions, cam: int, frame: int,
                  isolated_first: bool):
     """(kp (65, 3), isolated): the wearer's body keypoints, and whether they came from the
     crop with everything far from its markers painted out ("isolated")."""
     kp = np.zeros((layout.N, 3), np.float32)
     h = _height(hints.box)
-    tol = o.anchor_frac * h
 
     def best(cands):
-        """(kp, err, ok) of the candidate nearest the anchors; ok = it passes the check."""
+        """(kp, ok) of the candidate nearest the anchors; ok = it passes the check."""
         if len(cands) == 0:
-            return None, np.inf, False
-        err = anchor_error(cands.kp, hints.anchors)
+            return None, False
+        err, ok = wearer_check(cands.kp, hints.anchors, h, o)
         if np.any(np.isfinite(err)):
             i = int(np.nanargmin(err))
-            # Mirrored (a person facing the other way: the partner facing the wearer, or the
-            # detector's left/right swapped on the wearer's back): its mirror matches the
-            # anchors better by a clear margin. Rejected, never flipped back: a partner facing
-            # us would then pass for the wearer.
-            flip = anchor_error(cands.kp[i:i + 1, layout.FLIP], hints.anchors)[0]
-            mirrored = np.isfinite(flip) and flip + max(K.FLIP_MARGIN_FRAC * h, 3.0) < err[i]
-            return cands.kp[i], float(err[i]), bool(err[i] <= tol and not mirrored)
+            return cands.kp[i], bool(ok[i])
         i = int(np.argmax(box_support(cands.kp, hints.box)))
-        return cands.kp[i], np.nan, True  # no anchors to check against: accept
+        return cands.kp[i], True  # no anchors to check against: accept
 
     def attempt(isolated: bool):
         img = image
@@ -143,7 +181,7 @@ def _find_wearer(image, hints: WearerHints, det: Detector, o: PeopleOptions, cam
     if not det.needs_pixels:
         order = (False,)
     for isolated in order:
-        cand, _err, ok = attempt(isolated)
+        cand, ok = attempt(isolated)
         if cand is not None and ok:
             kp[layout.BODY] = cand[layout.BODY]
             return kp, isolated
@@ -153,9 +191,16 @@ def _find_wearer(image, hints: WearerHints, det: Detector, o: PeopleOptions, cam
 
 
 def _hands(image, person_kp: np.ndarray, boxes: np.ndarray, anchors: np.ndarray, det: Detector,
-           o: PeopleOptions, cam: int, frame: int, avoid: np.ndarray | None, radius: float):
+           o: PeopleOptions, cam: int, frame: int, avoid: np.ndarray | None = None,
+           avoid_wrists: np.ndarray | None = None, radius: float = 0.0):
     """Fill person_kp's hand blocks from the hand crops ``boxes`` (2, 4) whose wrists are
-    expected at ``anchors`` (2, 2); drop hands matching ``avoid`` (the wearer) first."""
+    expected at ``anchors`` (2, 2). Hands of the other person are dropped first: those
+    matching ``avoid`` (65, 3) by the rule, and those whose wrist lies within ``radius`` of
+    one of ``avoid_wrists`` (W, 2) (the wearer's wrists: in a handshake its hand sits in the
+    partner's hand crop)."""
+    aw = None if avoid_wrists is None else np.asarray(avoid_wrists, float).reshape(-1, 2)
+    if aw is not None:
+        aw = aw[np.all(np.isfinite(aw), axis=1)]
     for side in (0, 1):
         box = boxes[side]
         if not np.all(np.isfinite(box)) or not np.all(np.isfinite(anchors[side])):
@@ -163,6 +208,11 @@ def _hands(image, person_kp: np.ndarray, boxes: np.ndarray, anchors: np.ndarray,
         cands = det.detect(image, kind="hands", box=box, cam=cam, frame=frame).kp
         if avoid is not None and len(cands):
             cands = cands[~is_same_person(cands, avoid, radius)]
+        if aw is not None and len(aw) and len(cands):
+            wr = np.stack([cands[:, sl.start] for sl in layout.HANDS], axis=1)  # (N, 2, 3)
+            d = np.linalg.norm(wr[:, :, None, :2] - aw[None, None], axis=-1).min(axis=-1)
+            near = ((wr[..., 2] >= K.MIN_CONF) & (d < radius)).any(axis=1)
+            cands = cands[~near]
         hand = pick_hand(cands, side, anchors[side], o.hand_anchor_frac * _height(box), layout.HANDS)
         if hand is not None:
             person_kp[layout.HANDS[side]] = hand
@@ -184,14 +234,17 @@ def _partner_hand_boxes(kp: np.ndarray, conf: float) -> tuple[np.ndarray, np.nda
 
 def find_people(image: np.ndarray | None, hints: WearerHints, prev_partner_box: np.ndarray | None,
                 det: Detector, o: PeopleOptions = PeopleOptions(), cam: int = 0,
-                frame: int = 0, wearer_isolated_first: bool = False) -> ViewPeople:
+                frame: int = 0, wearer_isolated_first: bool = False,
+                partner_masked_first: bool = True) -> ViewPeople:
     """Both people in one view.
 
     image : (H, W, 3) uint8 RGB (None for detectors that don't need pixels; then the
         whole-image box is NaN). hints : one view's :meth:`WearerHints.view`.
     prev_partner_box : (4,) or None. wearer_isolated_first : try the wearer's isolated crop
         first (it was needed in this view in the previous frame: saves a detection per frame
-        while the partner stands in the wearer's crop).
+        while the partner stands in the wearer's crop). partner_masked_first : look for the
+        partner in the image with the wearer painted out before the plain image (what worked
+        in this view in the previous frame; painting hides a partner standing in front).
     """
     kp = np.zeros((2, layout.N, 3), np.float32)
     boxes = np.full((2, 4), np.nan)
@@ -199,7 +252,7 @@ def find_people(image: np.ndarray | None, hints: WearerHints, prev_partner_box: 
     if not np.all(np.isfinite(hints.box)):
         # No markers in this view and frame: nothing tells the two people apart (the rule
         # needs the wearer's keypoints), so neither is reported rather than risk a swap.
-        return ViewPeople(kp, boxes, hand_boxes, np.full(4, np.nan), False, 0)
+        return ViewPeople(kp, boxes, hand_boxes, np.full(4, np.nan), False, 0, False)
     boxes[0] = hints.box
 
     # -- person 0: the marker wearer
@@ -210,7 +263,7 @@ def find_people(image: np.ndarray | None, hints: WearerHints, prev_partner_box: 
         hand_boxes[0] = hints.hand_boxes
         anchors = np.where(np.isfinite(hints.wrists), hints.wrists,
                            kp[0, [layout.IDX["l_wrist"], layout.IDX["r_wrist"]], :2])
-        _hands(image, kp[0], hints.hand_boxes, anchors, det, o, cam, frame, None, radius)
+        _hands(image, kp[0], hints.hand_boxes, anchors, det, o, cam, frame)
 
     # -- person 1: the partner
     # The rule's reference for the wearer: its detected keypoints, and where those are missing
@@ -219,39 +272,59 @@ def find_people(image: np.ndarray | None, hints: WearerHints, prev_partner_box: 
     fill = (ref[:, 2] < K.MIN_CONF) & np.all(np.isfinite(hints.anchors), axis=1)
     ref[fill, :2] = hints.anchors[fill]
     ref[fill, 2] = 1.0
-    search = image
+    variants = [False]  # False: the plain image, True: the wearer painted out
+    painted = None
     if det.needs_pixels and o.mask_wearer and image is not None and np.isfinite(hw):
         m = silhouette_mask(image.shape[:2], kp[0], layout.EDGES, o.mask_radius_frac * hw,
                             points=hints.markers, polygons=(layout.TORSO,),
                             blobs=((layout.FACE, o.mask_head_frac * hw),))
-        search = paint_out(image, m)
+        painted = paint_out(image, m)
+        variants = [True, False] if partner_masked_first else [False, True]
 
-    def look(box):
-        cands = det.detect(search, kind="body", box=box, cam=cam, frame=frame)
-        p, _ = select_partner(cands.kp, ref, radius)
+    def look(box, masked):
+        cands = det.detect(painted if masked else image, kind="body", box=box, cam=cam, frame=frame).kp
+        if len(cands):
+            # The wearer found again, by the markers: not the partner, whatever the rule says
+            # (the rule only compares with the wearer's detected keypoints, which may be few).
+            keep = ~wearer_check(cands, hints.anchors, hw, o)[1]
+            if masked:
+                # Mostly on painted pixels: the detector hallucinating a person from leftovers.
+                keep &= _on_mask_frac(cands, m) <= K.HALLUCINATED_FRAC
+            cands = cands[keep]
+        p, _ = select_partner(cands, ref, radius)
         p[layout.HANDS[0]] = 0.0  # hands come from the hand detector below
         p[layout.HANDS[1]] = 0.0
         return p
 
-    partner, mode = np.zeros((layout.N, 3), np.float32), 0
+    def found(p):
+        return _n_good(p, o.accept_conf) >= o.min_partner_kp
+
+    partner, mode, used = np.zeros((layout.N, 3), np.float32), 0, variants[0]
     if o.track and prev_partner_box is not None and np.all(np.isfinite(prev_partner_box)):
         sb = expand_box(prev_partner_box, o.track_margin, min_side=K.MIN_BODY_BOX_PX, square=True)
-        p = look(sb)
-        if _n_good(p, o.accept_conf) >= o.min_partner_kp:
-            partner, mode, boxes[1] = p, 1, sb
+        for masked in variants:
+            p = look(sb, masked)
+            if found(p):
+                partner, mode, used, boxes[1] = p, 1, masked, sb
+                break
     if mode == 0:
-        p = look(None)
         if image is not None:
             boxes[1] = (0.0, 0.0, float(image.shape[1]), float(image.shape[0]))
-        if _n_good(p, o.accept_conf) >= o.min_partner_kp:
-            partner, mode = p, 2
-            if det.needs_pixels:  # refine in a crop around what the whole image gave
-                rb = _person_box(p, o.accept_conf, o.body_margin)
-                p2 = look(rb)
-                if _n_good(p2, o.accept_conf) >= _n_good(p, o.accept_conf):
-                    partner, boxes[1] = p2, rb
-        elif _n_good(p, o.accept_conf) > 0:
-            partner = p  # weak: keep what there is, but don't track from it
+        weak = None
+        for masked in variants:
+            p = look(None, masked)
+            if found(p):
+                partner, mode, used = p, 2, masked
+                break
+            if weak is None or _n_good(p, o.accept_conf) > _n_good(weak, o.accept_conf):
+                weak = p
+        if mode == 2 and det.needs_pixels:  # refine in a crop around what the whole image gave
+            rb = _person_box(partner, o.accept_conf, o.body_margin)
+            p2 = look(rb, used)
+            if _n_good(p2, o.accept_conf) >= _n_good(partner, o.accept_conf):
+                partner, boxes[1] = p2, rb
+        elif mode == 0 and weak is not None and _n_good(weak, o.accept_conf) > 0:
+            partner = weak  # weak: keep what there is, but don't track from it
     kp[1] = partner
     if o.hands and mode:
         hb, wr = _partner_hand_boxes(kp[1], o.accept_conf)
@@ -259,6 +332,10 @@ def find_people(image: np.ndarray | None, hints: WearerHints, prev_partner_box: 
         # the original image: hands are small and the hand detector returns two per crop, so
         # the wearer's hand next to the partner's (handshake) is told apart by the wrist
         # anchor and the rule; painting the wearer out would also paint the touching hand.
-        _hands(image, kp[1], hb, wr, det, o, cam, frame, ref, radius)
+        wi = [layout.IDX["l_wrist"], layout.IDX["r_wrist"], layout.HANDS[0].start,
+              layout.HANDS[1].start]
+        detected = np.where((kp[0, wi, 2] >= K.MIN_CONF)[:, None], kp[0, wi, :2], np.nan)
+        wearer_wrists = np.concatenate([hints.wrists, detected])  # markers and detections
+        _hands(image, kp[1], hb, wr, det, o, cam, frame, ref, wearer_wrists, radius)
     pbox = _person_box(kp[1], o.accept_conf, o.body_margin) if mode else np.full(4, np.nan)
-    return ViewPeople(kp, boxes, hand_boxes, pbox, isolated, mode)
+    return ViewPeople(kp, boxes, hand_boxes, pbox, isolated, mode, bool(mode and used))

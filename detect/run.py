@@ -116,12 +116,15 @@ def _run_chunk_loud(source, factory, hints, frames, n_cam, opts):
     try:
         prev = [None] * n_cam
         isolated = [False] * n_cam
+        masked = [True] * n_cam
         for i, fr in enumerate(frames):
             for c in range(n_cam):
                 img = reader.read(c, int(fr)) if reader is not None else None
                 r = find_people(img, hints.view(c, i), prev[c], det, opts, cam=c, frame=int(fr),
-                                wearer_isolated_first=isolated[c])
+                                wearer_isolated_first=isolated[c], partner_masked_first=masked[c])
                 isolated[c] = r.wearer_retry
+                if r.partner_mode:
+                    masked[c] = r.partner_masked
                 kp[c, i], boxes[c, i], hand_boxes[c, i] = r.kp, r.boxes, r.hand_boxes
                 retry[c, i], mode[c, i] = r.wearer_retry, r.partner_mode
                 prev[c] = r.partner_box if r.partner_mode else None

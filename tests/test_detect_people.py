@@ -294,17 +294,31 @@ def test_mirrored_person_is_not_taken_for_the_wearer():
     reported missing instead of getting the partner's keypoints; the partner is still found."""
     shape = (480, 640)
     wearer = stick((300, 240), 0.8)
-    partner = stick((302, 236), 1.0)[layout.FLIP]  # facing the other way
+    partner = stick((302, 236), 0.8)[layout.FLIP]  # facing the other way
     truth = np.stack([wearer, partner])[None, None]
     img = draw(shape, truth[0, 0])  # partner drawn last: in front
     det = Painted(truth, (0,))
     r = find_people(img, hints_for(wearer, margin=0.3), None, det)
-    assert not r.kp[0, layout.BODY, 2].any()
-    hand = r.kp[0, 23:, 2] > 0  # hands found at the wearer's wrist markers are its own
-    np.testing.assert_allclose(r.kp[0, 23:][hand, :2], wearer[23:][hand, :2])
+    assert not r.kp[0, layout.BODY, 2].any()  # (hands: the partner's hide the wearer's, same place)
     ok = r.kp[1, layout.BODY, 2] > 0
     assert ok.sum() >= 15
     np.testing.assert_allclose(r.kp[1, layout.BODY][ok, :2], partner[layout.BODY][ok, :2])
+    # painting the wearer's silhouette painted the partner standing in front too: it was the
+    # plain image that found it (tried second here, first in the next frame)
+    assert not r.partner_masked
+    calls = []
+
+    class Counting:
+        needs_pixels = True
+
+        def detect(self, image, *, kind, box=None, cam=0, frame=0):
+            calls.append(kind)
+            return det.detect(image, kind=kind, box=box, cam=cam, frame=frame)
+
+    r2 = find_people(img, hints_for(wearer, margin=0.3), r.partner_box, Counting(),
+                     partner_masked_first=False)
+    assert r2.partner_mode == 1 and not r2.partner_masked
+    np.testing.assert_array_equal(r2.kp[1, layout.BODY], r.kp[1, layout.BODY])
     # the same partner facing the same way as the wearer would pass as the wearer in this
     # drawing (same place, same sides): the check is about sides, so only the mirror is caught
     same = stick((302, 236), 1.0)
@@ -312,3 +326,33 @@ def test_mirrored_person_is_not_taken_for_the_wearer():
     r2 = find_people(img2, hints_for(wearer, margin=0.3), None,
                      Painted(np.stack([wearer, same])[None, None], (0,)))
     assert r2.kp[0, layout.BODY, 2].all()
+
+
+def test_partner_hand_crop_drops_the_wearers_hand():
+    """Handshake: the wearer's hand is nearer the partner's pose wrist than the partner's own
+    hand; the wearer's wrist (marker) rules it out."""
+    from detect.people import PeopleOptions, _hands
+
+    wearer_hand = np.zeros((layout.N, 3))
+    partner_hand = np.zeros((layout.N, 3))
+    sl = layout.HANDS[1]
+    wearer_hand[sl, :2] = [200.0, 200.0]
+    wearer_hand[sl, 2] = 0.9
+    partner_hand[sl, :2] = [215.0, 205.0]
+    partner_hand[sl, 2] = 0.9
+
+    class Two:
+        needs_pixels = True
+
+        def detect(self, image, *, kind, box=None, cam=0, frame=0):
+            return Detections(np.stack([wearer_hand, partner_hand]))
+
+    box = np.array([[0.0, 0, 1, 1], [150.0, 150, 260, 260]])
+    anchors = np.array([[np.nan, np.nan], [203.0, 201.0]])  # partner's pose wrist: off by 12 px
+    kp = np.zeros((layout.N, 3), np.float32)
+    _hands(None, kp, box, anchors, Two(), PeopleOptions(), 0, 0)
+    np.testing.assert_allclose(kp[sl.start, :2], [200, 200])  # without: the wearer's hand
+    kp = np.zeros((layout.N, 3), np.float32)
+    _hands(None, kp, box, anchors, Two(), PeopleOptions(), 0, 0, avoid_wrists=np.array([[199.0, 201.0]]),
+           radius=8.0)
+    np.testing.assert_allclose(kp[sl.start, :2], [215, 205])
