@@ -15,7 +15,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenarios", default=None,
                     help=f"comma-separated, from: {', '.join(PL.SCENARIOS)}")
     ap.add_argument("--preset", choices=sorted(PL.PRESETS), default=None)
+    ap.add_argument("--write-recipe", default=None, metavar="PATH",
+                    help="with --preset: only write the preset's committed recipe to PATH (paths "
+                         "relative to it, pointing into --out); generate nothing")
     a = ap.parse_args(argv)
+    if a.write_recipe:
+        if not a.preset:
+            print("python -m studio: --write-recipe needs --preset", file=sys.stderr)
+            return 2
+        from pathlib import Path
+
+        from studio import preset_recipe
+        from studio.session import write_recipe
+
+        path = Path(a.write_recipe)
+        header = (f"# Studio preset {a.preset!r}: its data ({a.out}, git-ignored) are generated on "
+                  f"demand by studio.ensure_generated.\n# Regenerate this file with: python -m studio "
+                  f"--preset {a.preset} --out {a.out} --write-recipe {path}")
+        write_recipe(path, preset_recipe(a.preset, path.resolve().parent, Path(a.out)), header)
+        print(path)
+        return 0
     try:
         scen = PL.parse_scenarios(a.scenarios) if a.scenarios else None
         seed = a.seed if a.seed is not None else (PL.PRESETS[a.preset].seed if a.preset else 3)

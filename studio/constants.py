@@ -108,3 +108,12 @@ SIGNATURE_PAIRS = (3, 6)
 PAIR_SHIFT_M = 0.25
 #: Scan: random heading, shift (metres) of the subject in the scanner's frame.
 SCAN_SHIFT_M = 0.3
+#: After the passes: where a limb is still deeper than PENETRATION_MAX_M inside the other
+#: body, its target is moved out by that depth, up to RETREAT_ROUNDS times.
+PENETRATION_MAX_M = 0.003
+RETREAT_ROUNDS = 4
+#: Over-relaxation of the gap corrections (the IK follows a moved target only partly).
+REFINE_GAIN = 1.3
+LIMB_NEAR_M = 0.03
+#: The inverse lens map is solved every WARP_GRID_PX pixels and interpolated.
+WARP_GRID_PX = 4

@@ -405,32 +405,30 @@ def _synthesize(people, nominal, contacts, movable, passes, check_samples):
     normals = VertexNormals(people[0].model.faces, people[0].model.num_vertices)
     push = np.zeros((N, 3))
     base_T = nominal[movable].T.copy()
-    # contact regions: their vertices are allowed to touch
-    allowed = [np.zeros(people[i].model.num_vertices, bool) for i in range(2)]
     dom = np.asarray(people[0].model.weights.argmax(axis=1)).ravel()
     par = people[0].model.parents
+    chain_any = [np.zeros(people[i].model.num_vertices, bool) for i in range(2)]
     for c in contacts:
-        allowed[c.who][c.region] = True
         c.adjust = np.zeros(N)
         c.repel = {}
         c.vertex_bone = dom
         moved = {d.joint for d in c.dofs}
         sub = np.array([any(_is_desc(j, m, par) for m in moved) for j in range(len(par))])
         c.chain_vertices = np.flatnonzero(sub[dom])
+        chain_any[c.who][c.chain_vertices] = True
     report = None
     todo = np.ones(N, bool)
     faces = people[0].model.faces
     check = np.zeros(N, bool)  # measure at the video frames only (the ground truth's samples)
     check[check_samples] = True
     spread = int(np.min(np.diff(check_samples))) - 1 if len(check_samples) > 1 else 0
-    for it in range(passes + 1):
-        tracks[movable].T = base_T + push
-        if todo.any():
-            _solve_contacts(people, tracks, nominal, contacts, active=todo, warm_pass=it > 0)
+    def measure():
+        """Gaps, interpenetration and corrections at the checked samples."""
         near = _near_samples(people, tracks)
         near[~check] = False
         idx = np.flatnonzero(near)
         gaps = np.full((len(contacts), N), np.nan)
+        limb = np.full((len(contacts), N), np.inf)  # deepest point of each contact's limb
         pen = np.zeros(N)
         need = np.zeros((N, 3))
         repelled = np.zeros(N, bool)
@@ -439,6 +437,7 @@ def _synthesize(people, nominal, contacts, movable, passes, check_samples):
             V = [verts[0][k], verts[1][k]]
             d, cp = pair_distances(V[0], V[1], faces, normals)
             for ci, c in enumerate(contacts):
+                limb[ci, i] = d[c.who][c.chain_vertices].min()
                 if c.weight[i] > 0.05 and c.refine:
                     g = d[c.who][c.region].min()
                     if c.anchor_region is not None:
@@ -452,46 +451,92 @@ def _synthesize(people, nominal, contacts, movable, passes, check_samples):
                         if j2 != i:
                             c.repel.setdefault(j2, {}).update(c.repel[i])
                     repelled[lo_i:hi_i] = True
-            free = min(np.min(d[0][~allowed[0]], initial=np.inf), np.min(d[1][~allowed[1]], initial=np.inf))
+            free = min(_body_overlap(d[0], cp[0], V[1], chain_any[0], chain_any[1]),
+                       _body_overlap(d[1], cp[1], V[0], chain_any[1], chain_any[0]))
             if -free > C.PENETRATION_TOL_M:
-                # push the movable person away from the other along the horizontal line
+                # bodies (not the IK limbs) overlap: push the movable person away from the
+                # other along the horizontal line between their roots
                 cm = (tracks[movable].T[i] + people[movable].rest.joints[0, 0]) - (
                     tracks[1 - movable].T[i] + people[1 - movable].rest.joints[0, 0])
                 cm[2] = 0
                 need[i] = cm / np.linalg.norm(cm) * (-free + C.SEPARATION_MARGIN_M)
+        return gaps, limb, pen, need, repelled
+
+    def apply_push(need):
+        nonlocal push
+        if not np.any(need):
+            return np.zeros(N, bool)
+        # a smooth push, held while needed and eased in and out
+        mag = _grow(np.linalg.norm(need, axis=1))
+        env = gaussian_filter1d(_grow(mag), C.SEPARATION_SMOOTH)
+        dirs = need.sum(0)
+        dirs = dirs / max(np.linalg.norm(dirs), 1e-9)
+        push = push + env[:, None] * dirs[None]
+        tracks[movable].T = base_T + push
+        return env > C.REFINE_TOL_M
+
+    for it in range(passes + C.RETREAT_ROUNDS + 1):
+        tracks[movable].T = base_T + push
+        if todo.any():
+            _solve_contacts(people, tracks, nominal, contacts, active=todo, warm_pass=it > 0)
+        gaps, limb, pen, need, repelled = measure()
         report = SynthReport(gaps, pen)
-        import os
-        if os.environ.get("STUDIO_DEBUG"):
-            mid = check_samples[len(check_samples) // 2]
-            print("DEBUG pass", it, "pen", round(pen[mid] * 1000, 1), [(c.name, round(gaps[ci, mid] * 1000, 1), round(c.adjust[mid] * 1000, 1), len(c.repel.get(mid, {}))) for ci, c in enumerate(contacts)])
-        if it == passes:
+        if _debug():
+            print(f"DEBUG it {it} pen {pen.max() * 1000:.1f} push {np.abs(push).max() * 1000:.0f} "
+                  f"need {np.abs(need).max() * 1000:.1f} limb {[round(float(-x.min()) * 1000, 1) for x in limb]} "
+                  f"gapmed {[round(float(np.nanmedian(g)) * 1000, 1) if np.isfinite(g).any() else None for g in gaps]}")
+        if it == passes + C.RETREAT_ROUNDS or (it >= passes and pen.max() <= C.PENETRATION_MAX_M):
             break
-        todo = repelled.copy()
-        # contact refinement: move each target along its normal by the measured gap
-        for ci, c in enumerate(contacts):
-            g = gaps[ci]
-            ok = np.isfinite(g)
-            if ok.any():
-                # in contact: close the gap; while reaching or letting go: only undo penetration
-                # (the blend moves the effector by weight * correction)
-                full = c.weight > 0.98
-                want = np.where(full, g + C.CONTACT_PRESS_M, np.minimum(g + C.CONTACT_PRESS_M, 0.0))
-                corr = np.interp(np.arange(N), np.flatnonzero(ok), want[ok])
-                corr = corr / np.maximum(c.weight, 0.2) * (c.weight > 0.05)
-                delta = gaussian_filter1d(corr, 1.0) * (c.weight > 0.05)
-                c.adjust = c.adjust - delta
-                todo |= np.abs(delta) > C.REFINE_TOL_M
-        if np.any(need):
-            # a smooth push, held while needed and eased in and out
-            mag = _grow(np.linalg.norm(need, axis=1))
-            env = gaussian_filter1d(_grow(mag), C.SEPARATION_SMOOTH)
-            dirs = need.sum(0)
-            dirs = dirs / max(np.linalg.norm(dirs), 1e-9)
-            push = push + env[:, None] * dirs[None]
-            todo |= env > C.REFINE_TOL_M
+        todo = repelled.copy() if it < passes else np.zeros(N, bool)
+        if it < passes:
+            # contact refinement: move each target along its normal by the measured gap
+            for ci, c in enumerate(contacts):
+                g = gaps[ci]
+                ok = np.isfinite(g)
+                if ok.any():
+                    # in contact: close the gap; while reaching or letting go: only undo
+                    # penetration (the blend moves the effector by weight * correction)
+                    full = c.weight > 0.98
+                    want = np.where(full, g + C.CONTACT_PRESS_M, np.minimum(g + C.CONTACT_PRESS_M, 0.0))
+                    corr = np.interp(np.arange(N), np.flatnonzero(ok), want[ok])
+                    corr = corr / np.maximum(c.weight, 0.2) * (c.weight > 0.05)
+                    delta = C.REFINE_GAIN * gaussian_filter1d(corr, 1.0) * (c.weight > 0.05)
+                    c.adjust = c.adjust - delta
+                    todo |= np.abs(delta) > C.REFINE_TOL_M
+        else:
+            # last resort where a limb is still inside the other body: aim further out there
+            for ci, c in enumerate(contacts):
+                bad = (limb[ci] < -C.PENETRATION_MAX_M) & check
+                if bad.any():
+                    depth = np.zeros(N)
+                    depth[bad] = -limb[ci][bad] + C.SEPARATION_MARGIN_M
+                    depth = gaussian_filter1d(_grow(depth), 1.5)
+                    c.adjust = c.adjust + depth / np.maximum(c.weight, 0.2) * (c.weight > 0.05)
+                    todo |= depth > C.REFINE_TOL_M
+        todo |= apply_push(need)
         if not todo.any():
             break
     return tracks, report
+
+
+def _body_overlap(d: np.ndarray, cp: np.ndarray, V_other: np.ndarray, mine: np.ndarray,
+                  theirs: np.ndarray) -> float:
+    """Deepest signed distance of this body's vertices that are neither on its IK limbs
+    (``mine``) nor inside the other's IK limbs (closest point within constants.LIMB_NEAR_M of
+    one of ``theirs`` vertices): the overlap that moving the roots apart can fix."""
+    cand = np.flatnonzero((d < -C.PENETRATION_TOL_M) & ~mine)
+    if not len(cand):
+        return float(np.min(d[~mine], initial=np.inf))
+    if theirs.any():
+        dl, _ = cKDTree(V_other[theirs]).query(cp[cand])
+        cand = cand[dl > C.LIMB_NEAR_M]
+    return float(d[cand].min()) if len(cand) else 0.0
+
+
+def _debug() -> bool:
+    import os
+
+    return bool(os.environ.get("STUDIO_DEBUG"))
 
 
 def _grow(mag: np.ndarray) -> np.ndarray:

@@ -62,12 +62,22 @@ class _Warp:
 
 
 def _warps(cams: list[Camera]) -> tuple[list[_Warp], tuple[int, int]]:
+    from scipy.ndimage import map_coordinates
+
     warps, lo, hi = [], [], []
+    step = C.WARP_GRID_PX
     for cam in cams:
-        u, v = np.meshgrid(np.arange(cam.width, dtype=float), np.arange(cam.height, dtype=float))
+        # the inverse lens map is smooth: solve it on a coarse grid, interpolate (cubic)
+        pad = 3 * step  # keep the spline's boundary effects outside the image
+        gu = np.arange(-pad, cam.width + pad, step, dtype=float)
+        gv = np.arange(-pad, cam.height + pad, step, dtype=float)
+        u, v = np.meshgrid(gu, gv)
         und = undistort_pixels(cam, np.stack([u, v], -1))
         if not np.all(np.isfinite(und)):
             raise ValueError(f"camera {cam.name}: distortion not invertible over the image")
+        py, px = (np.mgrid[0:cam.height, 0:cam.width] + pad) / step
+        und = np.stack([map_coordinates(und[..., k], [py, px], order=3, mode="nearest")
+                        for k in range(2)], -1)
         mn, mx = und.reshape(-1, 2).min(0), und.reshape(-1, 2).max(0)
         off = C.RENDER_MARGIN_PX - np.floor(mn)
         warps.append(_Warp(off, (und[..., 0] + off[0]).astype(np.float32),

@@ -62,11 +62,15 @@ from studio.subjects import Subject, make_subjects
 STUDIO_DIR = Path(__file__).resolve().parent
 
 
-def source_hash(extra_dirs: tuple[str, ...] = ("body", "calib", "formats")) -> str:
-    """sha256 (16 hex) of the studio's source and of the packages whose code shapes its output."""
-    h = hashlib.sha256()
+#: The packages whose code decides what the studio writes (it imports only these).
+SOURCE_PACKAGES = ("studio", "body", "calib", "formats")
+
+
+def source_hash() -> str:
+    """sha256 (16 hex) of every ``.py`` file of SOURCE_PACKAGES: what decides the output."""
     root = STUDIO_DIR.parent
-    for d in ("studio",) + extra_dirs:
+    h = hashlib.sha256()
+    for d in SOURCE_PACKAGES:
         for f in sorted((root / d).rglob("*.py")):
             h.update(str(f.relative_to(root)).encode())
             h.update(f.read_bytes())
@@ -162,12 +166,9 @@ def generate_sequence(out: Path, plan: PL.SessionPlan, seq: PL.SequencePlan, mod
     ct = annotate(verts[0], verts[1], model.faces, regions.face_region, rng, hint)
     # videos
     colors = [s.colors for s in order]
-    for c, cam in enumerate(cams):
-        def frames(c=c):
-            for f in range(F):
-                people = [PersonMesh(verts[k][f], model.faces, colors[k]) for k in range(2)]
-                yield renderer.render(people, views=[c])[0]
-        write_mp4(out / PL.video_path(seq, cam.name), frames(), plan.fps)
+    write_videos([out / PL.video_path(seq, cam.name) for cam in cams], plan.fps,
+                 (renderer.render([PersonMesh(verts[k][f], model.faces, colors[k]) for k in range(2)])
+                  for f in range(F)))
     # contact sheet at the annotated frame (or the middle frame without contact)
     fr = ct.fr_id if ct.fr_id >= 0 else F // 2
     imgs = renderer.render([PersonMesh(verts[k][fr], model.faces, colors[k]) for k in range(2)])
@@ -215,6 +216,48 @@ def generate_sequence(out: Path, plan: PL.SessionPlan, seq: PL.SequencePlan, mod
          f"{len(ct.faces)} pairs), deepest interpenetration {info['max_penetration_mm']:.1f} mm, "
          f"{info['seconds']} s")
     return info, ct
+
+
+def write_videos(paths: list[Path], fps: float, frames) -> None:
+    """Write one MP4 per camera from an iterable of per-frame view lists (each a list of
+    (H, W, 3) uint8 RGB, one per path), streaming: one writer thread per file
+    (``formats.video.write_mp4``) fed through a small queue, so each frame is rendered once for
+    all cameras and never kept."""
+    import queue
+    import threading
+
+    qs = [queue.Queue(maxsize=4) for _ in paths]
+    errors: list[BaseException] = []
+
+    def drain(q):
+        while True:
+            item = q.get()
+            if item is None:
+                return
+            yield item
+
+    def work(path, q):
+        try:
+            write_mp4(path, drain(q), fps)
+        except BaseException as e:  # reported by the caller
+            errors.append(e)
+            while q.get() is not None:  # keep the producer unblocked
+                pass
+
+    threads = [threading.Thread(target=work, args=(p, q), daemon=True) for p, q in zip(paths, qs, strict=True)]
+    for t in threads:
+        t.start()
+    try:
+        for views in frames:
+            for q, img in zip(qs, views, strict=True):
+                q.put(img)
+    finally:
+        for q in qs:
+            q.put(None)
+        for t in threads:
+            t.join()
+    if errors:
+        raise errors[0]
 
 
 def signature_json(seqs, cts, regions) -> dict:
