@@ -79,3 +79,8 @@ FLIP_MARGIN_FRAC = 0.02
 #: of at least ACCEPT_CONF; otherwise the tracked search falls back to the whole image.
 MIN_PARTNER_KP = 8
 ACCEPT_CONF = 0.5
+
+#: ... and when those keypoints span at least this fraction of the wearer's crop-box height
+#: (a standing adult's keypoints span ~0.65 of it; a skeleton crumpled onto the visible bits
+#: of an occluded partner spans far less).
+MIN_PARTNER_SPAN_FRAC = 0.3

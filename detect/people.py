@@ -297,7 +297,13 @@ def find_people(image: np.ndarray | None, hints: WearerHints, prev_partner_box: 
         return p
 
     def found(p):
-        return _n_good(p, o.accept_conf) >= o.min_partner_kp
+        """Enough confident body keypoints, spread over a person-sized extent (a crumpled
+        skeleton made of the partner's visible bits is not a find)."""
+        if _n_good(p, o.accept_conf) < o.min_partner_kp:
+            return False
+        ok = p[layout.BODY, 2] >= o.accept_conf
+        span = np.ptp(p[layout.BODY][ok, :2], axis=0).max()
+        return not np.isfinite(hw) or span >= K.MIN_PARTNER_SPAN_FRAC * hw
 
     partner, mode, used = np.zeros((layout.N, 3), np.float32), 0, variants[0]
     if o.track and prev_partner_box is not None and np.all(np.isfinite(prev_partner_box)):

@@ -164,31 +164,44 @@ def write_overlays(out, source, res, cams: list[str], frame: int) -> list[str]:
     return names
 
 
-def run(ctx: StageContext) -> None:
+@dataclass(frozen=True)
+class Computed:
+    """What :func:`compute` returns: the detections (:class:`detect.run.SequenceKeypoints`),
+    the frame source (for overlays), the camera ids and the report's facts."""
+
+    res: object
+    source: object
+    cam_names: list
+    report: dict
+
+
+def compute(recipe, unit: str, raw: dict[str, Path], o: Options, progress=lambda it, **_: it,
+            log=lambda _msg: None) -> Computed:
+    """The stage without the artifact store: read the raw inputs (``raw_inputs`` paths),
+    detect both people in every view of every selected frame. Used by :func:`run` and by the
+    bench (bench/cases/keypoints.py)."""
     from calib.io import read_chi3d_camera
     from detect.hints import wearer_hints
     from detect.mediapipe_detector import MediapipeOptions
     from detect.run import VideoSource, detect_sequence
     from formats.c3d import read_c3d
 
-    o: Options = ctx.params or Options()
-    rec = ctx.recipe
-    seq = rec.sequence(ctx.unit)
-    cam_names = list(rec.cameras)
-    cams = [read_chi3d_camera(ctx.raw[f"calibration:{c}"], name=c) for c in cam_names]
-    videos = [ctx.raw[f"video:{c}"] for c in cam_names]
+    seq = recipe.sequence(unit)
+    cam_names = list(recipe.cameras)
+    cams = [read_chi3d_camera(raw[f"calibration:{c}"], name=c) for c in cam_names]
+    videos = [raw[f"video:{c}"] for c in cam_names]
     n_video = video_frame_count(videos)
     frames = frame_indices(n_video, o)
     if len(frames) == 0:
         raise InputError(videos[0], "frames", f"no frame in [{o.start}, {o.stop}) of {n_video}")
 
-    markers = read_c3d(ctx.raw["c3d"])
+    markers = read_c3d(raw["c3d"])
     times = markers.times_s if seq.mocap.rate_hz is None else \
         (markers.first_frame + np.arange(len(markers.xyz))) / seq.mocap.rate_hz
     xyz = markers_on_frames(times, markers.xyz, frames, seq.fps, seq.mocap.sync_offset_s)
     seen = np.isfinite(xyz[..., 0]).any(axis=1)
     if not seen.any():
-        raise InputError(ctx.raw["c3d"], "markers", "no marker observed at any video frame "
+        raise InputError(raw["c3d"], "markers", "no marker observed at any video frame "
                          "(check mocap.sync_offset_s and fps)")
     hints = wearer_hints(cams, xyz, list(markers.names), o.body_margin)
 
@@ -196,37 +209,47 @@ def run(ctx: StageContext) -> None:
     if kind == "auto":
         kind = "precomputed" if seq.keypoints else "mediapipe"
     if kind == "precomputed":
-        factory = load_precomputed(ctx, seq, cam_names)
+        if not seq.keypoints:
+            raise InputError(recipe.source, f"sequences.{unit}.keypoints",
+                             "detector 'precomputed' but the sequence names no keypoint files")
+        factory = load_precomputed(recipe, unit, raw, seq, cam_names)
     else:
         factory = MediapipeOptions(pose_min_conf=o.pose_min_conf, hand_min_conf=o.hand_min_conf)
     workers = o.workers or (os.cpu_count() or 1)
     source = VideoSource(tuple(str(v) for v in videos))
-    ctx.log(f"keypoints: {len(frames)} frames x {len(cams)} views, detector {kind}, "
-            f"{workers} worker(s)")
+    log(f"keypoints: {len(frames)} frames x {len(cams)} views, detector {kind}, "
+        f"{workers} worker(s)")
     res = detect_sequence(source, factory, hints, frames, people_options(o), workers=workers,
-                          chunk=o.chunk, progress=ctx.progress)
-
-    ctx.out.save_arrays("keypoints", kp=res.kp, boxes=res.boxes.astype(np.float32),
-                        hand_boxes=res.hand_boxes.astype(np.float32), frames=res.frames,
-                        wearer_retry=res.wearer_retry, partner_mode=res.partner_mode)
-    sample = int(frames[len(frames) // 2]) if o.overlay_frame is None else o.overlay_frame
-    overlays = write_overlays(ctx.out, source, res, cam_names, sample)
-    mcap_name = None
-    if o.mcap:
-        mcap_name = write_mcap(ctx.out.path("keypoints.mcap"), res, cam_names, seq.fps)
+                          chunk=o.chunk, progress=progress)
     report = {"detector": kind, "cameras": cam_names, "video_frames": n_video,
               "stride": o.stride, "workers": workers, "markers": len(markers.names),
               "frames_with_markers": int(seen.sum()),
               "wearer_retries": int(res.wearer_retry.sum()),
               "partner_mode_counts": {m: int((res.partner_mode == i).sum())
                                       for i, m in enumerate(("missing", "tracked", "whole_image"))},
-              "overlays": overlays, "mcap": mcap_name,
               "detector_calls": {k: (round(v, 3) if isinstance(v, float) else int(v))
                                  for k, v in res.meter.items()},
               **summary(res.kp, res.cpu_s, res.wall_s, len(frames))}
+    return Computed(res, source, cam_names, report)
+
+
+def run(ctx: StageContext) -> None:
+    o: Options = ctx.params or Options()
+    seq = ctx.recipe.sequence(ctx.unit)
+    c = compute(ctx.recipe, ctx.unit, ctx.raw, o, progress=ctx.progress, log=ctx.log)
+    res = c.res
+    ctx.out.save_arrays("keypoints", kp=res.kp, boxes=res.boxes.astype(np.float32),
+                        hand_boxes=res.hand_boxes.astype(np.float32), frames=res.frames,
+                        wearer_retry=res.wearer_retry, partner_mode=res.partner_mode)
+    frames = res.frames
+    sample = int(frames[len(frames) // 2]) if o.overlay_frame is None else o.overlay_frame
+    report = dict(c.report)
+    report["overlays"] = write_overlays(ctx.out, c.source, res, c.cam_names, sample)
+    report["mcap"] = (write_mcap(ctx.out.path("keypoints.mcap"), res, c.cam_names, seq.fps)
+                      if o.mcap else None)
     ctx.out.save_json("report", report)
-    ctx.log(f"keypoints: {report['fps_per_core']} frames/s per core (all {len(cams)} views), "
-            f"partner tracked in {report['partner_mode_counts']['tracked']} view-frames")
+    ctx.log(f"keypoints: {report['fps_per_core']} frames/s per core (all {len(c.cam_names)} "
+            f"views), partner tracked in {report['partner_mode_counts']['tracked']} view-frames")
 
 
 BOXES_SCHEMA = {
@@ -260,7 +283,7 @@ def write_mcap(path: Path, res, cam_names: list[str], fps: float) -> str:
     return path.name
 
 
-def load_precomputed(ctx: StageContext, seq, cam_names: list[str]):
+def load_precomputed(recipe, unit: str, raw: dict[str, Path], seq, cam_names: list[str]):
     """A PrecomputedDetector from the sequence's OpenPose (a folder of per-frame JSON files per
     camera) or COCO (one JSON file per camera) detections: every camera's candidates on the
     union of the frames the files cover (a frame missing from one camera has no candidates
@@ -272,9 +295,9 @@ def load_precomputed(ctx: StageContext, seq, cam_names: list[str]):
     fmt = seq.keypoints_format or "openpose"
     per_cam = []
     for cam in cam_names:
-        files = [p for k, p in sorted(ctx.raw.items()) if k.startswith(f"keypoints:{cam}:")]
+        files = [p for k, p in sorted(raw.items()) if k.startswith(f"keypoints:{cam}:")]
         if not files:
-            raise InputError(ctx.recipe.source, f"sequences.{ctx.unit}.keypoints.{cam}",
+            raise InputError(recipe.source, f"sequences.{unit}.keypoints.{cam}",
                              "no keypoint files for this camera")
         if fmt == "openpose":
             per_cam.append(read_openpose(files))

@@ -1,0 +1,115 @@
+"""Keypoints stage: accuracy against projected ground truth and detector speed, on the studio
+bench session.
+
+Data: ``recipes/bench.yaml`` (studio preset ``bench``: all eight interaction scenarios, two
+Anny people in different clothing, four 900 x 900 views; its data in ``data/bench`` are
+generated on demand by ``studio.ensure_generated`` and shared with other cases). For a quick
+look, ``BENCH_KEYPOINTS_RECIPE=<recipe.yaml>`` runs the case on another studio session.
+
+Every sequence is run through the stage's own code (``stages.keypoints.compute``: mediapipe,
+crops from the markers, the partner rule) on every ``STRIDE``-th video frame, with one worker
+process per core. Truth: the studio's posed vertices and joints (``gt/<group>/<action>.npz``)
+through ``body.joints`` KP65 regressor, projected with the calibrated cameras.
+
+Keys:
+
+- ``keypoints.fps_per_core``: video frames (all four views) per CPU-second of the workers;
+- ``keypoints.median_px`` and ``_body`` / ``_hands`` / ``_feet`` (groups of detect.metrics),
+  ``_wearer`` / ``_partner``: median pixel error of detected keypoints (confidence >= 0.1)
+  whose truth lies in the image; ``keypoints.p90_px``;
+- ``keypoints.detected_<group>_<person>``: fraction of in-image truth keypoints detected
+  (mediapipe gives no small toes: feet top out at 4/6);
+- ``keypoints.identity_swaps``: frames (over all sequences) where in at least one view a
+  person's body keypoints lie nearer (median) the other person's truth than its own;
+  ``keypoints.identity_swap_views``: the same counted per view.
+
+Per-sequence details go to ``bench/work/keypoints/sequences.json``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[2]
+STRIDE = 10
+GOALS = {
+    "keypoints.identity_swaps": ("<=", 0),
+    "keypoints.median_px": ("<=", 8.0),
+}
+
+
+def _truth_uv(recipe, sid: str, seq, frames: np.ndarray, reg) -> np.ndarray:
+    """(C, F, 2, 65, 2) projected truth of both people (person 0 = the marker wearer)."""
+    from body.joints import regress
+    from calib import project
+    from calib.io import read_chi3d_camera
+
+    group, action = sid.split("/")
+    data = Path(seq.c3d).parents[2]  # <data>/<group>/mocap/<action>.c3d
+    gt = np.load(data / "gt" / group / f"{action}.npz")
+    kp3 = np.stack([regress(reg, gt["vertices"][p][frames].astype(np.float64), gt["joints"][p][frames])
+                    for p in (0, 1)], axis=1)
+    return np.stack([project(read_chi3d_camera(seq.calibration[c], name=c), kp3)
+                     for c in recipe.cameras])
+
+
+def run(work: Path) -> dict[str, float]:
+    from body import load_model
+    from body.joints import regressor
+    from detect.metrics import GROUPS, group_summary, identity_swaps, keypoint_errors
+    from recipes import load_recipe
+    from stages.keypoints import Options, compute, raw_inputs
+
+    recipe_path = Path(os.environ.get("BENCH_KEYPOINTS_RECIPE", REPO / "recipes" / "bench.yaml"))
+    if recipe_path.resolve() == (REPO / "recipes" / "bench.yaml").resolve():
+        from studio import ensure_generated
+
+        ensure_generated(recipe_path)
+    recipe = load_recipe(recipe_path)
+    reg = regressor(load_model("anny"), "kp65")
+    opts = Options(stride=STRIDE, workers=os.cpu_count() or 1)
+    errs, swaps, frames_total, cpu, per_seq = [], 0, 0, 0.0, {}
+    swap_views = 0
+    for sid, seq in recipe.sequences.items():
+        c = compute(recipe, sid, raw_inputs(recipe, sid), opts)
+        res = c.res
+        truth = _truth_uv(recipe, sid, seq, res.frames, reg)
+        inside = (truth[..., 0] >= 0) & (truth[..., 0] < 900) & (truth[..., 1] >= 0) & (truth[..., 1] < 900)
+        err = keypoint_errors(res.kp, truth, inside)
+        sw = identity_swaps(res.kp, truth)
+        errs.append((err, inside))
+        swaps += int(sw.any(axis=0).sum())
+        swap_views += int(sw.sum())
+        frames_total += len(res.frames)
+        cpu += res.cpu_s
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            per_seq[sid] = {"frames": len(res.frames), "swapped_frames": int(sw.any(axis=0).sum()),
+                            "wearer": group_summary(err[:, :, 0], inside[:, :, 0]),
+                            "partner": group_summary(err[:, :, 1], inside[:, :, 1]),
+                            "report": c.report}
+    (work / "sequences.json").write_text(json.dumps(per_seq, indent=1, default=float))
+
+    e = np.concatenate([x[0].reshape(-1, 2, 65) for x in errs])  # (C*F, 2, 65)
+    ins = np.concatenate([x[1].reshape(-1, 2, 65) for x in errs])
+    out = {"keypoints.fps_per_core": frames_total / cpu if cpu > 0 else float("nan"),
+           "keypoints.frames": float(frames_total),
+           "keypoints.identity_swaps": float(swaps),
+           "keypoints.identity_swap_views": float(swap_views)}
+    allv = e[np.isfinite(e)]
+    out["keypoints.median_px"] = float(np.median(allv))
+    out["keypoints.p90_px"] = float(np.percentile(allv, 90))
+    for g, idx in GROUPS.items():
+        v = e[..., idx]
+        out[f"keypoints.median_px_{g}"] = float(np.median(v[np.isfinite(v)]))
+    for p, who in enumerate(("wearer", "partner")):
+        v = e[:, p]
+        out[f"keypoints.median_px_{who}"] = float(np.median(v[np.isfinite(v)]))
+        for g, idx in GROUPS.items():
+            can = ins[:, p][:, idx]
+            out[f"keypoints.detected_{g}_{who}"] = float(np.isfinite(e[:, p][:, idx])[can].mean())
+    return out
