@@ -327,10 +327,13 @@ def find_people(image: np.ndarray | None, hints: WearerHints, prev_partner_box: 
         if mode == 2 and det.needs_pixels:  # refine in a crop around what the whole image gave
             rb = _person_box(partner, o.accept_conf, o.body_margin)
             p2 = look(rb, used)
-            if _n_good(p2, o.accept_conf) >= _n_good(partner, o.accept_conf):
+            if found(p2) and _n_good(p2, o.accept_conf) >= _n_good(partner, o.accept_conf):
                 partner, boxes[1] = p2, rb
-        elif mode == 0 and weak is not None and _n_good(weak, o.accept_conf) > 0:
-            partner = weak  # weak: keep what there is, but don't track from it
+        elif mode == 0 and weak is not None and not det.needs_pixels:
+            # Precomputed multi-person detections: a partial partner (cut by the image border,
+            # half occluded) is real data and the paper's rule keeps it; don't track from it.
+            # A single-person detector's weak result is mostly made-up limbs: not reported.
+            partner = weak
     kp[1] = partner
     if o.hands and mode:
         hb, wr = _partner_hand_boxes(kp[1], o.accept_conf)
