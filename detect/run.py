@@ -76,8 +76,9 @@ class SequenceKeypoints:
 
 
 def _run_chunk(source: FrameSource, factory: DetectorFactory, hints: WearerHints,
-               frames: np.ndarray, n_cam: int, opts: PeopleOptions) -> tuple[dict[str, np.ndarray], float]:
-    """Detect one chunk of frames (in a worker). hints cover exactly ``frames``."""
+               frames: np.ndarray, n_cam: int, opts: PeopleOptions) -> tuple[dict, dict]:
+    """Detect one chunk of frames (in a worker). hints cover exactly ``frames``. Returns
+    (arrays of the chunk, meter: detector calls and CPU seconds)."""
     with quiet_native_logs():  # detector threads may log after a call has returned
         return _run_chunk_loud(source, factory, hints, frames, n_cam, opts)
 
