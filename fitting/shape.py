@@ -150,36 +150,41 @@ def _posed_vertices(model, skel, betas, x, rest=None):
     return out.vertices[0]
 
 
-def _rigid_start(model, skel, points, rng, opts) -> np.ndarray:
-    """x (neutral pose 0) aligning the mean body to the scan: centroids, then the best of
-    ``opts.headings`` rotations about z refined by a few rigid ICP steps."""
+def _rigid_start(model, skel, points, rng, opts, S) -> tuple[np.ndarray, np.ndarray]:
+    """(betas (S,), x): a start for the scan fit: the mean body aligned to the scan
+    (centroids, then the best of ``opts.headings`` rotations about z refined by rigid ICP).
+    (A start from the best of a size grid over the first betas, as the marker-based shape
+    does, was tried: it fitted the surface as well and the neutral-pose vertices worse.)"""
     from scipy.spatial import cKDTree
 
-    v0 = _posed_vertices(model, skel, np.zeros(1), np.zeros(skel.n))
+    from body.rotations import rotmat_to_rotvec
+
     sub = points[rng.choice(len(points), min(2000, len(points)), replace=False)]
     tree = cKDTree(sub)
+
+    def icp(v0, R, t, n_iter):
+        for _ in range(n_iter):
+            d, i = tree.query(v0 @ R.T + t)
+            keep = d < np.percentile(d, 80)
+            R, t = marker_fit.kabsch(v0[keep], sub[i[keep]])
+        d1, _ = tree.query(v0 @ R.T + t)
+        d2, _ = cKDTree(v0 @ R.T + t).query(sub)
+        return R, t, np.mean(np.minimum(d1, 0.05) ** 2) + np.mean(np.minimum(d2, 0.05) ** 2)
+
+    v0 = _posed_vertices(model, skel, np.zeros(1), np.zeros(skel.n))
     best = None
     for k in range(opts.headings):
         a = 2 * np.pi * k / opts.headings
         R = rodrigues(np.array([0.0, 0.0, a]))
-        t = sub.mean(0) - R @ v0.mean(0)
-        for _ in range(8):
-            moved = v0 @ R.T + t
-            d, i = tree.query(moved)
-            keep = d < np.percentile(d, 80)
-            R, t = marker_fit.kabsch(v0[keep], sub[i[keep]])
-        d, _ = tree.query(v0 @ R.T + t)
-        score = np.mean(np.minimum(d, 0.05) ** 2)
+        R, t, score = icp(v0, R, sub.mean(0) - R @ v0.mean(0), 8)
         if best is None or score < best[0]:
-            best = (score, R, t)
-    _, R, t = best
-    from body.rotations import rotmat_to_rotvec
-
+            best = (score, R, t, np.zeros(S))
+    _, R, t, b = best
     x = np.zeros(skel.n)
-    h0 = rest_state(model, np.zeros(1)).joints[0, 0]
+    h0 = rest_state(model, b).joints[0, 0]
     x[:3] = rotmat_to_rotvec(R)
     x[3:6] = t + R @ h0 - h0
-    return x
+    return b, x
 
 
 def vertex_jacobian(model: BodyModel, rest, skel: skinned.FitSkeleton, x: np.ndarray,
@@ -249,8 +254,7 @@ def fit_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | None,
     skel = skinned.fit_skeleton(model, body_joints(model))
     n = skel.n
     if init is None:
-        x = _rigid_start(model, skel, points, rng, opts)
-        betas = np.zeros(S)
+        betas, x = _rigid_start(model, skel, points, rng, opts, S)
     else:
         betas = np.zeros(S)
         b0 = np.asarray(init[0], float)[:S]
@@ -260,6 +264,7 @@ def fit_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | None,
     faces = np.asarray(model.faces)
     lam = 1e-3
     iters = 0
+    stalls = 0
     for it in range(opts.iters):
         iters = it + 1
         # coarse to fine: the first third of the iterations fits only the first betas
@@ -324,7 +329,8 @@ def fit_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | None,
         betas, x = z[:S], marker_fit.rewrap(z[S:])
         if log:
             log(f"scan fit iteration {iters}: robust cost {min(c0, c1):.4e}")
-        if np.abs(step).max() < 1e-7:
+        stalls = stalls + 1 if np.abs(step).max() < 1e-7 else 0
+        if stalls >= 3:  # no descent on three different point samples: converged
             break
     v = _posed_vertices(model, skel, betas, x)
     d2, _, _ = igl.point_mesh_squared_distance(points, v, faces)
