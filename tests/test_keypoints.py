@@ -218,3 +218,23 @@ def test_stage_precomputed_openpose(session, tmp_path):
             d = np.linalg.norm(kp[:, f, p, :, :2] - uv[:, f, p], axis=-1)[ok]
             assert d.max() < 6.0
     assert not kp[:, 2, :, :, 2].any()  # frame 2 has no files
+
+
+def test_bad_inputs_name_the_file(session, tmp_path):
+    """Markers that never overlap the video (wrong sync) and a precomputed detector without
+    files are input errors naming the file and field, before any detection runs."""
+    from formats.errors import InputError
+    from recipes import load_recipe
+    from stages.keypoints import compute, raw_inputs
+
+    root, truth = session
+    recipe = json.loads(json.dumps(truth["recipe"]))
+    recipe["sequences"]["s01/Test 1"]["mocap"]["sync_offset_s"] = 100.0
+    path = root / "recipe_badsync.yaml"
+    path.write_text(yaml.safe_dump(recipe, sort_keys=False))
+    rec = load_recipe(path)
+    with pytest.raises(InputError, match=r"Test 1\.c3d: markers: no marker observed"):
+        compute(rec, "s01/Test 1", raw_inputs(rec, "s01/Test 1"), Options())
+    rec = load_recipe(root / "recipe.yaml")
+    with pytest.raises(InputError, match=r"sequences\.s01/Test 1\.keypoints"):
+        compute(rec, "s01/Test 1", raw_inputs(rec, "s01/Test 1"), Options(detector="precomputed"))
