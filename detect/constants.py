@@ -8,9 +8,11 @@ N_KP = 65
 BODY_MARGIN = 0.15
 
 #: Hand crop: radius (metres) of the sphere around the hand centre whose projection sets the
-#: hand box half-size. An adult hand is ~0.19 m long wrist to fingertip; 0.14 m leaves room
-#: for spread fingers and marker-placement error.
-HAND_RADIUS_M = 0.14
+#: hand box half-size. An adult hand is ~0.19 m long wrist to fingertip; the palm detector
+#: wants context around it: on studio renders (wearer's hands, 56 crops) radius 0.10 / 0.14 /
+#: 0.20 / 0.26 m found 32 / 42 / 43 / 46 hands at median errors 4.1 / 3.2 / 2.9 / 3.3 px and
+#: p90 11.6 / 11.4 / 9.8 / 32.7 px (the largest crops start picking up the wrong hand).
+HAND_RADIUS_M = 0.2
 
 #: Hand centre = wrist + HAND_CENTRE_ALONG * (knuckles - wrist): the FIN marker (and the pose
 #: detector's index/pinky points) sit on the knuckles, ~0.08 m from the wrist; the middle of
