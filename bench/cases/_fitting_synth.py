@@ -107,3 +107,27 @@ def observe(markers: np.ndarray, rng, gap_fraction=0.3) -> tuple[np.ndarray, np.
 
 __all__ = ["subject_betas", "template", "slide", "motion", "posed", "true_markers", "observe",
            "skinned"]
+
+
+def studio_session():
+    """(recipe, data folder) of the first studio preset whose data exist (bench, then demo),
+    or None. The data are never generated here (``make bench`` would take the rendering time
+    of a whole session); ``python -m studio --preset bench`` makes them."""
+    from pathlib import Path
+
+    from recipes import RecipeError, load_recipe
+
+    repo = Path(__file__).resolve().parents[2]
+    for name in ("bench", "demo"):
+        path = repo / "recipes" / f"{name}.yaml"
+        if not path.is_file():
+            continue
+        try:
+            r = load_recipe(path)
+        except RecipeError:
+            continue  # data not generated
+        first = next(iter(r.sequences.values()))
+        gt = Path(first.c3d).parents[2] / "gt"
+        if gt.is_dir():
+            return r, gt
+    return None

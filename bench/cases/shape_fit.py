@@ -47,6 +47,9 @@ def _synth():
 
 def run(work: Path) -> dict[str, float]:  # noqa: ARG001 - nothing written to disk
     S = _synth()
+    studio = S.studio_session()
+    if studio is not None:
+        return _run_studio(*studio)
 
     from body import load_model
     from body.lbs import rest_state
@@ -102,3 +105,28 @@ def run(work: Path) -> dict[str, float]:  # noqa: ARG001 - nothing written to di
                                 make_solver, fit_betas=True)
     out["shape_fit.v2v_markers_mm"] = _v2v(model, betas, pm.betas)
     return out
+
+
+def _run_studio(recipe, gt: Path) -> dict[str, float]:
+    """Every subject of a generated studio session: its scan fitted, v2v vs the true betas in
+    the neutral pose."""
+    from body import load_model
+    from fitting import shape
+    from stages.shape_fit import load_scan
+
+    model = load_model("anny")
+    rng = np.random.default_rng(SEED)
+    v2v, dist, secs = [], [], 0.0
+    for sid, subj in recipe.subjects.items():
+        if subj.scan is None:
+            continue
+        pts, nrm = load_scan(subj.scan)
+        t0 = time.perf_counter()
+        sf = shape.fit_scan(model, pts, nrm, rng)
+        secs += time.perf_counter() - t0
+        v2v.append(_v2v(model, np.load(gt / "subjects" / f"{sid}.npz")["betas"], sf.betas))
+        dist.append(float(np.median(sf.scan_to_model_mm)))
+    return {"shape_fit.v2v_mm": float(np.mean(v2v)),
+            "shape_fit.scan_to_model_mm": float(np.mean(dist)),
+            "shape_fit.scan_fit_s": secs / max(len(v2v), 1),
+            "shape_fit.studio_subjects": float(len(v2v))}
