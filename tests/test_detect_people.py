@@ -218,7 +218,6 @@ def test_chunks_cover_in_order():
     assert len(chunks(100, 16)) == 7 and len(chunks(20, 16)) == 2
 
 
-@pytest.mark.slow
 def test_sequence_same_with_one_or_two_workers():
     shape = (240, 320)
     frames = tuple(range(0, 24, 2))
