@@ -9,7 +9,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-import pytest
 
 from detect import layout
 from detect.base import Detections
