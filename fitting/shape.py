@@ -119,6 +119,7 @@ class ScanFitOptions:
     sigma_m: float = 0.015
     beta_weight: float = 1e-8
     pose_weight: float = 1e-5
+    final_pose_weight: float = 1e-5
     headings: int = 8
 
 
@@ -269,8 +270,11 @@ def fit_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | None,
         iters = it + 1
         # coarse to fine: the first third of the iterations fits only the first betas
         s_on = min(S, COARSE_BETAS) if it < opts.iters // 3 else S
+        # last third: the neutral pose pulled to pose 0 (a scan is taken in the neutral
+        # pose; a free pose absorbs shape, which the neutral-pose mesh then lacks)
+        pw = opts.final_pose_weight if it >= opts.iters - opts.iters // 3 else opts.pose_weight
         prior_w = np.concatenate([np.full(s_on, opts.beta_weight), np.full(S - s_on, 1e3),
-                                  np.zeros(6), np.full(n - 6, opts.pose_weight)])
+                                  np.zeros(6), np.full(n - 6, pw)])
         rest = rest_state(model, betas)
         v = _posed_vertices(model, skel, betas, x, rest=rest)
         sel = rng.choice(len(points), min(opts.n_points, len(points)), replace=False)
