@@ -331,7 +331,7 @@ def fit_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | None,
             step = np.zeros_like(z)
         z = z + step
         betas, x = z[:S], marker_fit.rewrap(z[S:])
-        if log:
+        if log and (iters % 10 == 0 or iters == 1):
             log(f"scan fit iteration {iters}: robust cost {min(c0, c1):.4e}")
         stalls = stalls + 1 if np.abs(step).max() < 1e-7 else 0
         if stalls >= 3:  # no descent on three different point samples: converged
