@@ -117,3 +117,7 @@ REFINE_GAIN = 1.3
 LIMB_NEAR_M = 0.03
 #: The inverse lens map is solved every WARP_GRID_PX pixels and interpolated.
 WARP_GRID_PX = 4
+#: Then, where a limb is still inside, the contact gives way: its weight is scaled by
+#: GIVE_WAY_FACTOR there, up to GIVE_WAY_ROUNDS times.
+GIVE_WAY_ROUNDS = 0
+GIVE_WAY_FACTOR = 0.85

@@ -422,14 +422,21 @@ def _synthesize(people, nominal, contacts, movable, passes, check_samples):
     check = np.zeros(N, bool)  # measure at the video frames only (the ground truth's samples)
     check[check_samples] = True
     spread = int(np.min(np.diff(check_samples))) - 1 if len(check_samples) > 1 else 0
-    def measure():
-        """Gaps, interpenetration and corrections at the checked samples."""
+    gaps = np.full((len(contacts), N), np.nan)
+    limb = np.full((len(contacts), N), np.inf)  # deepest point of each contact's limb
+    pen = np.zeros(N)
+
+    def measure(only=None):
+        """Gaps, interpenetration and corrections at the checked samples (those in ``only``;
+        the others keep their last values)."""
         near = _near_samples(people, tracks)
         near[~check] = False
-        idx = np.flatnonzero(near)
-        gaps = np.full((len(contacts), N), np.nan)
-        limb = np.full((len(contacts), N), np.inf)  # deepest point of each contact's limb
-        pen = np.zeros(N)
+        sel = near if only is None else near & only
+        clear = check if only is None else check & only
+        gaps[:, clear] = np.nan
+        limb[:, clear] = np.inf
+        pen[clear] = 0.0
+        idx = np.flatnonzero(sel)
         need = np.zeros((N, 3))
         repelled = np.zeros(N, bool)
         verts = skin_all(people, tracks, idx) if len(idx) else None
@@ -475,17 +482,20 @@ def _synthesize(people, nominal, contacts, movable, passes, check_samples):
         tracks[movable].T = base_T + push
         return env > C.REFINE_TOL_M
 
-    for it in range(passes + C.RETREAT_ROUNDS + 1):
+    base_w = [c.weight.copy() for c in contacts]
+    scale = [np.ones(N) for _ in contacts]
+    last = passes + C.RETREAT_ROUNDS + C.GIVE_WAY_ROUNDS
+    for it in range(last + 1):
         tracks[movable].T = base_T + push
         if todo.any():
             _solve_contacts(people, tracks, nominal, contacts, active=todo, warm_pass=it > 0)
-        gaps, limb, pen, need, repelled = measure()
-        report = SynthReport(gaps, pen)
+        gaps, limb, pen, need, repelled = measure(None if it <= passes else _grow_mask(todo, 1))
+        report = SynthReport(gaps.copy(), pen.copy())
         if _debug():
             print(f"DEBUG it {it} pen {pen.max() * 1000:.1f} push {np.abs(push).max() * 1000:.0f} "
                   f"need {np.abs(need).max() * 1000:.1f} limb {[round(float(-x.min()) * 1000, 1) for x in limb]} "
                   f"gapmed {[round(float(np.nanmedian(g)) * 1000, 1) if np.isfinite(g).any() else None for g in gaps]}")
-        if it == passes + C.RETREAT_ROUNDS or (it >= passes and pen.max() <= C.PENETRATION_MAX_M):
+        if it == last or (it >= passes and pen.max() <= C.PENETRATION_MAX_M):
             break
         todo = repelled.copy() if it < passes else np.zeros(N, bool)
         if it < passes:
@@ -503,8 +513,18 @@ def _synthesize(people, nominal, contacts, movable, passes, check_samples):
                     delta = C.REFINE_GAIN * gaussian_filter1d(corr, 1.0) * (c.weight > 0.05)
                     c.adjust = c.adjust - delta
                     todo |= np.abs(delta) > C.REFINE_TOL_M
+        elif it >= passes + C.RETREAT_ROUNDS:
+            # last resort: where a limb is still inside the other body, reach less there
+            for ci, c in enumerate(contacts):
+                bad = (limb[ci] < -C.PENETRATION_MAX_M) & check
+                if bad.any():
+                    cut = np.ones(N)
+                    cut[_grow_mask(bad, spread + 1)] = C.GIVE_WAY_FACTOR
+                    scale[ci] = scale[ci] * np.minimum(1.0, gaussian_filter1d(cut, 1.0) + 0.0)
+                    c.weight = base_w[ci] * scale[ci]
+                    todo |= cut < 1
         else:
-            # last resort where a limb is still inside the other body: aim further out there
+            # where a limb is still inside the other body: aim further out there
             for ci, c in enumerate(contacts):
                 bad = (limb[ci] < -C.PENETRATION_MAX_M) & check
                 if bad.any():
@@ -531,6 +551,13 @@ def _body_overlap(d: np.ndarray, cp: np.ndarray, V_other: np.ndarray, mine: np.n
         dl, _ = cKDTree(V_other[theirs]).query(cp[cand])
         cand = cand[dl > C.LIMB_NEAR_M]
     return float(d[cand].min()) if len(cand) else 0.0
+
+
+def _grow_mask(mask: np.ndarray, n: int) -> np.ndarray:
+    """Dilate a boolean mask over time by n samples."""
+    from scipy.ndimage import maximum_filter1d
+
+    return maximum_filter1d(mask.astype(np.uint8), size=2 * n + 1).astype(bool)
 
 
 def _debug() -> bool:

@@ -152,9 +152,9 @@ NECK = ("neck01", "head")
 
 
 def arm_dofs(person: Person, an: Anatomy, side: str, clavicle: bool = True, wrist: bool = True,
-             weight: float = 0.05) -> list[Dof]:
+             weight: float = 0.02) -> list[Dof]:
     """IK unknowns of an arm: clavicle (stiff), shoulder (ball), elbow (hinge), forearm twist,
-    wrist (ball, stiff)."""
+    wrist (ball, stiff), thumb (two joints, stiff)."""
     n = person.j
     d = []
     if clavicle:
@@ -165,10 +165,13 @@ def arm_dofs(person: Person, an: Anatomy, side: str, clavicle: bool = True, wris
     d.append(Dof(n(f"lowerarm02.{side}"), weight=weight * 4, limits=(0, 1.2)))
     if wrist:
         d.append(Dof(n(f"wrist.{side}"), weight=weight * 6, limits=(0, 0.9)))
+        # the thumb may move out of the way (it is what pokes into the other person)
+        for seg in (1, 2):
+            d.append(Dof(n(f"finger1-{seg}.{side}"), weight=weight * 4, limits=(0, 0.8)))
     return d
 
 
-def leg_dofs(person: Person, an: Anatomy, side: str, weight: float = 0.05) -> list[Dof]:
+def leg_dofs(person: Person, an: Anatomy, side: str, weight: float = 0.02) -> list[Dof]:
     """IK unknowns of a leg: hip (ball), knee (hinge about the body's left axis), ankle."""
     n = person.j
     return [Dof(n(f"upperleg01.{side}"), weight=weight, limits=(0, 1.8)),

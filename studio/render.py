@@ -112,8 +112,11 @@ class Renderer:
         bg = np.array(C.BACKGROUND_RGB + (255,)) / 255.0
         self.scene = pyrender.Scene(bg_color=bg)
         for cam, w in zip(self.cams, self._warps, strict=True):
-            pc = pyrender.IntrinsicsCamera(cam.f[0], cam.f[1], cam.c[0] + w.offset[0],
-                                           cam.c[1] + w.offset[1], znear=C.ZNEAR_M, zfar=C.ZFAR_M)
+            # +0.5: OpenGL pixel i spans [i, i + 1] (centre i + 0.5); calib's pixel centres
+            # are integers
+            pc = pyrender.IntrinsicsCamera(cam.f[0], cam.f[1], cam.c[0] + w.offset[0] + 0.5,
+                                           cam.c[1] + w.offset[1] + 0.5, znear=C.ZNEAR_M,
+                                           zfar=C.ZFAR_M)
             self._cam_nodes.append(self.scene.add(pc, pose=_gl_pose(cam)))
         s = C.FLOOR_HALF_SIZE_M
         fv = np.array([[-s, -s, 0], [s, -s, 0], [s, s, 0], [-s, s, 0]], float)

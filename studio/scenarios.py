@@ -127,11 +127,12 @@ def handshake(cast: Cast) -> Scene:
     zm = min(za, zb) + rng.uniform(-0.02, 0.04)
     w_a = pulse(u, 0.05, 0.35, 0.75, 0.95)
     w_b = pulse(u, 0.08, 0.36, 0.74, 0.93)
-    shake = 0.025 * np.sin(2 * np.pi * 2.2 * cast.tl.t) * ramp(u, 0.38, 0.45) * (1 - ramp(u, 0.68, 0.74))
+    # two shakes during the grip, whatever the sequence length
+    shake = 0.015 * np.sin(2 * np.pi * 2 * (u - 0.4) / 0.3) * ramp(u, 0.38, 0.45) * (1 - ramp(u, 0.66, 0.72))
     M = np.stack([np.full(N, rng.uniform(-0.03, 0.03)), np.full(N, rng.uniform(-0.02, 0.02)),
                   zm + shake], 1)
-    ta.pose = with_fingers(cast, 0, living(cast, 0, ta.pose[0]), "R", 0.1, w_a)
-    tb.pose = with_fingers(cast, 1, living(cast, 1, tb.pose[0]), "R", 0.1, w_b)
+    ta.pose = with_fingers(cast, 0, living(cast, 0, ta.pose[0]), "R", -0.15, w_a)
+    tb.pose = with_fingers(cast, 1, living(cast, 1, tb.pose[0]), "R", -0.15, w_b)
     eff_a, n_a = palm(cast, 0, "R")
     eff_b, n_b = palm(cast, 1, "R")
     ca = Contact(0, P.arm_dofs(pa, aa, "R"), eff_a, Fixed(M, np.array([0.0, -1.0, 0.0])),
@@ -203,7 +204,7 @@ def hug(cast: Cast) -> Scene:
     w_open_a = pulse(u, 0.0, 0.25, 0.85, 1.0)
     w_open_b = pulse(u, 0.03, 0.28, 0.83, 1.0)
     ta.pose = living(cast, 0, blend(blend(base[0], lean[0], w_lean), open_[0], w_open_a), 0.5)
-    ta.pose = with_fingers(cast, 0, with_fingers(cast, 0, ta.pose, "L", 0.15, w_a), "R", 0.15, w_a)
+    ta.pose = with_fingers(cast, 0, with_fingers(cast, 0, ta.pose, "L", -0.1, w_a), "R", -0.1, w_a)
     tb.pose = living(cast, 1, blend(blend(base[1], lean[1], w_lean), open_[1], w_open_b), 0.5)
     contacts = []
     # actor: arms over the partner's shoulders, hands on their upper back; receiver: arms
@@ -319,7 +320,7 @@ def grab(cast: Cast) -> Scene:
     w_pull = ramp(u, 0.5, 0.7) * (1 - ramp(u, 0.85, 1.0))
     tb.pose = living(cast, 1, blend(blend(base[1], offer, w_off), pull, w_pull), 0.5)
     w = pulse(u, 0.12, 0.4, 0.72, 0.92)
-    ta.pose = with_fingers(cast, 0, living(cast, 0, base[0], 0.5), "R", 0.3, w)
+    ta.pose = with_fingers(cast, 0, living(cast, 0, base[0], 0.5), "R", 0.0, w)
     mid = 0.4 * _joint0(cast, 1, "lowerarm01.L") + 0.6 * _joint0(cast, 1, "wrist.L")
     # anchor on the top of the forearm in the offering pose
     t, G = pb.fk(offer[None], np.eye(3)[None], np.zeros((1, 3)))
@@ -341,15 +342,16 @@ def holding_hands(cast: Cast) -> Scene:
     tb = place(pb, (0, s / 2), (1, 0), N, base[1])
     w_a = pulse(u, 0.05, 0.32, 0.8, 0.97)
     w_b = pulse(u, 0.08, 0.34, 0.78, 0.95)
-    ta.pose = with_fingers(cast, 0, living(cast, 0, base[0], 0.6), "L", 0.1, w_a)
-    tb.pose = with_fingers(cast, 1, living(cast, 1, base[1], 0.6), "R", 0.1, w_b)
+    ta.pose = with_fingers(cast, 0, living(cast, 0, base[0], 0.6), "L", -0.15, w_a)
+    tb.pose = with_fingers(cast, 1, living(cast, 1, base[1], 0.6), "R", -0.15, w_b)
     za = _floor_height(ta, pa, pa.j("wrist.L"), aa)
     zb = _floor_height(tb, pb, pb.j("wrist.R"), ab)
     swing = 0.07 * np.sin(2 * np.pi * 0.9 * cast.tl.t + rng.uniform(0, 6)) * ramp(u, 0.35, 0.45)
-    M = np.stack([rng.uniform(0.0, 0.06) + swing, np.zeros(N), np.full(N, 0.5 * (za + zb) + 0.08)], 1)
+    M = np.stack([rng.uniform(0.04, 0.08) + swing, np.zeros(N), np.full(N, 0.5 * (za + zb) + 0.1)], 1)
     eff_a, n_a = palm(cast, 0, "L")
     eff_b, n_b = palm(cast, 1, "R")
-    ca = Contact(0, P.arm_dofs(pa, aa, "L"), eff_a, Fixed(M, np.array([0.0, -1.0, 0.0])),
+    # the actor's palm faces backwards, the partner's hand comes from behind (palm forwards)
+    ca = Contact(0, P.arm_dofs(pa, aa, "L"), eff_a, Fixed(M, np.array([1.0, 0.0, 0.0])),
                  clearance=0.012, weight=w_a, region=hand_region(cast, 0, "L"), eff_normal=n_a,
                  name="hand.L->hand.R", refine=False)
     cb = Contact(1, P.arm_dofs(pb, ab, "R"), eff_b, Anchor(eff_a[0], eff_a[1], n_a),

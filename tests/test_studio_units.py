@@ -1,0 +1,273 @@
+"""Unit tests of the studio's parts (no session generated): plan and recipes, camera rig,
+renderer vs projection, inverse kinematics, scans, marker noise and gaps, contact runs."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+
+from tests.conftest import REPO
+
+
+# ------------------------------------------------------------------------------ plan / recipes
+def test_plan_alternates_marker_wearer_and_validates():
+    from recipes.schema import Session
+    from studio import plan as PL
+
+    plan = PL.make_plan(3, 40, PL.parse_scenarios("hug,handshake,kick,hug"))
+    wearers = [s.markers_on for s in plan.sequences]
+    assert wearers == [plan.subjects[0], plan.subjects[1], plan.subjects[0], plan.subjects[1]]
+    assert [s.partner for s in plan.sequences] == [plan.subjects[1], plan.subjects[0]] * 2
+    assert [s.action for s in plan.sequences] == ["Hug 1", "Handshake 1", "Kick 1", "Hug 2"]
+    assert all(s.text.endswith(".") and len(s.text.split()) >= 6 for s in plan.sequences)
+    s = Session.model_validate(PL.recipe_dict(plan))
+    assert set(s.sequences) == {f"s01/{a}" for a in ("Hug 1", "Handshake 1", "Kick 1", "Hug 2")}
+    assert s.sequences["s01/Hug 1"].mocap.sync_offset_s == pytest.approx(plan.sync_offset_s)
+    with pytest.raises(ValueError, match="unknown scenario 'dance'"):
+        PL.parse_scenarios("hug,dance")
+
+
+def test_plan_is_deterministic_and_seeded():
+    from studio import plan as PL
+
+    a, b = PL.make_plan(5, 30, ("push", "grab")), PL.make_plan(5, 30, ("push", "grab"))
+    assert a == b
+    texts = {tuple(s.text for s in PL.make_plan(seed, 30, ("push", "grab", "hit")).sequences)
+             for seed in range(6)}
+    assert len(texts) > 1
+
+
+@pytest.mark.parametrize("preset", ["demo", "bench"])
+def test_committed_preset_recipes_match_the_studio(preset):
+    from studio import preset_recipe
+
+    path = REPO / "recipes" / f"{preset}.yaml"
+    raw = yaml.safe_load(path.read_text())
+    want = preset_recipe(preset, path.parent, REPO / "data" / preset)
+    raw.pop("stages", None)
+    want.pop("stages", None)
+    assert raw == want, f"rewrite with: python -m studio --preset {preset} --out data/{preset} --write-recipe {path}"
+
+
+def test_ensure_generated_refuses_foreign_or_stale_recipes(tmp_path):
+    from recipes import RecipeError
+    from studio import ensure_generated
+
+    demo = yaml.safe_load((REPO / "recipes" / "demo.yaml").read_text())
+    foreign = dict(demo, session="lab_2024")
+    p = tmp_path / "foreign.yaml"
+    p.write_text(yaml.safe_dump(foreign))
+    with pytest.raises(RecipeError, match="not a studio preset"):
+        ensure_generated(p)
+    stale = dict(demo)
+    stale["sequences"] = dict(demo["sequences"])
+    k = next(iter(stale["sequences"]))
+    stale["sequences"][k] = dict(stale["sequences"][k], text="something else")
+    p2 = tmp_path / "stale.yaml"
+    p2.write_text(yaml.safe_dump(stale))
+    with pytest.raises(RecipeError, match="does not match"):
+        ensure_generated(p2)
+    assert not any(tmp_path.glob(".*tmp*"))
+
+
+# ------------------------------------------------------------------------------ cameras / render
+def test_rig_surrounds_the_capture_volume():
+    from calib import project
+    from studio import constants as C
+    from studio.rig import make_rig
+
+    cams = make_rig(np.random.default_rng(0))
+    assert [c.name for c in cams] == list(C.CAMERA_NAMES)
+    centre = np.array([0.0, 0.0, 0.9])
+    az = []
+    for cam in cams:
+        d = np.linalg.norm(cam.T[:2])
+        assert C.CAMERA_DISTANCE_M[0] <= d <= C.CAMERA_DISTANCE_M[1]
+        uv = project(cam, centre)
+        assert np.all(np.abs(uv - 450) < 120), (cam.name, uv)
+        # a 1.9 m tall person at the centre fits in the frame
+        top, foot = project(cam, np.array([0, 0, 1.9])), project(cam, np.array([0, 0, 0.0]))
+        assert 0 < top[1] < foot[1] < 900
+        # mild distortion: under 3 % at the image corner
+        corner = np.array([[0.0, 0.0]])
+        from calib.camera import undistort_pixels
+
+        shift = np.linalg.norm(undistort_pixels(cam, corner) - corner)
+        assert 2 < shift < 0.03 * 900 * 1.5
+        az.append(np.arctan2(cam.T[1], cam.T[0]))
+    gaps = np.diff(np.sort(np.mod(az, 2 * np.pi)))
+    assert gaps.min() > np.deg2rad(60)  # spread all around
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    from studio.render import Renderer
+    from studio.rig import make_rig
+
+    cams = make_rig(np.random.default_rng(1))
+    with Renderer(cams) as r:
+        yield r
+
+
+def test_renderer_draws_points_where_calib_projects_them(renderer):
+    """A small sphere rendered through the lens warp is centred on its projection (pyrender's
+    intrinsics, the OpenGL pose and the distortion remap against calib.project)."""
+    import trimesh
+
+    from calib import project
+    from studio.render import PersonMesh
+
+    rng = np.random.default_rng(2)
+    err = []
+    for _ in range(4):
+        c = np.array([*rng.uniform(-0.8, 0.8, 2), rng.uniform(0.3, 1.8)])
+        s = trimesh.creation.icosphere(subdivisions=3, radius=0.03)
+        mesh = PersonMesh(s.vertices + c, s.faces, np.full((len(s.vertices), 3), 200, np.uint8))
+        ids = renderer.render_ids([mesh])
+        for cam, m in zip(renderer.cams, ids, strict=True):
+            ys, xs = np.nonzero(m == 0)
+            assert len(xs) > 20
+            uv = project(cam, c)
+            # the silhouette of a sphere is centred on the projected centre up to perspective
+            err.append((xs.mean() - uv[0], ys.mean() - uv[1]))
+    err = np.array(err)
+    assert np.abs(err.mean(0)).max() < 0.15, err.mean(0)  # no systematic shift
+    assert np.hypot(*err.T).max() < 0.6, err
+
+
+def test_render_shows_people_on_floor_and_background(renderer):
+    import trimesh
+
+    from studio import constants as C
+    from studio.render import PersonMesh
+
+    box = trimesh.creation.box((0.4, 0.3, 1.6))
+    box.apply_translation([0, 0, 0.8])
+    col = np.tile(np.array(C.CLOTHING[0]["shirt"], np.uint8), (len(box.vertices), 1))
+    rgb = renderer.render([PersonMesh(box.vertices, box.faces, col)])[0]
+    ids = renderer.render_ids([PersonMesh(box.vertices, box.faces, col)])[0]
+    assert rgb.shape == (900, 900, 3) and rgb.dtype == np.uint8
+    bg = np.array(C.BACKGROUND_RGB)
+    floor = np.array(C.FLOOR_RGB)
+    out = rgb[ids < 0].astype(int)
+    is_bg = np.abs(out - bg).max(1) <= 2
+    is_floor = np.abs(out - floor).max(1) <= 2
+    assert is_bg.mean() > 0.1 and is_floor.mean() > 0.3
+    assert (is_bg | is_floor).mean() > 0.98
+    person = rgb[ids == 0].astype(int)
+    assert np.median(person[:, 2]) > np.median(person[:, 0]) + 40  # blue clothing
+
+
+# ------------------------------------------------------------------------------ kinematics
+@pytest.fixture(scope="module")
+def anny():
+    from body import load_model
+
+    return load_model("anny")
+
+
+def test_chain_fk_matches_body_forward(anny):
+    from body.lbs import forward_kinematics
+    from studio.kin import Person
+
+    rng = np.random.default_rng(0)
+    p = Person.make(anny, rng.normal(0, 0.5, 20))
+    pose = rng.normal(0, 0.3, (3, anny.num_joints, 3))
+    R = np.stack([np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(3)])
+    R *= np.sign(np.linalg.det(R))[:, None, None]
+    T = rng.normal(0, 1, (3, 3))
+    chain = p.chain([anny.joint_index("wrist.L"), anny.joint_index("foot.R")])
+    t, G = p.fk_chain(pose, R, T, chain)
+    G2, t2, _ = forward_kinematics(anny, p.rest, pose, R, T)
+    np.testing.assert_allclose(t[:, chain], t2[:, chain], atol=1e-12)
+    np.testing.assert_allclose(G[:, chain], G2[:, chain], atol=1e-12)
+
+
+def test_ik_puts_the_hand_on_a_target_with_a_hinged_elbow(anny):
+    from studio import posture as P
+    from studio.kin import Goal, Person, effector, solve_ik
+
+    p = Person.make(anny, np.zeros(10))
+    an = P.anatomy(p)
+    pose = P.standing(p, an, np.random.default_rng(0))
+    R, T = np.eye(3), np.array([0.0, 0.0, p.floor_z])
+    wrist = p.j("wrist.R")
+    h = an.hands["R"]
+    start = effector(p, pose[None], R[None], T[None], wrist, h.palm_offset)[0]
+    target = start + np.array([0.05, -0.35, 0.45])  # forward and up, within reach
+    dofs = P.arm_dofs(p, an, "R")
+    sol = solve_ik(p, pose, R, T, [Goal(wrist, tuple(h.palm_offset), tuple(target))], dofs,
+                   iters=40)
+    got = effector(p, sol[None], R[None], T[None], wrist, h.palm_offset)[0]
+    assert np.linalg.norm(got - target) < 3e-3  # the pose prior keeps ~1 mm
+    # only the arm's joints moved, and the elbow is a hinge about its axis
+    moved = np.flatnonzero(np.abs(sol - pose).max(1) > 1e-9)
+    assert set(moved) <= {d.joint for d in dofs}
+    e = sol[p.j("lowerarm01.R")]
+    axis = an.elbow_axis["R"]
+    assert np.linalg.norm(e - (e @ axis) * axis) < 1e-9
+
+
+def test_timeline_maps_video_frames_to_mocap_samples():
+    from studio.motion import make_timeline
+
+    tl = make_timeline(30, fps=50, hz=100, sync_offset_s=-0.12)
+    vs = tl.video_samples
+    assert vs[0] == 12 and np.all(np.diff(vs) == 2) and vs[-1] < tl.n
+    # what the pipeline assumes (fitting.mocap.frame_times): frame f at f / fps - offset
+    from fitting.mocap import frame_times
+
+    np.testing.assert_allclose(vs / 100.0, frame_times(30, 50, -0.12), atol=1e-12)
+    with pytest.raises(ValueError):
+        make_timeline(30, fps=50, hz=120, sync_offset_s=0.0)
+
+
+# ------------------------------------------------------------------------------ scans / markers
+def test_scan_has_noise_holes_and_uneven_density(tmp_path):
+    import trimesh
+
+    from studio.scan import ScanOptions, sample_scan, write_ply
+
+    sph = trimesh.creation.icosphere(subdivisions=5, radius=0.3)
+    V = sph.vertices + [0, 0, 0.3]
+    holes = np.array([[0.3, 0.0, 0.3], [-0.3, 0.0, 0.3]])
+    opts = ScanOptions(n_points=40000)
+    pts, nrm = sample_scan(V, sph.faces, holes, np.random.default_rng(0), opts)
+    r = np.linalg.norm(pts - [0, 0, 0.3], axis=1) - 0.3
+    assert abs(np.std(r) - opts.noise_m) < 0.2 * opts.noise_m  # ~2 mm along the normal
+    assert np.all(np.linalg.norm(pts[:, None] - holes[None], axis=2).min(1) > opts.hole_radius_m - 0.01)
+    assert not np.any((pts[:, 2] < opts.sole_height_m - 0.005) & (nrm[:, 2] < -0.5))
+    # uneven: point density per unit area differs a lot between directions
+    d = (pts - [0, 0, 0.3]) / np.linalg.norm(pts - [0, 0, 0.3], axis=1, keepdims=True)
+    counts = np.array([np.sum(d @ u > 0.95) for u in np.eye(3)[:2]] +
+                      [np.sum(d @ u > 0.95) for u in [np.array([1, 1, 0]) / 2 ** 0.5]])
+    assert counts.max() > 1.5 * counts.min()
+    path = write_ply(tmp_path / "s.ply", pts, nrm)
+    pc = trimesh.load(path)
+    np.testing.assert_allclose(np.asarray(pc.vertices), pts, atol=1e-6)
+
+
+def test_marker_noise_and_occlusion_gaps():
+    from studio.mocap import MocapOptions, observe_markers
+
+    true = np.random.default_rng(0).normal(0, 1, (400, 39, 3))
+    opts = MocapOptions()
+    obs, gap = observe_markers(true, np.random.default_rng(1), opts)
+    assert np.array_equal(np.isnan(obs).any(2), gap)
+    err = (obs - true)[~gap]
+    assert abs(err.std() - opts.noise_sd_m) < 0.1 * opts.noise_sd_m
+    affected = gap.any(0)
+    assert affected.sum() == round(opts.gap_fraction * 39)
+    for m in np.flatnonzero(affected):
+        g = np.concatenate([[0], gap[:, m].astype(int), [0]])
+        starts, ends = np.flatnonzero(np.diff(g) == 1), np.flatnonzero(np.diff(g) == -1)
+        assert np.all(ends - starts >= opts.gap_len[0])
+        assert not gap[:, m].all()
+
+
+def test_longest_run():
+    from studio.contact import longest_run
+
+    assert longest_run(np.array([0, 1, 1, 0, 1, 1, 1, 0], bool)) == (4, 6)
+    assert longest_run(np.zeros(5, bool)) == (-1, -1)
+    assert longest_run(np.ones(3, bool)) == (0, 2)
