@@ -86,3 +86,7 @@ ACCEPT_CONF = 0.5
 #: (a standing adult's keypoints span ~0.65 of it; a skeleton crumpled onto the visible bits
 #: of an occluded partner spans far less).
 MIN_PARTNER_SPAN_FRAC = 0.3
+
+#: Cross-view check (detect/multiview.py): RANSAC inlier threshold, pixels. Detector noise on
+#: studio renders is ~5 px median, ~20 px p90; a mixed or mirrored skeleton misses by 40+.
+CROSS_VIEW_PX = 25.0

@@ -13,7 +13,9 @@ Writes:
 - ``keypoints.npz``: ``kp (C, F, 2, 65, 3)`` float32 (x, y full-image pixels, confidence;
   0 = missing; KP65 layout; person 0 = marker wearer), ``boxes (C, F, 2, 4)`` body crop boxes,
   ``hand_boxes (C, F, 2, 2, 4)``, ``frames (F,)`` video frame indices, ``wearer_retry (C, F)``,
-  ``partner_mode (C, F)`` (0 not found, 1 tracked, 2 whole image);
+  ``partner_mode (C, F)`` (0 not found, 1 tracked, 2 whole image), ``cross_view_outlier
+  (C, F, 2, 65)`` (observations dropped by the cross-view check, detect/multiview.py) and
+  ``conf_raw (C, F, 2, 65)`` (the detector's confidences before it);
 - ``keypoints.mcap``: the keypoints and boxes per camera and frame (Foxglove-viewable);
 - ``overlay_<camera>.png``: one sample frame per view with both people drawn;
 - ``report.json``: detector, frames, detection rates per person and joint group, timings
@@ -48,6 +50,8 @@ class Options:
     body_margin : wearer crop margin (fraction of the marker box's larger side).
     near_frac : the paper's "close proximity", fraction of the wearer's box height.
     pose_min_conf / hand_min_conf : mediapipe detection thresholds.
+    cross_view / cross_view_px : drop observations that disagree with what the other views
+        agree on (detect/multiview.py; RANSAC threshold in pixels).
     overlay_frame : video frame drawn in the overlay PNGs (None: the middle one).
     mcap : write keypoints.mcap.
     """
@@ -65,6 +69,8 @@ class Options:
     near_frac: float = DK.NEAR_FRAC
     pose_min_conf: float = 0.3
     hand_min_conf: float = 0.3
+    cross_view: bool = True
+    cross_view_px: float = DK.CROSS_VIEW_PX
     overlay_frame: int | None = None
     mcap: bool = True
 
@@ -166,13 +172,17 @@ def write_overlays(out, source, res, cams: list[str], frame: int) -> list[str]:
 
 @dataclass(frozen=True)
 class Computed:
-    """What :func:`compute` returns: the detections (:class:`detect.run.SequenceKeypoints`),
-    the frame source (for overlays), the camera ids and the report's facts."""
+    """What :func:`compute` returns: the detections (:class:`detect.run.SequenceKeypoints`,
+    cross-view outliers already at confidence 0), the frame source (for overlays), the camera
+    ids, the report's facts, the detector's confidences before the cross-view check
+    ``conf_raw (C, F, 2, 65)`` and the ``outlier (C, F, 2, 65)`` mask."""
 
     res: object
     source: object
     cam_names: list
     report: dict
+    conf_raw: np.ndarray
+    outlier: np.ndarray
 
 
 def compute(recipe, unit: str, raw: dict[str, Path], o: Options, progress=lambda it, **_: it,
@@ -221,6 +231,13 @@ def compute(recipe, unit: str, raw: dict[str, Path], o: Options, progress=lambda
         f"{workers} worker(s)")
     res = detect_sequence(source, factory, hints, frames, people_options(o), workers=workers,
                           chunk=o.chunk, progress=progress)
+    conf_raw = res.kp[..., 2].copy()
+    outlier = np.zeros(conf_raw.shape, bool)
+    if o.cross_view and len(cams) >= 3:
+        from detect.multiview import CrossViewOptions, cross_view_outliers
+
+        outlier = cross_view_outliers(cams, res.kp, CrossViewOptions(max_error_px=o.cross_view_px))
+        res.kp[..., 2][outlier] = 0.0
     report = {"detector": kind, "cameras": cam_names, "video_frames": n_video,
               "stride": o.stride, "workers": workers, "markers": len(markers.names),
               "frames_with_markers": int(seen.sum()),
@@ -229,8 +246,10 @@ def compute(recipe, unit: str, raw: dict[str, Path], o: Options, progress=lambda
                                       for i, m in enumerate(("missing", "tracked", "whole_image"))},
               "detector_calls": {k: (round(v, 3) if isinstance(v, float) else int(v))
                                  for k, v in res.meter.items()},
+              "cross_view_outliers": {who: int(outlier[:, :, p].sum())
+                                      for p, who in enumerate(("wearer", "partner"))},
               **summary(res.kp, res.cpu_s, res.wall_s, len(frames))}
-    return Computed(res, source, cam_names, report)
+    return Computed(res, source, cam_names, report, conf_raw, outlier)
 
 
 def run(ctx: StageContext) -> None:
@@ -240,7 +259,8 @@ def run(ctx: StageContext) -> None:
     res = c.res
     ctx.out.save_arrays("keypoints", kp=res.kp, boxes=res.boxes.astype(np.float32),
                         hand_boxes=res.hand_boxes.astype(np.float32), frames=res.frames,
-                        wearer_retry=res.wearer_retry, partner_mode=res.partner_mode)
+                        wearer_retry=res.wearer_retry, partner_mode=res.partner_mode,
+                        conf_raw=c.conf_raw.astype(np.float32), cross_view_outlier=c.outlier)
     frames = res.frames
     sample = int(frames[len(frames) // 2]) if o.overlay_frame is None else o.overlay_frame
     report = dict(c.report)

@@ -247,3 +247,28 @@ def test_select_partner_coherence_guard_keeps_out_a_bystander():
     assert np.all(src[30:] == 1) and np.all(src[:30][np.arange(30) != 3] == 0)
     _, src_lit = select_partner(cands, wearer, radius=8.0, coherent=False)
     assert src_lit[3] == 2
+
+
+def test_cross_view_outliers_flag_the_view_that_disagrees():
+    from detect.multiview import CrossViewOptions, cross_view_outliers
+
+    rng = np.random.default_rng(8)
+    cams = [look_at(f"c{k}", (4 * np.cos(a), 4 * np.sin(a), 1.8), (0, 0, 1), (1100, 1100),
+                    (450, 450), 900, 900, k=(-0.08, 0.05, 0.0))
+            for k, a in enumerate(np.radians([40, 130, 220, 310]))]
+    X = rng.uniform([-0.5, -0.5, 0.1], [0.5, 0.5, 1.8], (30, 3))
+    kp = np.ones((4, 30, 3))
+    kp[..., :2] = np.stack([project(c, X) for c in cams]) + rng.normal(0, 1.5, (4, 30, 2))
+    kp[2, :10, :2] += [45.0, -30.0]  # view 2 wrong on points 0-9
+    kp[1, 10:20, 2] = 0.0  # points 10-19: view 1 missing (3 views left)
+    kp[3, 10:13, :2] += [0.0, 60.0]  # ... and view 3 wrong on 10-12
+    kp[[0, 1], 20:25, 2] = 0.0  # points 20-24: two views only, one of them wrong
+    kp[2, 20:25, :2] += 80.0
+    out = cross_view_outliers(cams, kp, CrossViewOptions(max_error_px=10.0))
+    assert out.shape == (4, 30)
+    assert out[2, :10].all() and out[3, 10:13].all()
+    expected = np.zeros((4, 30), bool)
+    expected[2, :10] = expected[3, 10:13] = True
+    # two views that disagree: nobody can tell which is wrong -> not judged
+    assert not out[:, 20:25].any()
+    np.testing.assert_array_equal(out, expected)
