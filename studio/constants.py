@@ -121,3 +121,7 @@ WARP_GRID_PX = 4
 #: GIVE_WAY_FACTOR there, up to GIVE_WAY_ROUNDS times.
 GIVE_WAY_ROUNDS = 0
 GIVE_WAY_FACTOR = 0.85
+#: An interaction takes at least this long (seconds); shorter videos show its middle part.
+MIN_SCENARIO_S = 2.4
+#: IK solutions are smoothed over time with a Gaussian of this many master samples.
+IK_SMOOTH_SAMPLES = 1.5

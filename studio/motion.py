@@ -217,6 +217,10 @@ def _solve_contacts(people: list[Person], tracks: list[Track], nominal: list[Tra
             for d in c.dofs:
                 tr.pose[i, d.joint] = sol[d.joint]
             prev = sol
+        # per-sample solutions jitter a little (goals appear and vanish): smooth the solved
+        # joints over time, as a real motion would be
+        js = [d.joint for d in c.dofs]
+        tr.pose[:, js] = gaussian_filter1d(tr.pose[:, js], C.IK_SMOOTH_SAMPLES, axis=0, mode="nearest")
 
 
 def _carry(pose: np.ndarray, prev: np.ndarray, dofs: list[Dof]) -> np.ndarray:

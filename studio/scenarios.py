@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from studio import constants as C
 from studio import posture as P
 from studio.kin import FWD, LEFT, UP, Person, heading_rotation
 from studio.motion import Anchor, Contact, Fixed, Timeline, Track, anchor_at, pulse, ramp
@@ -29,8 +30,21 @@ class Cast:
     rng: np.random.Generator
 
     @property
+    def span(self) -> float:
+        """Seconds the whole interaction (u from 0 to 1) takes: the video's duration, but at
+        least constants.MIN_SCENARIO_S so that short sequences keep human speeds (they then show
+        the middle of the interaction)."""
+        return max(self.tl.duration, C.MIN_SCENARIO_S)
+
+    @property
     def u(self) -> np.ndarray:
-        return self.tl.t / self.tl.duration
+        """(N,) normalised interaction time of each master sample (video middle at u = 0.5)."""
+        return 0.5 + (self.tl.t - self.tl.duration / 2) / self.span
+
+    def frame_of(self, u: float) -> int:
+        """The video frame at normalised time u (clipped to the video)."""
+        t = (u - 0.5) * self.span + self.tl.duration / 2
+        return int(np.clip(round(t * self.tl.hz / self.tl.step), 0, self.tl.frames - 1))
 
     @property
     def N(self) -> int:
@@ -346,7 +360,7 @@ def holding_hands(cast: Cast) -> Scene:
     tb.pose = with_fingers(cast, 1, living(cast, 1, base[1], 0.6), "R", -0.15, w_b)
     za = _floor_height(ta, pa, pa.j("wrist.L"), aa)
     zb = _floor_height(tb, pb, pb.j("wrist.R"), ab)
-    swing = 0.07 * np.sin(2 * np.pi * 0.9 * cast.tl.t + rng.uniform(0, 6)) * ramp(u, 0.35, 0.45)
+    swing = 0.07 * np.sin(2 * np.pi * 0.9 * u * cast.span + rng.uniform(0, 6)) * ramp(u, 0.35, 0.45)
     M = np.stack([rng.uniform(0.04, 0.08) + swing, np.zeros(N), np.full(N, 0.5 * (za + zb) + 0.1)], 1)
     eff_a, n_a = palm(cast, 0, "L")
     eff_b, n_b = palm(cast, 1, "R")

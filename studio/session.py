@@ -162,7 +162,7 @@ def generate_sequence(out: Path, plan: PL.SessionPlan, seq: PL.SequencePlan, mod
     write_c3d(c3d, Markers(ms.names, m_obs, plan.mocap_hz, 0, wear.id))
     write_chi3d_cameras(out / seq.group, seq.action, cams)
     # contact truth and annotation
-    hint = tuple(int(round(h * (F - 1))) for h in scene.contact_hint)
+    hint = tuple(cast.frame_of(h) for h in scene.contact_hint)
     ct = annotate(verts[0], verts[1], model.faces, regions.face_region, rng, hint)
     # videos
     colors = [s.colors for s in order]

@@ -22,7 +22,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 os.environ.setdefault("ANNY_CACHE_DIR", str(REPO / "assets" / "cache" / "anny"))
 
-SMALL_SESSION = {"seed": 7, "frames": 20, "scenarios": ("handshake", "push")}
+SMALL_SESSION = {"seed": 7, "frames": 24, "scenarios": ("handshake", "push")}
 
 
 def small_session_path() -> Path:

@@ -202,14 +202,13 @@ def test_true_joints_project_onto_the_rendered_people(session):
     F = len(g["frames"])
     frames = [0, F // 2, F - 1]
     on_person = right_person = total = checked = 0
-    grey = np.ones((2, 3)) * 0
     with Renderer(cams) as ren:
         for f in frames:
             ids = ren.render_ids([PersonMesh(g["vertices"][k, f], faces, np.zeros((len(g["vertices"][k, f]), 3), np.uint8))
                                   for k in range(2)])
             for c, cam in enumerate(cams):
                 with VideoReader(s.videos[cam.name]) as vr:
-                    img = vr.read(f).astype(int)
+                    img = vr[f].astype(int)
                 bg = (np.abs(img - np.array(C.BACKGROUND_RGB)).max(2) <= 12) | \
                      (np.abs(img - np.array(C.FLOOR_RGB)).max(2) <= 12)
                 # the video and the id render agree on where the people are
@@ -228,7 +227,6 @@ def test_true_joints_project_onto_the_rendered_people(session):
                             checked += 1
                         elif ids[c][v, u] == 1 - k:
                             checked += 1  # the other person stands in front
-    del grey
     assert total > 100
     assert on_person / total > 0.97
     assert right_person / checked > 0.8
