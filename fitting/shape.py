@@ -112,14 +112,14 @@ class ScanFitOptions:
     weights (residual units: metres^2 per point, averaged); headings: initial rotations about
     the vertical tried for the rigid start."""
 
-    num_betas: int = 80
-    n_points: int = 2500
-    n_vertices: int = 1500
-    iters: int = 30
+    num_betas: int = 150
+    n_points: int = 4000
+    n_vertices: int = 2000
+    iters: int = 40
     sigma_m: float = 0.015
     beta_weight: float = 1e-8
-    pose_weight: float = 1e-5
-    final_pose_weight: float = 1e-5
+    pose_weight: float = 1e-4
+    final_pose_weight: float = 1e-4
     headings: int = 8
 
 
@@ -188,13 +188,29 @@ def _rigid_start(model, skel, points, rng, opts, S) -> tuple[np.ndarray, np.ndar
     return b, x
 
 
+def bind_jacobian(model: BodyModel, betas: np.ndarray, S: int, eps: float = 1e-5):
+    """d bind_rotations / d betas[:S]: (J, 3, 3, S) by central differences, or None for models
+    without bind rotations (the SMPL family)."""
+    from body.lbs import bind_rotations, pad_betas
+
+    if model.orient_template is None:
+        return None
+    b = pad_betas(model, betas)
+    E = np.zeros((2 * S, b.shape[1]))
+    E[np.arange(S), np.arange(S)] = eps
+    E[S + np.arange(S), np.arange(S)] = -eps
+    A = bind_rotations(model, b + E)  # (2S, J, 3, 3)
+    return np.moveaxis((A[:S] - A[S:]) / (2 * eps), 0, -1)
+
+
 def vertex_jacobian(model: BodyModel, rest, skel: skinned.FitSkeleton, x: np.ndarray,
-                    vids: np.ndarray, S: int) -> np.ndarray:
+                    vids: np.ndarray, S: int, dA: np.ndarray | None = None) -> np.ndarray:
     """d vertices[vids] / d [betas[:S], x]: (len(vids), 3, S + n).
 
-    Betas: analytic, holding the bind rotations fixed (they move a few degrees over the whole
-    shape space; the step is accepted on the exact cost); x: forward differences with the rest
-    state fixed (``FD_STEP``)."""
+    Betas: analytic through the rest vertices, rest joints and offsets, plus the bind
+    rotations through ``dA = bind_jacobian(...)`` (J, 3, 3, S) when given (Anny's reference
+    posture changes with the shape: ignoring it lets the pose absorb shape); x: forward
+    differences with the rest state fixed (``FD_STEP``)."""
     from body.lbs import forward_kinematics
 
     pose = np.zeros((1, model.num_joints, 3))
@@ -204,10 +220,16 @@ def vertex_jacobian(model: BodyModel, rest, skel: skinned.FitSkeleton, x: np.nda
     J = model.num_joints
     A = rest.bind_rot[0] if rest.bind_rot is not None else np.broadcast_to(np.eye(3), (J, 3, 3))
     par = np.asarray(model.parents)
+    pp = np.maximum(par, 0)
+    h = rest.joints[0]
     dh = np.asarray(model.joint_shapedirs[:, :, :S], dtype=float)  # (J, 3, S)
-    Ap = A[np.maximum(par, 0)].copy()
+    Ap = A[pp].copy()
     Ap[par == 0] = np.eye(3)
-    do = np.einsum("jab,jbs->jas", Ap, dh - dh[np.maximum(par, 0)])
+    do = np.einsum("jab,jbs->jas", Ap, dh - dh[pp])
+    if dA is not None:  # offsets o_j = A'_p (h_j - h_p) move with the bind rotations too
+        dAp = dA[pp].copy()
+        dAp[par == 0] = 0.0
+        do += np.einsum("jabs,jb->jas", dAp, h - h[pp])
     do[0] = dh[0]
     dt = np.zeros_like(do)
     dt[0] = do[0]
@@ -219,6 +241,11 @@ def vertex_jacobian(model: BodyModel, rest, skel: skinned.FitSkeleton, x: np.nda
     Mv = (W @ GA.reshape(J, 9)).reshape(-1, 3, 3)
     sd = np.asarray(model.shapedirs[vids, :, :S], dtype=float)
     jb = np.einsum("vab,vbs->vas", Mv, sd) + (W @ c.reshape(J, -1)).reshape(-1, 3, S)
+    if dA is not None:  # skinning: sum_j w_vj G_j dA_j (v_c - h_j)
+        GdA = np.einsum("jab,jbcs->jacs", G, dA)  # (J, 3, 3, S)
+        Mv_d = (W @ GdA.reshape(J, -1)).reshape(-1, 3, 3, S)
+        jb += np.einsum("vacs,vc->vas", Mv_d, rest.vertices[0, vids])
+        jb -= (W @ np.einsum("jacs,jc->jas", GdA, h).reshape(J, -1)).reshape(-1, 3, S)
     v0 = _posed_vertices(model, skel, None, x, rest=rest)[vids]
     jx = np.zeros((len(vids), 3, len(x)))
     for k in range(len(x)):
@@ -310,7 +337,7 @@ def fit_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | None,
         vids = np.unique(np.concatenate([faces[cf].reshape(-1), vsel]))
         pos = np.full(len(v), -1)
         pos[vids] = np.arange(len(vids))
-        Jv = vertex_jacobian(model, rest, skel, x, vids, S)  # (n_v, 3, S + n)
+        Jv = vertex_jacobian(model, rest, skel, x, vids, S, bind_jacobian(model, betas, S))
         J1 = np.einsum("ik,id,ikdz->iz", cb, cn, Jv[pos[faces[cf]]])
         J2 = np.einsum("id,idz->iz", q_n, Jv[pos[vsel]])
         Jr = np.concatenate([J1, J2])

@@ -32,10 +32,10 @@ class Options:
     offset_sd_mm: how far a marker may move from the template (prior spread); compile: how the
     residual function runs; seed: sampling of scan points and frames."""
 
-    num_betas: int = 80
+    num_betas: int = 150
     marker_num_betas: int = 20
-    scan_iters: int = 30
-    scan_points: int = 2500
+    scan_iters: int = 40
+    scan_points: int = 4000
     frames: int = 8
     rounds: int = 4
     slide_sd_mm: float = 20.0
