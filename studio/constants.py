@@ -125,3 +125,5 @@ GIVE_WAY_FACTOR = 0.85
 MIN_SCENARIO_S = 2.4
 #: IK solutions are smoothed over time with a Gaussian of this many master samples.
 IK_SMOOTH_SAMPLES = 1.5
+#: Vertices with no vertex of the other body this close (metres) are far from it (outside).
+FAR_M = 0.08

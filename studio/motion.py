@@ -251,7 +251,7 @@ def pair_distances(V0: np.ndarray, V1: np.ndarray, faces: np.ndarray, normals: V
     nearest vertex, signed by its normal), on a patch of the other surface around them
     (constants.EXACT_PATCH_K nearest vertices); further vertices get that
     nearest-vertex distance, signed by the vertex normal there (only deep penetrations reach
-    this case).
+    this case); vertices with no vertex of the other body within constants.FAR_M count as far.
     """
     import igl
 
@@ -270,7 +270,9 @@ def pair_distances(V0: np.ndarray, V1: np.ndarray, faces: np.ndarray, normals: V
         qa = np.flatnonzero(inbox[a])
         vb = np.flatnonzero(inbox[b])
         tree = cKDTree(V[b][vb])
-        dnn, k = tree.query(V[a][qa])
+        dnn, k = tree.query(V[a][qa], distance_upper_bound=C.FAR_M)
+        far = ~np.isfinite(dnn)
+        qa, dnn, k = qa[~far], dnn[~far], k[~far]
         Nb = normals(V[b])
         sign = np.sign(np.einsum("md,md->m", V[a][qa] - V[b][vb[k]], Nb[vb[k]]))
         d = dnn * np.where(sign == 0, 1.0, sign)

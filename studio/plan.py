@@ -52,7 +52,7 @@ class Preset:
 
 PRESETS = {
     "demo": Preset("demo", seed=3, frames=100, scenarios=("handshake", "push")),
-    "bench": Preset("bench", seed=11, frames=150, scenarios=tuple(SCENARIOS)),
+    "bench": Preset("bench", seed=11, frames=120, scenarios=tuple(SCENARIOS)),
 }
 DEFAULT_SCENARIOS = ("handshake", "hug", "push", "kick")
 DEFAULT_FRAMES = 100

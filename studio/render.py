@@ -36,9 +36,9 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(V, 3) area-weighted unit vertex normals of a triangle mesh (V, 3) / (T, 3)."""
     tri = vertices[faces]
     fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    n = np.zeros_like(vertices)
-    for i in range(3):
-        np.add.at(n, faces[:, i], fn)
+    idx = np.asarray(faces).ravel()
+    n = np.stack([np.bincount(idx, weights=np.repeat(fn[:, k], 3), minlength=len(vertices))
+                  for k in range(3)], 1)
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
 
