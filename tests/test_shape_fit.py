@@ -80,13 +80,14 @@ def test_scan_fit_recovers_shape(anny):
     armpits = joints[[m.joint_index("upperarm01.L"), m.joint_index("upperarm01.R")]]
     pts, nrm = sample_scan(v, np.asarray(m.faces), np.zeros((0, 3)), rng)
     del armpits
-    fit = shape.fit_scan(m, pts, nrm, rng, shape.ScanFitOptions(num_betas=60, iters=30))
+    fit = shape.fit_scan(m, pts, nrm, rng, shape.ScanFitOptions(num_betas=60, iters=30,
+                                                               n_points=2500, n_vertices=1500))
     rt, rf = rest_state(m, bt).vertices[0], rest_state(m, fit.betas).vertices[0]
     v2v = np.linalg.norm((rt - rt.mean(0)) - (rf - rf.mean(0)), axis=1) * 1000
     posed = np.linalg.norm(shape._posed_vertices(m, skel, fit.betas, fit.x) - v, axis=1) * 1000
-    assert np.median(fit.scan_to_model_mm) < 2.5  # 2 mm noise: median |n| ~ 1.35 mm
-    assert posed.mean() < 10.0, posed.mean()  # same vertices, in the scan pose and frame
-    assert v2v.mean() < 15.0, v2v.mean()  # neutral pose: shape vs pose trade-off left
+    assert np.median(fit.scan_to_model_mm) < 2.0  # 2 mm noise: median |n| ~ 1.35 mm
+    assert posed.mean() < 4.0, posed.mean()  # same vertices, in the scan's pose and frame
+    assert v2v.mean() < 9.0, v2v.mean()  # neutral pose (measured 6.1 mm)
 
 
 @pytest.mark.slow
@@ -125,3 +126,38 @@ def test_shape_fit_stage_with_scan_and_captures(tmp_path, anny):
     ctx.raw = {"scan": tmp_path / "missing.ply"}
     with pytest.raises(InputError, match=r"missing\.ply: scan: file not found"):
         run(ctx)
+
+
+def test_vertex_jacobian_vs_finite_differences(anny):
+    """The scan fit's Jacobian: betas (analytic, through rest vertices, joints, offsets and the
+    bind rotations) and pose (forward differences) against central differences of forward."""
+    from body.lbs import rest_state
+    from fitting import shape, skinned
+
+    m = anny
+    rng = np.random.default_rng(0)
+    skel = skinned.fit_skeleton(m, shape.body_joints(m))
+    S = 12
+    b = rng.normal(0, 1, S)
+    x = np.zeros(skel.n)
+    x[:3] = [0.1, 0.2, 1.0]
+    x[3:6] = [0.3, 0.1, 0.2]
+    x[6:] = rng.normal(0, 0.2, skel.n - 6)
+    rest = rest_state(m, b)
+    vids = rng.choice(m.num_vertices, 150, replace=False)
+    Jv = shape.vertex_jacobian(m, rest, skel, x, vids, S, shape.bind_jacobian(m, b, S))
+    z = np.concatenate([b, x])
+
+    def f(zz):
+        return shape._posed_vertices(m, skel, zz[:S], zz[S:])[vids]
+
+    fd = np.zeros_like(Jv)
+    for k in range(len(z)):
+        e = np.zeros_like(z)
+        e[k] = 1e-6
+        fd[:, :, k] = (f(z + e) - f(z - e)) / 2e-6
+    np.testing.assert_allclose(Jv[:, :, :S], fd[:, :, :S], atol=1e-8)
+    np.testing.assert_allclose(Jv[:, :, S:], fd[:, :, S:], atol=1e-5)
+    # without the bind-rotation part the beta columns are measurably wrong (Anny)
+    J0 = shape.vertex_jacobian(m, rest, skel, x, vids, S)
+    assert np.abs(J0[:, :, :S] - fd[:, :, :S]).max() > 1e-3
