@@ -1,4 +1,8 @@
-"""``python -m studio --out DIR --seed N [--frames N] [--scenarios hug,handshake] [--preset demo|bench]``"""
+"""``python -m studio --out DIR --seed N [--frames N] [--scenarios hug,handshake] [--preset demo|bench]``
+
+``python -m studio --recipe-preset demo``: generate the data of ``recipes/demo.yaml`` if any
+file is missing (``studio.ensure_generated``; what ``make demo`` runs).
+"""
 from __future__ import annotations
 
 import argparse
@@ -9,7 +13,9 @@ from studio import plan as PL
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m studio", description=__doc__)
-    ap.add_argument("--out", required=True, help="session folder to write (created)")
+    ap.add_argument("--out", default=None, help="session folder to write (created)")
+    ap.add_argument("--recipe-preset", choices=sorted(PL.PRESETS), default=None,
+                    help="make sure the data of recipes/<preset>.yaml exist (generate if missing)")
     ap.add_argument("--seed", type=int, default=None, help="random seed (default: the preset's, or 3)")
     ap.add_argument("--frames", type=int, default=None, help="video frames per sequence (50 fps)")
     ap.add_argument("--scenarios", default=None,
@@ -19,6 +25,15 @@ def main(argv: list[str] | None = None) -> int:
                     help="with --preset: only write the preset's committed recipe to PATH (paths "
                          "relative to it, pointing into --out); generate nothing")
     a = ap.parse_args(argv)
+    if a.recipe_preset:
+        from pathlib import Path
+
+        from studio import ensure_generated
+
+        print(ensure_generated(Path(__file__).resolve().parents[1] / "recipes" / f"{a.recipe_preset}.yaml"))
+        return 0
+    if not a.out:
+        ap.error("--out is required")
     if a.write_recipe:
         if not a.preset:
             print("python -m studio: --write-recipe needs --preset", file=sys.stderr)

@@ -230,3 +230,21 @@ def test_true_joints_project_onto_the_rendered_people(session):
     assert total > 100
     assert on_person / total > 0.97
     assert right_person / checked > 0.8
+
+
+def test_ensure_generated_leaves_a_complete_session_alone(small_session):
+    from studio import ensure_generated
+
+    before = {p: p.stat().st_mtime_ns for p in Path(small_session).parent.rglob("*") if p.is_file()}
+    assert ensure_generated(small_session) == small_session
+    after = {p: p.stat().st_mtime_ns for p in Path(small_session).parent.rglob("*") if p.is_file()}
+    assert before == after
+
+
+def test_contact_sheet_written(session):
+    import cv2
+
+    sheets = sorted((session["root"] / "previews").glob("*_contact.png"))
+    assert len(sheets) == len(session["recipe"].sequences)
+    img = cv2.imread(str(sheets[0]))
+    assert img.shape == (900, 900, 3) and img.std() > 10

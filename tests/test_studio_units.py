@@ -271,3 +271,19 @@ def test_longest_run():
     assert longest_run(np.array([0, 1, 1, 0, 1, 1, 1, 0], bool)) == (4, 6)
     assert longest_run(np.zeros(5, bool)) == (-1, -1)
     assert longest_run(np.ones(3, bool)) == (0, 2)
+
+
+def test_cli_rejects_bad_input_and_writes_preset_recipes(tmp_path, capsys):
+    from studio import preset_recipe
+    from studio.__main__ import main
+
+    assert main(["--out", str(tmp_path / "x"), "--scenarios", "hug,dance"]) == 2
+    assert "unknown scenario 'dance'" in capsys.readouterr().err
+    assert main(["--out", str(tmp_path / "x"), "--frames", "3"]) == 2
+    assert not (tmp_path / "x").exists()
+    path = tmp_path / "recipes" / "demo.yaml"
+    path.parent.mkdir()
+    assert main(["--preset", "demo", "--out", str(tmp_path / "data" / "demo"), "--write-recipe", str(path)]) == 0
+    raw = yaml.safe_load(path.read_text())
+    assert raw == preset_recipe("demo", path.parent, tmp_path / "data" / "demo")
+    assert raw["subjects"]["s01a"]["scan"] == "../data/demo/scans/s01a.ply"
