@@ -61,8 +61,7 @@ def run(work: Path) -> dict[str, float]:  # noqa: ARG001 - nothing written to di
     model = load_model("anny")
     betas = S.subject_betas(model, rng)
     skel = skinned.fit_skeleton(model, shape.body_joints(model))
-    x = np.zeros(skel.n)
-    x[6:] = rng.normal(0, 0.02, skel.n - 6)
+    x = np.zeros(skel.n)  # the studio scans people in the neutral pose (pose 0)
     x[:3] = [0.0, 0.0, rng.uniform(-np.pi, np.pi)]
     v = S.posed(model, betas, skel, x[None]).vertices[0]
     v[:, 2] -= v[:, 2].min()
