@@ -2,7 +2,7 @@
 
 A subject drawn like the studio's (bench/cases/_fitting_synth.py) is scanned with the
 studio's scanner model (studio/scan.py: 60k points, 2 mm noise along the normal, holes at the
-armpits and no soles, uneven density) in a near-neutral pose at a random heading, and captured
+armpits and no soles, uneven density) in the neutral pose (pose 0, as the studio scans) at a random heading, and captured
 with slid Plug-in Gait markers in a few well-spread frames (1 mm noise).
 
 Keys:
