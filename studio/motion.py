@@ -251,7 +251,7 @@ def pair_distances(V0: np.ndarray, V1: np.ndarray, faces: np.ndarray, normals: V
     nearest vertex, signed by its normal), on a patch of the other surface around them
     (constants.EXACT_PATCH_K nearest vertices); further vertices get that
     nearest-vertex distance, signed by the vertex normal there (only deep penetrations reach
-    this case); vertices with no vertex of the other body within constants.FAR_M count as far.
+    this case, confirmed by the winding number); vertices with no vertex of the other body within constants.FAR_M count as far.
     """
     import igl
 
@@ -288,6 +288,12 @@ def pair_distances(V0: np.ndarray, V1: np.ndarray, faces: np.ndarray, normals: V
                                                igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
             d[band] = sd
             cp[band] = cc
+        deep = np.flatnonzero(~band & (d < 0))
+        if len(deep):
+            # the normal-sign guess fails in folds (armpits, between fingers): ask the winding
+            # number of the whole other body
+            w = igl.fast_winding_number(V[b], faces, V[a][qa[deep]])
+            d[deep[w < 0.5]] = dnn[deep[w < 0.5]]
         out[a][qa] = d
         cps[a][qa] = cp
     return out, cps
