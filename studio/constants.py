@@ -127,3 +127,5 @@ MIN_SCENARIO_S = 2.4
 IK_SMOOTH_SAMPLES = 1.5
 #: Vertices with no vertex of the other body this close (metres) are far from it (outside).
 FAR_M = 0.08
+#: Regions (name suffixes) whose touches a signature skips when there are others (not for kick).
+INCIDENTAL_REGIONS = ("foot_top", "sole", "heel", "toes")

@@ -47,13 +47,15 @@ def longest_run(mask: np.ndarray) -> tuple[int, int]:
 
 
 def annotate(verts0: np.ndarray, verts1: np.ndarray, faces: np.ndarray, face_region: np.ndarray,
-             rng: np.random.Generator, hint: tuple[int, int] | None = None) -> ContactTruth:
+             rng: np.random.Generator, hint: tuple[int, int] | None = None,
+             incidental: np.ndarray | None = None) -> ContactTruth:
     """Contact truth of one sequence.
 
     verts0, verts1: (F, V, 3) vertices of person 0 (marker wearer) and person 1 at the video
     frames, metres; faces: (T, 3); face_region: (T,) region id per facet; hint: optional
     (first, last) frames where the motion plans contact (the search for the annotated frame
-    prefers them). Returns a :class:`ContactTruth`.
+    prefers them); incidental: region ids whose mutual touches an annotator would skip when
+    there are others (feet). Returns a :class:`ContactTruth`.
     """
     import igl
 
@@ -80,6 +82,11 @@ def annotate(verts0: np.ndarray, verts1: np.ndarray, faces: np.ndarray, face_reg
     sq, partner, _ = igl.point_mesh_squared_distance(cen, V1, faces)
     d1 = np.sqrt(sq)
     cand = np.flatnonzero(d1 < C.SIGNATURE_DIST_M)
+    if incidental is not None and len(cand):
+        # feet brushing while standing close are not what an annotator marks
+        keep = ~np.isin(face_region[cand], incidental) | ~np.isin(face_region[partner[cand]], incidental)
+        if keep.sum() >= C.SIGNATURE_PAIRS[0]:
+            cand = cand[keep]
     if not len(cand):
         return ContactTruth(min_dist, touching, start, end, fr_id, empty, empty, np.zeros(0))
     want = int(rng.integers(C.SIGNATURE_PAIRS[0], C.SIGNATURE_PAIRS[1] + 1))

@@ -163,7 +163,9 @@ def generate_sequence(out: Path, plan: PL.SessionPlan, seq: PL.SequencePlan, mod
     write_chi3d_cameras(out / seq.group, seq.action, cams)
     # contact truth and annotation
     hint = tuple(cast.frame_of(h) for h in scene.contact_hint)
-    ct = annotate(verts[0], verts[1], model.faces, regions.face_region, rng, hint)
+    feet = np.array([i for i, n in enumerate(regions.names) if n.endswith(C.INCIDENTAL_REGIONS)])
+    ct = annotate(verts[0], verts[1], model.faces, regions.face_region, rng, hint,
+                  incidental=feet if seq.scenario != "kick" else None)
     # videos
     colors = [s.colors for s in order]
     write_videos([out / PL.video_path(seq, cam.name) for cam in cams], plan.fps,

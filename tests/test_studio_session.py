@@ -10,6 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+# the first test generates the session (~40-90 s) unless it is cached in assets/cache
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def session(small_session):
