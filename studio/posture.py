@@ -11,7 +11,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from body.lbs import forward
-from body.rotations import rodrigues, rotmat_to_rotvec
 from studio.kin import FWD, LEFT, UP, Dof, Person, rotate_about_joint
 
 SIDES = ("L", "R")
@@ -193,8 +192,3 @@ def idle(person: Person, pose: np.ndarray, u: np.ndarray, rng: np.random.Generat
             out[:, j, ax] += amp * scale * (np.sin(2 * np.pi * fr[0] * u + ph[0])
                                             + 0.5 * np.sin(2 * np.pi * fr[1] * u + ph[1])) / 1.5
     return out
-
-
-def compose(pose_a: np.ndarray, pose_b: np.ndarray) -> np.ndarray:
-    """Per joint ``D = D_a D_b`` (apply b's local rotations on top of a's)."""
-    return rotmat_to_rotvec(rodrigues(pose_a) @ rodrigues(pose_b))
