@@ -32,7 +32,7 @@ class Options:
     offset_sd_mm: how far a marker may move from the template (prior spread); compile: how the
     residual function runs; seed: sampling of scan points and frames."""
 
-    num_betas: int = 150
+    num_betas: int = 404  # all of anny's (fitting.shape.ScanFitOptions)
     marker_num_betas: int = 20
     scan_iters: int = 40
     scan_points: int = 4000
