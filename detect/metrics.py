@@ -57,27 +57,54 @@ def group_summary(err: np.ndarray, detected_of: np.ndarray | None = None) -> dic
     return out
 
 
+def _median_dist(kp, tr, ok):
+    d = np.linalg.norm(kp[..., :2] - tr, axis=-1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmedian(np.where(ok, d, np.nan), axis=-1)
+
+
+def _judged(kp, tr, p, min_conf):
+    q = 1 - p
+    return (kp[:, :, p, :, 2] >= min_conf) & np.all(np.isfinite(tr[:, :, p]), -1) \
+        & np.all(np.isfinite(tr[:, :, q]), -1)
+
+
 def identity_swaps(kp: np.ndarray, truth_uv: np.ndarray, min_conf: float = K.MIN_CONF,
                    min_kp: int = 4) -> np.ndarray:
     """(C, F) bool: in that view and frame a person's body keypoints lie nearer (median) the
-    other person's truth than its own, for either person.
+    other person's truth than its own truth, read either way round (left/right as labelled,
+    or mirrored: a left/right flip of the right person is :func:`lr_flips`, not a swap).
 
     kp : (C, F, 2, K, 3); truth_uv : (C, F, 2, K, 2). A person with fewer than ``min_kp``
     confident body keypoints (with finite truth for both people) is not judged.
     """
     kp = np.asarray(kp, dtype=np.float64)[..., layout.BODY, :]
     tr = np.asarray(truth_uv, dtype=np.float64)[..., layout.BODY, :]
+    flip = layout.FLIP[layout.BODY]
     swaps = np.zeros(kp.shape[:2], bool)
     for p in (0, 1):
-        q = 1 - p
-        ok = (kp[:, :, p, :, 2] >= min_conf) & np.all(np.isfinite(tr[:, :, p]), -1) \
-            & np.all(np.isfinite(tr[:, :, q]), -1)
-        d_own = np.linalg.norm(kp[:, :, p, :, :2] - tr[:, :, p], axis=-1)
-        d_other = np.linalg.norm(kp[:, :, p, :, :2] - tr[:, :, q], axis=-1)
-        n = ok.sum(-1)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            m_own = np.nanmedian(np.where(ok, d_own, np.nan), axis=-1)
-            m_other = np.nanmedian(np.where(ok, d_other, np.nan), axis=-1)
-        swaps |= (n >= min_kp) & (m_other < m_own)
+        ok = _judged(kp, tr, p, min_conf)
+        own = np.fmin(_median_dist(kp[:, :, p], tr[:, :, p], ok),
+                      _median_dist(kp[:, :, p], tr[:, :, p][..., flip, :], ok))
+        other = np.fmin(_median_dist(kp[:, :, p], tr[:, :, 1 - p], ok),
+                        _median_dist(kp[:, :, p], tr[:, :, 1 - p][..., flip, :], ok))
+        swaps |= (ok.sum(-1) >= min_kp) & (other < own)
     return swaps
+
+
+def lr_flips(kp: np.ndarray, truth_uv: np.ndarray, min_conf: float = K.MIN_CONF,
+             min_kp: int = 4) -> np.ndarray:
+    """(C, F, 2) bool: the person's body keypoints match its own truth better mirrored
+    (left and right labels swapped) than as labelled, and are not an identity swap."""
+    swapped = identity_swaps(kp, truth_uv, min_conf=min_conf, min_kp=min_kp)
+    kp = np.asarray(kp, dtype=np.float64)[..., layout.BODY, :]
+    tr = np.asarray(truth_uv, dtype=np.float64)[..., layout.BODY, :]
+    flip = layout.FLIP[layout.BODY]
+    out = np.zeros(kp.shape[:3], bool)
+    for p in (0, 1):
+        ok = _judged(kp, tr, p, min_conf)
+        d = _median_dist(kp[:, :, p], tr[:, :, p], ok)
+        df = _median_dist(kp[:, :, p], tr[:, :, p][..., flip, :], ok)
+        out[:, :, p] = (ok.sum(-1) >= min_kp) & (df < d) & ~swapped
+    return out

@@ -36,12 +36,21 @@ class CrossViewOptions:
     min_conf: float = K.MIN_CONF
 
 
-def cross_view_outliers(cams, kp: np.ndarray, opts: CrossViewOptions = CrossViewOptions()) -> np.ndarray:
-    """Outlier observations of keypoints seen in several views.
+@dataclass(frozen=True)
+class CrossView:
+    """outlier : (C, ...) bool, observed but missing the point >= min_agree views agree on.
+    confirmed : (C, ...) bool, observed and one of those agreeing views."""
+
+    outlier: np.ndarray
+    confirmed: np.ndarray
+
+
+def cross_view_check(cams, kp: np.ndarray, opts: CrossViewOptions = CrossViewOptions()) -> CrossView:
+    """Judge keypoints seen in several views.
 
     cams : C calib.Camera. kp : (C, ...) + (3,) keypoints (x, y pixels, confidence), e.g.
-    (C, F, 2, 65, 3) from the keypoints stage. Returns (C, ...) bool: observed, confidence
-    >= min_conf, and not among the >= min_agree views that agree on the triangulated point.
+    (C, F, 2, 65, 3) from the keypoints stage. An observation counts when its confidence
+    >= min_conf. See :class:`CrossView`.
     """
     from calib.geometry import TriangulateOptions, triangulate
 
@@ -51,4 +60,9 @@ def cross_view_outliers(cams, kp: np.ndarray, opts: CrossViewOptions = CrossView
                                                  min_views=opts.min_agree, min_conf=opts.min_conf))
     inl = np.moveaxis(t.inliers, -1, 0)  # (C, ...)
     judged = inl.sum(axis=0) >= opts.min_agree
-    return obs & judged[None] & ~inl
+    return CrossView(obs & judged[None] & ~inl, obs & judged[None] & inl)
+
+
+def cross_view_outliers(cams, kp: np.ndarray, opts: CrossViewOptions = CrossViewOptions()) -> np.ndarray:
+    """(C, ...) bool: :attr:`CrossView.outlier` of :func:`cross_view_check`."""
+    return cross_view_check(cams, kp, opts).outlier

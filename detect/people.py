@@ -119,7 +119,9 @@ def wearer_check(cands: np.ndarray, anchors: np.ndarray, box_height: float, o: P
     """Does each candidate match the wearer's markers? cands (N, 65, 3), anchors (65, 2).
 
     Returns (err (N,) median pixel distance to the anchors, NaN without 3 shared keypoints;
-    ok (N,) bool: err <= anchor_frac x box height and not mirrored). Mirrored = its
+    ok (N,) bool: not mirrored and inside the ellipse (err / (anchor_frac x box height))^2 +
+    (log size / log WEARER_SCALE_TOL)^2 <= 1, size = :func:`anchor_scale`: a candidate off
+    in both position and size is rejected even when each alone would pass). Mirrored = its
     left/right-swapped keypoints lie nearer the anchors by more than FLIP_MARGIN_FRAC x the
     box height: a person facing the other way (the partner facing the wearer, or the
     detector's left/right swapped on the wearer's back). Mirrored candidates are rejected,
@@ -128,10 +130,34 @@ def wearer_check(cands: np.ndarray, anchors: np.ndarray, box_height: float, o: P
     cands = np.asarray(cands)
     err = anchor_error(cands, anchors)
     flip = anchor_error(cands[:, layout.FLIP], anchors)
-    with np.errstate(invalid="ignore"):
+    scale = anchor_scale(cands, anchors)
+    with np.errstate(invalid="ignore", divide="ignore"):
         mirrored = flip + max(K.FLIP_MARGIN_FRAC * box_height, 3.0) < err
-        ok = (err <= o.anchor_frac * box_height) & ~mirrored
+        a = err / (o.anchor_frac * box_height)
+        s = np.nan_to_num(np.abs(np.log(scale)) / np.log(K.WEARER_SCALE_TOL), nan=0.0)
+        ok = (a ** 2 + s ** 2 <= 1.0) & ~mirrored
     return err, ok
+
+
+def anchor_scale(cands: np.ndarray, anchors: np.ndarray, min_conf: float = K.MIN_CONF) -> np.ndarray:
+    """(N,) size of each candidate relative to the anchors: RMS spread of its keypoints about
+    their mean over the RMS spread of the matching anchors (NaN with fewer than 4 shared).
+    The partner standing between the camera and the wearer, lined up with it, can match the
+    anchors' positions but is nearer the camera, so larger."""
+    cands = np.asarray(cands, dtype=np.float64)
+    anchors = np.asarray(anchors, dtype=np.float64)
+    out = np.full(len(cands), np.nan)
+    has = np.all(np.isfinite(anchors), axis=1)
+    for i, c in enumerate(cands):
+        ok = has & (c[:, 2] >= min_conf)
+        if ok.sum() < 4:
+            continue
+        d = c[ok, :2] - c[ok, :2].mean(axis=0)
+        a = anchors[ok] - anchors[ok].mean(axis=0)
+        sa = (a ** 2).sum()
+        if sa > 0:
+            out[i] = np.sqrt((d ** 2).sum() / sa)
+    return out
 
 
 def _on_mask_frac(cands: np.ndarray, mask: np.ndarray, conf: float = K.ACCEPT_CONF) -> np.ndarray:
@@ -284,9 +310,11 @@ def find_people(image: np.ndarray | None, hints: WearerHints, prev_partner_box: 
     def look(box, masked):
         cands = det.detect(painted if masked else image, kind="body", box=box, cam=cam, frame=frame).kp
         if len(cands):
-            # The wearer found again, by the markers: not the partner, whatever the rule says
-            # (the rule only compares with the wearer's detected keypoints, which may be few).
+            # The wearer found again, by the markers, as labelled or mirrored (back views fool
+            # the detector's left/right): not the partner, whatever the rule says (the rule
+            # only compares with the wearer's detected keypoints, which may be few).
             keep = ~wearer_check(cands, hints.anchors, hw, o)[1]
+            keep &= ~wearer_check(cands[:, layout.FLIP], hints.anchors, hw, o)[1]
             if masked:
                 # Mostly on painted pixels: the detector hallucinating a person from leftovers.
                 keep &= _on_mask_frac(cands, m) <= K.HALLUCINATED_FRAC

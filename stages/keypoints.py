@@ -14,7 +14,9 @@ Writes:
   0 = missing; KP65 layout; person 0 = marker wearer), ``boxes (C, F, 2, 4)`` body crop boxes,
   ``hand_boxes (C, F, 2, 2, 4)``, ``frames (F,)`` video frame indices, ``wearer_retry (C, F)``,
   ``partner_mode (C, F)`` (0 not found, 1 tracked, 2 whole image), ``cross_view_outlier
-  (C, F, 2, 65)`` (observations dropped by the cross-view check, detect/multiview.py) and
+  (C, F, 2, 65)`` (observations dropped by the cross-view check, detect/multiview.py: they
+  disagree with what two other views agree on, or are the partner's, unconfirmed, in a view
+  where the wearer was not found) and
   ``conf_raw (C, F, 2, 65)`` (the detector's confidences before it);
 - ``keypoints.mcap``: the keypoints and boxes per camera and frame (Foxglove-viewable);
 - ``overlay_<camera>.png``: one sample frame per view with both people drawn;
@@ -51,7 +53,8 @@ class Options:
     near_frac : the paper's "close proximity", fraction of the wearer's box height.
     pose_min_conf / hand_min_conf : mediapipe detection thresholds.
     cross_view / cross_view_px : drop observations that disagree with what the other views
-        agree on (detect/multiview.py; RANSAC threshold in pixels).
+        agree on (detect/multiview.py; RANSAC threshold in pixels), and the partner's
+        unconfirmed keypoints in views where the wearer was not found.
     overlay_frame : video frame drawn in the overlay PNGs (None: the middle one).
     mcap : write keypoints.mcap.
     """
@@ -191,6 +194,7 @@ def compute(recipe, unit: str, raw: dict[str, Path], o: Options, progress=lambda
     detect both people in every view of every selected frame. Used by :func:`run` and by the
     bench (bench/cases/keypoints.py)."""
     from calib.io import read_chi3d_camera
+    from detect import layout
     from detect.hints import wearer_hints
     from detect.mediapipe_detector import MediapipeOptions
     from detect.run import VideoSource, detect_sequence
@@ -234,9 +238,16 @@ def compute(recipe, unit: str, raw: dict[str, Path], o: Options, progress=lambda
     conf_raw = res.kp[..., 2].copy()
     outlier = np.zeros(conf_raw.shape, bool)
     if o.cross_view and len(cams) >= 3:
-        from detect.multiview import CrossViewOptions, cross_view_outliers
+        from detect.multiview import CrossViewOptions, cross_view_check
 
-        outlier = cross_view_outliers(cams, res.kp, CrossViewOptions(max_error_px=o.cross_view_px))
+        xv = cross_view_check(cams, res.kp, CrossViewOptions(max_error_px=o.cross_view_px))
+        # Where the wearer was not found in a view, nothing there told the two people apart
+        # (the wearer check failed: the people overlap in that view), so the partner's
+        # keypoints in that view are kept only where other views confirm them.
+        alone = (conf_raw[:, :, 0, layout.BODY] >= DK.MIN_CONF).sum(axis=-1) < 3  # (C, F)
+        unconfirmed = alone[..., None] & ~xv.confirmed[:, :, 1] & (conf_raw[:, :, 1] >= DK.MIN_CONF)
+        outlier = xv.outlier.copy()
+        outlier[:, :, 1] |= unconfirmed
         res.kp[..., 2][outlier] = 0.0
     report = {"detector": kind, "cameras": cam_names, "video_frames": n_video,
               "stride": o.stride, "workers": workers, "markers": len(markers.names),

@@ -208,7 +208,7 @@ def test_wearer_hints_boxes_contain_projected_markers():
 
 
 def test_metrics_errors_groups_and_swaps():
-    from detect.metrics import group_summary, identity_swaps, keypoint_errors
+    from detect.metrics import group_summary, identity_swaps, keypoint_errors, lr_flips
 
     rng = np.random.default_rng(5)
     truth = np.zeros((1, 2, 2, layout.N, 2))
@@ -225,10 +225,15 @@ def test_metrics_errors_groups_and_swaps():
     assert s["median_px_body"] == pytest.approx(5.0) and s["median_px_hands"] == pytest.approx(5.0)
     assert s["median_px_feet"] == pytest.approx(5.0)  # 6 of 24 foot points are 15 px
     assert s["detected_hands"] == pytest.approx(1 - 42 / (4 * 42))
-    assert not identity_swaps(kp, truth).any()
+    assert not identity_swaps(kp, truth).any() and not lr_flips(kp, truth).any()
     kp[0, 1] = kp[0, 1, ::-1]  # frame 1: people swapped
     sw = identity_swaps(kp, truth)
     assert sw.tolist() == [[False, True]]
+    assert not lr_flips(kp, truth).any()
+    kp[0, 1] = kp[0, 1, ::-1]
+    kp[0, 0, 1] = kp[0, 0, 1, layout.FLIP]  # frame 0: the partner's left and right swapped
+    assert not identity_swaps(kp, truth).any()
+    assert lr_flips(kp, truth).tolist() == [[[False, True], [False, False]]]
 
 
 def test_select_partner_coherence_guard_keeps_out_a_bystander():
@@ -272,3 +277,18 @@ def test_cross_view_outliers_flag_the_view_that_disagrees():
     # two views that disagree: nobody can tell which is wrong -> not judged
     assert not out[:, 20:25].any()
     np.testing.assert_array_equal(out, expected)
+
+
+def test_cross_view_check_confirms_agreeing_views():
+    from detect.multiview import cross_view_check
+
+    cams = [look_at(f"c{k}", (4 * np.cos(a), 4 * np.sin(a), 1.8), (0, 0, 1), (1100, 1100),
+                    (450, 450), 900, 900) for k, a in enumerate(np.radians([40, 130, 220]))]
+    X = np.array([[0.1, 0.2, 1.0], [0.0, -0.3, 1.5]])
+    kp = np.ones((3, 2, 3))
+    kp[..., :2] = np.stack([project(c, X) for c in cams])
+    kp[0, 1, :2] += 70.0  # point 1: view 0 wrong
+    kp[2, 1, 2] = 0.0  # ... and view 2 missing: two views that disagree
+    xv = cross_view_check(cams, kp)
+    assert xv.confirmed[:, 0].all() and not xv.outlier[:, 0].any()
+    assert not xv.confirmed[:, 1].any() and not xv.outlier[:, 1].any()

@@ -287,43 +287,68 @@ def test_no_markers_no_people():
 
 
 def test_mirrored_person_is_not_taken_for_the_wearer():
-    """The partner faces the other way right in front of the wearer (its left/right mirror
-    the wearer's anchors) and hides it: the check rejects it in both crops, so the wearer is
-    reported missing instead of getting the partner's keypoints; the partner is still found."""
+    """A person facing the other way right over the wearer's markers could be the partner
+    facing it or the wearer with its left/right swapped by the detector: it is taken for
+    neither (both missing in this view) rather than risk a swap. The same person nearer the
+    camera (larger) is told apart by its size: the wearer is still missing (hidden behind it),
+    the partner is found."""
     shape = (480, 640)
     wearer = stick((300, 240), 0.8)
-    partner = stick((302, 236), 0.8)[layout.FLIP]  # facing the other way
+    for scale, partner_found in ((0.8, False), (1.0, True)):
+        partner = stick((302, 236), scale)[layout.FLIP]  # facing the other way, in front
+        truth = np.stack([wearer, partner])[None, None]
+        img = draw(shape, truth[0, 0])
+        det = Painted(truth, (0,))
+        r = find_people(img, hints_for(wearer, margin=0.3), None, det)
+        assert not r.kp[0, layout.BODY, 2].any()
+        ok = r.kp[1, layout.BODY, 2] > 0
+        assert (r.partner_mode > 0) == partner_found
+        if not partner_found:
+            assert not ok.any()
+            continue
+        assert ok.sum() >= 15
+        np.testing.assert_allclose(r.kp[1, layout.BODY][ok, :2], partner[layout.BODY][ok, :2])
+    # lined up and facing the same way: the same size passes as the wearer (2D can't tell);
+    # larger (nearer the camera, or taller) is caught by the size check
+    for scale, passes in ((0.8, True), (1.0, False)):
+        same = stick((302, 236), scale)
+        img2 = draw(shape, [wearer, same])
+        r2 = find_people(img2, hints_for(wearer, margin=0.3), None,
+                         Painted(np.stack([wearer, same])[None, None], (0,)))
+        assert r2.kp[0, layout.BODY, 2].all() == passes
+
+
+def test_partner_found_in_the_plain_image_when_painting_hides_it():
+    """When painting the wearer out also hides the partner (partner in front), the plain
+    image finds it; the next frame tries the plain image first (one body call)."""
+    shape = (480, 640)
+    wearer, partner = stick((220, 240)), stick((470, 250), 0.9)
     truth = np.stack([wearer, partner])[None, None]
-    img = draw(shape, truth[0, 0])  # partner drawn last: in front
-    det = Painted(truth, (0,))
-    r = find_people(img, hints_for(wearer, margin=0.3), None, det)
-    assert not r.kp[0, layout.BODY, 2].any()  # (hands: the partner's hide the wearer's, same place)
-    ok = r.kp[1, layout.BODY, 2] > 0
-    assert ok.sum() >= 15
-    np.testing.assert_allclose(r.kp[1, layout.BODY][ok, :2], partner[layout.BODY][ok, :2])
-    # painting the wearer's silhouette painted the partner standing in front too: it was the
-    # plain image that found it (tried second here, first in the next frame)
-    assert not r.partner_masked
+    img = draw(shape, truth[0, 0])
+    inner = Painted(truth, (0,), single=False)
     calls = []
 
-    class Counting:
+    class HidesWhenPainted:
+        """Multi-person stand-in that sees nobody in a painted image."""
         needs_pixels = True
 
         def detect(self, image, *, kind, box=None, cam=0, frame=0):
-            calls.append(kind)
-            return det.detect(image, kind=kind, box=box, cam=cam, frame=frame)
+            calls.append((kind, image is img))
+            if image is not img and kind == "body":
+                return Detections.empty()
+            return inner.detect(image, kind=kind, box=box, cam=cam, frame=frame)
 
-    r2 = find_people(img, hints_for(wearer, margin=0.3), r.partner_box, Counting(),
+    r = find_people(img, hints_for(wearer), None, HidesWhenPainted(), partner_masked_first=True)
+    assert r.partner_mode == 2 and not r.partner_masked
+    ok = r.kp[1, layout.BODY, 2] > 0
+    np.testing.assert_allclose(r.kp[1, layout.BODY][ok, :2], partner[layout.BODY][ok, :2])
+    assert ok.sum() >= 20
+    calls.clear()
+    r2 = find_people(img, hints_for(wearer), r.partner_box, HidesWhenPainted(),
                      partner_masked_first=False)
     assert r2.partner_mode == 1 and not r2.partner_masked
-    np.testing.assert_array_equal(r2.kp[1, layout.BODY], r.kp[1, layout.BODY])
-    # the same partner facing the same way as the wearer would pass as the wearer in this
-    # drawing (same place, same sides): the check is about sides, so only the mirror is caught
-    same = stick((302, 236), 1.0)
-    img2 = draw(shape, [wearer, same])
-    r2 = find_people(img2, hints_for(wearer, margin=0.3), None,
-                     Painted(np.stack([wearer, same])[None, None], (0,)))
-    assert r2.kp[0, layout.BODY, 2].all()
+    body = [c for c in calls if c[0] == "body"]
+    assert body == [("body", True), ("body", True)]  # the wearer's crop, then the partner's
 
 
 def test_partner_hand_crop_drops_the_wearers_hand():

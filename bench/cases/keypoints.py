@@ -21,7 +21,9 @@ Keys:
   (mediapipe gives no small toes: feet top out at 4/6);
 - ``keypoints.identity_swaps``: frames (over all sequences) where in at least one view a
   person's body keypoints lie nearer (median) the other person's truth than its own;
-  ``keypoints.identity_swap_views``: the same counted per view.
+  ``keypoints.identity_swap_views``: the same counted per view. A person detected with its
+  left and right swapped (back views fool the detector) is not a swap but a flip:
+  ``keypoints.lr_flips_wearer`` / ``_partner`` count the views (detect.metrics.lr_flips).
 
 Per-sequence details go to ``bench/work/keypoints/sequences.json``.
 """
@@ -60,7 +62,7 @@ def _truth_uv(recipe, sid: str, seq, frames: np.ndarray, reg) -> np.ndarray:
 def run(work: Path) -> dict[str, float]:
     from body import load_model
     from body.joints import regressor
-    from detect.metrics import GROUPS, group_summary, identity_swaps, keypoint_errors
+    from detect.metrics import GROUPS, group_summary, identity_swaps, keypoint_errors, lr_flips
     from recipes import load_recipe
     from stages.keypoints import Options, compute, raw_inputs
 
@@ -74,6 +76,7 @@ def run(work: Path) -> dict[str, float]:
     opts = Options(stride=STRIDE, workers=os.cpu_count() or 1)
     errs, swaps, frames_total, cpu, per_seq = [], 0, 0, 0.0, {}
     swap_views = 0
+    flips = np.zeros(2, int)
     for sid, seq in recipe.sequences.items():
         c = compute(recipe, sid, raw_inputs(recipe, sid), opts)
         res = c.res
@@ -81,6 +84,8 @@ def run(work: Path) -> dict[str, float]:
         inside = (truth[..., 0] >= 0) & (truth[..., 0] < 900) & (truth[..., 1] >= 0) & (truth[..., 1] < 900)
         err = keypoint_errors(res.kp, truth, inside)
         sw = identity_swaps(res.kp, truth)
+        fl = lr_flips(res.kp, truth)
+        flips += fl.sum(axis=(0, 1))
         errs.append((err, inside))
         swaps += int(sw.any(axis=0).sum())
         swap_views += int(sw.sum())
@@ -89,6 +94,7 @@ def run(work: Path) -> dict[str, float]:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             per_seq[sid] = {"frames": len(res.frames), "swapped_frames": int(sw.any(axis=0).sum()),
+                            "lr_flipped_views": fl.sum(axis=(0, 1)).tolist(),
                             "wearer": group_summary(err[:, :, 0], inside[:, :, 0]),
                             "partner": group_summary(err[:, :, 1], inside[:, :, 1]),
                             "report": c.report}
@@ -99,7 +105,9 @@ def run(work: Path) -> dict[str, float]:
     out = {"keypoints.fps_per_core": frames_total / cpu if cpu > 0 else float("nan"),
            "keypoints.frames": float(frames_total),
            "keypoints.identity_swaps": float(swaps),
-           "keypoints.identity_swap_views": float(swap_views)}
+           "keypoints.identity_swap_views": float(swap_views),
+           "keypoints.lr_flips_wearer": float(flips[0]),
+           "keypoints.lr_flips_partner": float(flips[1])}
     allv = e[np.isfinite(e)]
     out["keypoints.median_px"] = float(np.median(allv))
     out["keypoints.p90_px"] = float(np.percentile(allv, 90))
