@@ -110,7 +110,9 @@ class ScanFitOptions:
     n_vertices: model vertices sampled for the model-to-scan direction; iters: Gauss-Newton
     iterations; sigma_m: Geman-McClure scale (metres); beta_weight, pose_weight: prior
     weights (residual units: metres^2 per point, averaged); headings: initial rotations about
-    the vertical tried for the rigid start."""
+    the vertical tried for the rigid start; max_pair_m, min_normal_dot: a model vertex's pair
+    with its nearest scan point is used only if closer than this and their normals' dot
+    product exceeds this (holes)."""
 
     num_betas: int = 404  # all of anny's: 150 left 6.3 mm v2v on the bench, 404 gives 4.4
     n_points: int = 4000
@@ -121,6 +123,8 @@ class ScanFitOptions:
     pose_weight: float = 1e-4
     final_pose_weight: float = 1e-4
     headings: int = 8
+    max_pair_m: float = 0.02
+    min_normal_dot: float = 0.5
 
 
 @dataclass
@@ -317,10 +321,16 @@ def fit_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | None,
         area = np.zeros(len(v))
         np.add.at(area, faces.reshape(-1), np.repeat(_face_areas(v, faces) / 3, 3))
         vsel = rng.choice(len(v), min(opts.n_vertices, len(v)), replace=False, p=area / area.sum())
-        _, qi = tree.query(v[vsel])
+        qd, qi = tree.query(v[vsel])
+        vn = igl.per_vertex_normals(v, faces)[vsel]
         q_pts = points[qi]
-        q_n = (np.asarray(normals, float)[qi] if normals is not None
-               else igl.per_vertex_normals(v, faces)[vsel])
+        q_n = np.asarray(normals, float)[qi] if normals is not None else vn
+        # model vertices over the scan's holes (soles, armpits) have their nearest scan point
+        # on the hole's rim, often with a normal across theirs: their point-to-plane residual
+        # can be small and would pull the unseen surface onto the rim's tangent plane (it
+        # flattened the feet). Keep pairs that are close and face the same way.
+        ok = (qd < opts.max_pair_m) & (np.einsum("id,id->i", vn, q_n) > opts.min_normal_dot)
+        vsel, q_pts, q_n = vsel[ok], q_pts[ok], q_n[ok]
 
         corr = (cb, cf, sp_, cn, vsel, q_pts, q_n)
 
