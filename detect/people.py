@@ -376,3 +376,24 @@ def find_people(image: np.ndarray | None, hints: WearerHints, prev_partner_box: 
         _hands(image, kp[1], hb, wr, det, o, cam, frame, ref, wearer_wrists, radius)
     pbox = _person_box(kp[1], o.accept_conf, o.body_margin) if mode else np.full(4, np.nan)
     return ViewPeople(kp, boxes, hand_boxes, pbox, isolated, mode, bool(mode and used))
+
+
+def partner_looks_like_wearer(partner: np.ndarray, hints: WearerHints,
+                              o: PeopleOptions = PeopleOptions()) -> np.ndarray:
+    """(C, F) bool: the partner's keypoints (C, F, 65, 3) pass the wearer's marker check, as
+    labelled or mirrored, in that view and frame (hints: the sequence's :class:`WearerHints`).
+
+    A final guard after keypoints were dropped (detect/multiview.py): what remains of a
+    candidate that mixed both people can turn out to be the wearer's part of it."""
+    C, F = partner.shape[:2]
+    out = np.zeros((C, F), bool)
+    for c in range(C):
+        for f in range(F):
+            h = _height(hints.box[c, f])
+            if not np.isfinite(h) or (partner[c, f, layout.BODY, 2] >= K.MIN_CONF).sum() < 4:
+                continue
+            p = partner[c, f][None]
+            out[c, f] = (wearer_check(p, hints.anchors[c, f], h, o)[1][0]
+                         or wearer_check(p[:, layout.FLIP], hints.anchors[c, f], h, o)[1][0])
+    return out
+

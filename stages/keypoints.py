@@ -16,7 +16,8 @@ Writes:
   ``partner_mode (C, F)`` (0 not found, 1 tracked, 2 whole image), ``cross_view_outlier
   (C, F, 2, 65)`` (observations dropped by the cross-view check, detect/multiview.py: they
   disagree with what two other views agree on, or are the partner's, unconfirmed, in a view
-  where the wearer was not found) and
+  where the wearer was not found, or what remains of the partner there matches the wearer's
+  markers) and
   ``conf_raw (C, F, 2, 65)`` (the detector's confidences before it);
 - ``keypoints.mcap``: the keypoints and boxes per camera and frame (Foxglove-viewable);
 - ``overlay_<camera>.png``: one sample frame per view with both people drawn;
@@ -249,6 +250,13 @@ def compute(recipe, unit: str, raw: dict[str, Path], o: Options, progress=lambda
         outlier = xv.outlier.copy()
         outlier[:, :, 1] |= unconfirmed
         res.kp[..., 2][outlier] = 0.0
+        # What is left of a candidate that mixed both people may be the wearer's part of it.
+        from detect.people import partner_looks_like_wearer
+
+        mixed = partner_looks_like_wearer(res.kp[:, :, 1], hints, people_options(o))
+        drop = mixed[..., None] & (res.kp[:, :, 1, :, 2] > 0)
+        outlier[:, :, 1] |= drop
+        res.kp[:, :, 1, :, 2][drop] = 0.0
     report = {"detector": kind, "cameras": cam_names, "video_frames": n_video,
               "stride": o.stride, "workers": workers, "markers": len(markers.names),
               "frames_with_markers": int(seen.sum()),

@@ -379,3 +379,17 @@ def test_partner_hand_crop_drops_the_wearers_hand():
     _hands(None, kp, box, anchors, Two(), PeopleOptions(), 0, 0, avoid_wrists=np.array([[199.0, 201.0]]),
            radius=8.0)
     np.testing.assert_allclose(kp[sl.start, :2], [215, 205])
+
+
+def test_partner_looks_like_wearer_guard():
+    from detect.people import partner_looks_like_wearer
+
+    wearer = stick((300, 240), 0.8)
+    other = stick((480, 240), 0.8)
+    h = hints_for(wearer)
+    hints = WearerHints(*(np.asarray(getattr(h, k))[None, None] for k in
+                          ("box", "hand_boxes", "wrists", "anchors", "markers")))
+    partner = np.stack([other, wearer, wearer[layout.FLIP]])[None]  # (1, 3, 65, 3): 3 "frames"
+    hints = WearerHints(*(np.repeat(getattr(hints, k), 3, axis=1) for k in
+                          ("box", "hand_boxes", "wrists", "anchors", "markers")))
+    assert partner_looks_like_wearer(partner, hints).tolist() == [[False, True, True]]
