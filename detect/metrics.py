@@ -95,8 +95,9 @@ def identity_swaps(kp: np.ndarray, truth_uv: np.ndarray, min_conf: float = K.MIN
 
 def lr_flips(kp: np.ndarray, truth_uv: np.ndarray, min_conf: float = K.MIN_CONF,
              min_kp: int = 4) -> np.ndarray:
-    """(C, F, 2) bool: the person's body keypoints match its own truth better mirrored
-    (left and right labels swapped) than as labelled, and are not an identity swap."""
+    """(C, F, 2) bool: the person's body keypoints match its own truth clearly better mirrored
+    (left and right labels swapped: median error under half that as labelled; in profile views
+    both readings fit about as well and nothing is counted), and are not an identity swap."""
     swapped = identity_swaps(kp, truth_uv, min_conf=min_conf, min_kp=min_kp)
     kp = np.asarray(kp, dtype=np.float64)[..., layout.BODY, :]
     tr = np.asarray(truth_uv, dtype=np.float64)[..., layout.BODY, :]
@@ -106,5 +107,5 @@ def lr_flips(kp: np.ndarray, truth_uv: np.ndarray, min_conf: float = K.MIN_CONF,
         ok = _judged(kp, tr, p, min_conf)
         d = _median_dist(kp[:, :, p], tr[:, :, p], ok)
         df = _median_dist(kp[:, :, p], tr[:, :, p][..., flip, :], ok)
-        out[:, :, p] = (ok.sum(-1) >= min_kp) & (df < d) & ~swapped
+        out[:, :, p] = (ok.sum(-1) >= min_kp) & (df < 0.5 * d) & ~swapped
     return out
