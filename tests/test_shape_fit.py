@@ -86,8 +86,10 @@ def test_scan_fit_recovers_shape(anny):
     v2v = np.linalg.norm((rt - rt.mean(0)) - (rf - rf.mean(0)), axis=1) * 1000
     posed = np.linalg.norm(shape._posed_vertices(m, skel, fit.betas, fit.x) - v, axis=1) * 1000
     assert np.median(fit.scan_to_model_mm) < 2.0  # 2 mm noise: median |n| ~ 1.35 mm
-    assert posed.mean() < 4.0, posed.mean()  # same vertices, in the scan's pose and frame
-    assert v2v.mean() < 9.0, v2v.mean()  # neutral pose (measured 6.1 mm)
+    assert posed.mean() < 3.0, posed.mean()  # same vertices, in the scan's pose and frame
+    # neutral pose: measured 4.8 mm; 6.1 when model vertices over the missing soles paired
+    # with the sole rim's scan points (ScanFitOptions.min_normal_dot)
+    assert v2v.mean() < 5.8, v2v.mean()
 
 
 @pytest.mark.slow
