@@ -238,3 +238,34 @@ def test_bad_inputs_name_the_file(session, tmp_path):
     rec = load_recipe(root / "recipe.yaml")
     with pytest.raises(InputError, match=r"sequences\.s01/Test 1\.keypoints"):
         compute(rec, "s01/Test 1", raw_inputs(rec, "s01/Test 1"), Options(detector="precomputed"))
+
+
+@pytest.mark.slow
+def test_stage_on_the_studio_small_session(small_session):
+    """The stage's core on the shared studio test session (contact-driven handshake): both
+    people found in most views, on the projected truth, never mixed up."""
+    from body import load_model
+    from body.joints import regress, regressor
+    from calib import project
+    from calib.io import read_chi3d_camera
+    from detect.metrics import identity_swaps, keypoint_errors
+    from recipes import load_recipe
+    from stages.keypoints import compute, raw_inputs
+
+    rec = load_recipe(small_session)
+    sid = next(s for s in rec.sequences if "Handshake" in s)
+    seq = rec.sequences[sid]
+    c = compute(rec, sid, raw_inputs(rec, sid), Options(stride=8, workers=2))
+    fr = c.res.frames
+    group, action = sid.split("/")
+    gt = np.load(Path(small_session).parent / "gt" / group / f"{action}.npz")
+    reg = regressor(load_model("anny"), "kp65")
+    kp3 = np.stack([regress(reg, gt["vertices"][p][fr].astype(float), gt["joints"][p][fr])
+                    for p in (0, 1)], axis=1)
+    uv = np.stack([project(read_chi3d_camera(seq.calibration[cam]), kp3) for cam in rec.cameras])
+    err = keypoint_errors(c.res.kp, uv)
+    assert not identity_swaps(c.res.kp, uv).any()
+    for p in (0, 1):
+        body = err[:, :, p, :17]
+        assert np.isfinite(body).mean() > 0.6, (p, np.isfinite(body).mean())
+        assert np.nanmedian(body) < 10.0, (p, np.nanmedian(body))
