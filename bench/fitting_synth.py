@@ -117,7 +117,7 @@ def studio_session():
 
     from recipes import RecipeError, load_recipe
 
-    repo = Path(__file__).resolve().parents[2]
+    repo = Path(__file__).resolve().parents[1]
     for name in ("bench", "demo"):
         path = repo / "recipes" / f"{name}.yaml"
         if not path.is_file():

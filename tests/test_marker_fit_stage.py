@@ -58,8 +58,8 @@ def anny():
 
 def _session(tmp: Path, model, rng, F=40, fps=50.0, rate=240.0, swap=True, fingers=False):
     """Truth motion, its markers as a Vicon C3D, cameras, and the stage context pieces."""
-    import importlib.util
 
+    from bench import fitting_synth as S
     from body.lbs import rest_state
     from calib import look_at
     from calib.io import write_chi3d_camera
@@ -67,10 +67,6 @@ def _session(tmp: Path, model, rng, F=40, fps=50.0, rate=240.0, swap=True, finge
     from formats.c3d import read_c3d
     from stages.marker_fit import template_placement
 
-    spec = importlib.util.spec_from_file_location(
-        "_fitting_synth", Path(__file__).parents[1] / "bench" / "cases" / "_fitting_synth.py")
-    S = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(S)
     betas = S.subject_betas(model, rng)[:80]
     pl = template_placement(model, "plug-in-gait")
     skel = skinned.fit_skeleton(model, None if fingers else shape.body_joints(model))

@@ -1,6 +1,6 @@
 """marker_fit accuracy and speed on a synthetic marker capture with exact ground truth.
 
-Data (bench/cases/_fitting_synth.py): an Anny subject drawn like the studio's, Plug-in Gait
+Data (bench/fitting_synth.py): an Anny subject drawn like the studio's, Plug-in Gait
 markers slid from their template, 150 frames at 50 fps of a smooth motion of the 22 fitted
 body joints, markers with 1 mm noise and occlusion gaps on 30 % of them. The fit is given the
 subject's true shape and marker placement (what shape_fit estimates is scored by the
@@ -29,20 +29,9 @@ GOALS = {
 FRAMES, FPS, SEED = 150, 50.0, 11
 
 
-def _synth():
-    """bench/cases/_fitting_synth.py, loaded by path (the cases folder is not a package and
-    must not go on sys.path: bench/cases/body.py would shadow the body package)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("_fitting_synth",
-                                                  Path(__file__).with_name("_fitting_synth.py"))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def run(work: Path) -> dict[str, float]:  # noqa: ARG001 - nothing written to disk
-    S = _synth()
+    from bench import fitting_synth as S
+
     studio = S.studio_session()
     if studio is not None:
         return _run_studio(*studio)

@@ -1,6 +1,6 @@
 """shape_fit accuracy on synthetic subjects with exact ground truth.
 
-A subject drawn like the studio's (bench/cases/_fitting_synth.py) is scanned with the
+A subject drawn like the studio's (bench/fitting_synth.py) is scanned with the
 studio's scanner model (studio/scan.py: 60k points, 2 mm noise along the normal, holes at the
 armpits and no soles, uneven density) in the neutral pose (pose 0, as the studio scans) at a random heading, and captured
 with slid Plug-in Gait markers in a few well-spread frames (1 mm noise).
@@ -33,20 +33,9 @@ def _v2v(model, b1, b2) -> float:
     return float(np.linalg.norm((a - a.mean(0)) - (b - b.mean(0)), axis=1).mean() * 1000)
 
 
-def _synth():
-    """bench/cases/_fitting_synth.py, loaded by path (the cases folder is not a package and
-    must not go on sys.path: bench/cases/body.py would shadow the body package)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("_fitting_synth",
-                                                  Path(__file__).with_name("_fitting_synth.py"))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def run(work: Path) -> dict[str, float]:  # noqa: ARG001 - nothing written to disk
-    S = _synth()
+    from bench import fitting_synth as S
+
     studio = S.studio_session()
     if studio is not None:
         return _run_studio(*studio)
