@@ -7,8 +7,8 @@
 - :func:`write_mp4`: MP4 (``mp4v``) from RGB frames.
 - :func:`resample_to_video`: markers sampled at the mocap rate (Vicon 100/200/240 Hz) to the
   video frames (e.g. 50 fps) by time. Convention: video frame ``j`` is at video time
-  ``j / fps``; the recipe's sync offset is the mocap time of video frame 0, so frame ``j``
-  maps to mocap time ``j / fps + offset_s``, and mocap sample ``i`` is at
+  ``j / fps``; the recipe's sync offset is the video time of mocap time 0, so frame ``j``
+  maps to mocap time ``j / fps - offset_s``, and mocap sample ``i`` is at
   ``(first_frame + i) / rate_hz`` (see :class:`formats.c3d.Markers`).
 """
 from __future__ import annotations
@@ -161,8 +161,10 @@ def resample_to_video(markers: Markers, n_frames: int, fps: float, offset_s: flo
                       source: str | Path = "<markers>") -> np.ndarray:
     """Marker positions at the times of video frames ``0..n_frames-1``.
 
-    markers: sampled at ``markers.rate_hz``; n_frames, fps: the video; offset_s: mocap time of
-    video frame 0 (seconds, from the recipe); source: the C3D path, for error messages.
+    markers: sampled at ``markers.rate_hz``; n_frames, fps: the video; offset_s: the recipe's
+    ``mocap.sync_offset_s``, the video time of mocap time 0, so video frame ``f`` is at mocap
+    time ``f / fps - offset_s`` (the convention of ``recipes.schema.MocapSpec`` and
+    ``fitting.mocap.frame_times``); source: the C3D path, for error messages.
     Returns (n_frames, M, 3) float64 metres: linear interpolation between the two neighbouring
     samples, the sample itself when a frame time hits one, NaN when either neighbour is a gap.
     Raises InputError naming ``source`` and the first video frame the capture does not cover.
@@ -172,13 +174,13 @@ def resample_to_video(markers: Markers, n_frames: int, fps: float, offset_s: flo
     xyz = markers.xyz
     F = len(xyz)
     # Fractional sample index of each video frame.
-    s = (np.arange(n_frames) / fps + offset_s) * markers.rate_hz - markers.first_frame
+    s = (np.arange(n_frames) / fps - offset_s) * markers.rate_hz - markers.first_frame
     outside = (s < -SAMPLE_HIT_TOL) | (s > F - 1 + SAMPLE_HIT_TOL)
     if outside.any():
         j = int(np.flatnonzero(outside)[0])
         t0, t1 = (markers.times_s[0], markers.times_s[-1]) if F else (np.nan, np.nan)
         raise InputError(source, "markers", f"the capture covers {t0:.4f}..{t1:.4f} s but video "
-                         f"frame {j} is at mocap time {j / fps + offset_s:.4f} s (offset "
+                         f"frame {j} is at mocap time {j / fps - offset_s:.4f} s (offset "
                          f"{offset_s} s, {fps} fps, {markers.rate_hz} Hz)", frame=j)
     near = np.rint(s)
     hit = np.abs(s - near) < SAMPLE_HIT_TOL

@@ -51,8 +51,10 @@ class GroundPlaneSpec(_Strict):
 
 
 class MocapSpec(_Strict):
-    """Timing of the marker capture relative to the videos: the C3D's first frame is at
-    ``sync_offset_s`` seconds of video time. ``rate_hz`` overrides the C3D's own rate."""
+    """Timing of the marker capture relative to the videos: mocap time 0 (the C3D's sample
+    numbering, sample ``i`` at ``(first_frame + i) / rate``) is at ``sync_offset_s`` seconds of
+    video time, so video frame ``f`` is at mocap time ``f / fps - sync_offset_s``.
+    ``rate_hz`` overrides the C3D's own rate."""
 
     sync_offset_s: float = 0.0
     rate_hz: float | None = None

@@ -75,7 +75,7 @@ def linear_markers(rate, F, first_frame=0):
 @pytest.mark.parametrize("rate", [100.0, 200.0, 240.0])
 def test_resample_linear_motion_is_exact(rate):
     m = linear_markers(rate, int(rate * 3), first_frame=int(rate * 0.5))
-    out = resample_to_video(m, n_frames=100, fps=50.0, offset_s=0.613)
+    out = resample_to_video(m, n_frames=100, fps=50.0, offset_s=-0.613)
     t = np.arange(100) / 50 + 0.613
     assert np.allclose(out[:, 0], np.stack([t, 2 * t, -t], -1), atol=1e-12)
     assert np.allclose(out[:, 1], np.stack([t, 2 * t, -t], -1) + 1, atol=1e-12)
@@ -94,7 +94,7 @@ def test_resample_keeps_gaps():
     assert np.isfinite(out[25, 0]).all() and np.isfinite(out[26, 0]).all()  # exact hits survive
     assert np.isnan(out[60, 1]).all() and np.isfinite(out[60, 0]).all()
     assert np.isnan(out).sum() == 3
-    out2 = resample_to_video(g, 140, 50.0, 0.005)  # half a sample later: samples 50.5, 120.5 ...
+    out2 = resample_to_video(g, 140, 50.0, -0.005)  # half a sample later: samples 50.5, 120.5 ...
     assert np.isnan(out2[25, 0]).all() and np.isnan(out2[60, 1]).all()  # a gap neighbour
     assert np.isfinite(out2[59, 1]).all() and np.isfinite(out2[26, 0]).all()
     assert np.isnan(out2).sum() == 6
@@ -106,5 +106,18 @@ def test_capture_not_covering_the_video_names_file_and_frame():
         resample_to_video(m, n_frames=120, fps=50.0, offset_s=0.0, source="data/s03/Hug 1.c3d")
     assert e.value.file == "data/s03/Hug 1.c3d" and e.value.frame == 100
     with pytest.raises(InputError) as e:
-        resample_to_video(m, n_frames=10, fps=50.0, offset_s=-0.05)
+        resample_to_video(m, n_frames=10, fps=50.0, offset_s=0.05)
     assert e.value.frame == 0
+
+
+def test_resample_agrees_with_the_fitting_stages_clock():
+    """One sync convention for the whole pipeline: formats.video and fitting.mocap (what the
+    stages call) give the same positions for the same recipe offset."""
+    from fitting import mocap
+
+    m = linear_markers(240.0, 240 * 4, first_frame=30)
+    for offset in (-0.35, -0.2013):  # the capture starts at 0.125 s of mocap time
+        ref, vis = mocap.resample(m.times_s, m.xyz, mocap.frame_times(60, 50.0, offset))
+        out = resample_to_video(m, n_frames=60, fps=50.0, offset_s=offset)
+        assert vis.all()
+        assert np.allclose(out, ref, atol=1e-12)
