@@ -181,12 +181,15 @@ def run(ctx: StageContext) -> None:
     times_src = (mk.first_frame + np.arange(len(mk.xyz))) / rate
     kp_art = ctx.inputs.get("keypoints")
     if kp_art is not None and not isinstance(kp_art, dict):
-        F = int(len(kp_art.arrays("keypoints")["frames"]))
+        # the keypoints stage may run with a frame stride: fit exactly its video frames
+        frames = np.asarray(kp_art.arrays("keypoints")["frames"], dtype=int)
     else:
-        F = video_frame_count(ctx.raw["video"])
+        frames = np.arange(video_frame_count(ctx.raw["video"]))
     if o.max_frames:
-        F = min(F, o.max_frames)
-    times = mocap.frame_times(F, seq.fps, seq.mocap.sync_offset_s)
+        frames = frames[: o.max_frames]
+    F = len(frames)
+    times = mocap.frame_times(int(frames.max()) + 1 if F else 0, seq.fps,
+                              seq.mocap.sync_offset_s)[frames]
     obs, vis = mocap.resample(times_src, mk.xyz, times)
     first = int(np.argmax(vis.sum(1) >= 3)) if np.any(vis.sum(1) >= 3) else None
     if first is None:
@@ -242,7 +245,7 @@ def run(ctx: StageContext) -> None:
     res[sl], wgt[sl] = fit.marker_residual_m, fit.robust_weight
     body_pose, R, T = marker_fit.unpack(skel, model.num_joints, X)
     ctx.out.save_arrays("fit", body_pose=body_pose, global_orient=R, transl=T,
-                        betas=np.asarray(betas, float), frames=np.arange(F),
+                        betas=np.asarray(betas, float), frames=frames,
                         marker_names=np.array(pl.names), marker_residual_m=res,
                         marker_weight=wgt, visible=vis)
     mm = res * 1000
