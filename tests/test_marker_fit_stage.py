@@ -184,3 +184,28 @@ def test_stage_uses_hand_keypoints_when_present(tmp_path, anny):
         finger = [j for j in truth.skel.joints if "finger" in anny.joint_names[j]]
         errs[hands] = (np.linalg.norm(est.joints - truth.joints, axis=2)[:, finger] * 1000).mean()
     assert errs[True] < 0.5 * errs[False], errs
+
+
+@pytest.mark.slow
+def test_stage_fits_the_keypoints_frames_when_strided(tmp_path, anny):
+    """With a frame stride in the keypoints stage, the fit is made at exactly those video
+    frames (not at 0..F-1), and matches the truth there."""
+    from body.lbs import forward
+    from stages.marker_fit import Options, run
+
+    rng = np.random.default_rng(8)
+    F, stride = 40, 4
+    recipe, raw, art, kp_art, truth = _session(tmp_path, anny, rng, F=F, swap=False)
+    frames = np.arange(0, F, stride)
+    kp = kp_art.arrays("keypoints")["kp"][:, frames]
+    strided = FakeArtifact(tmp_path, {"keypoints": {"kp": kp, "frames": frames}})
+    out = FakeWriter(tmp_path / "out")
+    ctx = SimpleNamespace(stage="marker_fit", unit="g/take", recipe=recipe, params=Options(),
+                          inputs={"shape_fit": {"s1": art}, "keypoints": strided}, raw=raw,
+                          out=out, progress=lambda it, **k: it, log=lambda s: None)
+    run(ctx)
+    fit = dict(np.load(out.dir / "fit.npz"))
+    assert np.array_equal(fit["frames"], frames)
+    est = forward(anny, fit["betas"], fit["body_pose"], fit["global_orient"], fit["transl"])
+    jerr = np.linalg.norm(est.joints - truth.joints[frames], axis=2)[:, truth.skel.joints] * 1000
+    assert jerr.mean() < 8.0, jerr.mean()
