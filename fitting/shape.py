@@ -112,7 +112,8 @@ class ScanFitOptions:
     weights (residual units: metres^2 per point, averaged); headings: initial rotations about
     the vertical tried for the rigid start; max_pair_m, min_normal_dot: a model vertex's pair
     with its nearest scan point is used only if closer than this and their normals' dot
-    product exceeds this (holes)."""
+    product exceeds this (holes); final_pair_m: the distance cut of the last third of the
+    iterations (a cut from the start loses the scan when the start is far from it)."""
 
     num_betas: int = 404  # all of anny's: 150 left 6.3 mm v2v on the bench, 404 gives 4.4
     n_points: int = 4000
@@ -124,6 +125,7 @@ class ScanFitOptions:
     final_pose_weight: float = 1e-4
     headings: int = 8
     max_pair_m: float = np.inf  # 0.02 cut the fit off the scan from a far start
+    final_pair_m: float = 0.02  # the same cut in the last third only, once the fit is on the scan
     min_normal_dot: float = 0.5
 
 
@@ -303,7 +305,9 @@ def fit_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | None,
         s_on = min(S, COARSE_BETAS) if it < opts.iters // 3 else S
         # last third: the neutral pose pulled to pose 0 (a scan is taken in the neutral
         # pose; a free pose absorbs shape, which the neutral-pose mesh then lacks)
-        pw = opts.final_pose_weight if it >= opts.iters - opts.iters // 3 else opts.pose_weight
+        last_third = it >= opts.iters - opts.iters // 3
+        pw = opts.final_pose_weight if last_third else opts.pose_weight
+        cut = min(opts.max_pair_m, opts.final_pair_m) if last_third else opts.max_pair_m
         prior_w = np.concatenate([np.full(s_on, opts.beta_weight), np.full(S - s_on, 1e3),
                                   np.zeros(6), np.full(n - 6, pw)])
         rest = rest_state(model, betas)
@@ -331,7 +335,7 @@ def fit_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | None,
         # flattened the feet). Keep pairs that face the same way (a distance cut too lost the
         # scan where the start is far from it: v2v 6.1 -> 7.4 mm in tests/test_shape_fit.py;
         # the normal test alone gave 4.8).
-        ok = (qd < opts.max_pair_m) & (np.einsum("id,id->i", vn, q_n) > opts.min_normal_dot)
+        ok = (qd < cut) & (np.einsum("id,id->i", vn, q_n) > opts.min_normal_dot)
         vsel, q_pts, q_n = vsel[ok], q_pts[ok], q_n[ok]
 
         corr = (cb, cf, sp_, cn, vsel, q_pts, q_n)
