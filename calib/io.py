@@ -34,6 +34,7 @@ from calib import constants
 from calib.camera import Camera
 from calib.convert import from_opencv, opencv_dist
 from formats.errors import InputError
+from formats.keypoints import load_json
 
 
 # --------------------------------------------------------------------------------------- helpers
@@ -70,17 +71,6 @@ def _camera(file, field: str, **kw) -> Camera:
         raise InputError(file, field, str(e)) from None
 
 
-def _load_json(path: Path):
-    try:
-        text = path.read_text()
-    except OSError as e:
-        raise InputError(path, "<file>", f"cannot read: {e.strerror or e}") from None
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as e:
-        raise InputError(path, "<json>", f"invalid or truncated JSON: {e}") from None
-
-
 def _nested(a) -> list:
     return [np.asarray(a, dtype=float).reshape(-1).tolist()]
 
@@ -91,7 +81,7 @@ def read_chi3d_camera(path: str | Path, name: str | None = None,
     """Read one CHI3D camera JSON. name: defaults to the parent folder (the camera serial);
     size: (width, height) pixels. Returns a ``model="h36m"`` Camera."""
     path = Path(path)
-    d = _load_json(path)
+    d = load_json(path)
     if not isinstance(d, dict):
         raise InputError(path, "<json>", f"expected an object, got {type(d).__name__}")
     R = _array(path, "extrinsics.R", _get(path, d, "extrinsics.R"), (3, 3))

@@ -12,17 +12,11 @@ from pathlib import Path
 
 import numpy as np
 
+from body.markers import PLUG_IN_GAIT_NAMES
 from fitting import mocap
 
 #: The 39 markers of the Plug-in Gait full-body model (Vicon's order).
-PIG_MARKERS = (
-    "LFHD", "RFHD", "LBHD", "RBHD", "C7", "T10", "CLAV", "STRN", "RBAK",
-    "LSHO", "LUPA", "LELB", "LFRM", "LWRA", "LWRB", "LFIN",
-    "RSHO", "RUPA", "RELB", "RFRM", "RWRA", "RWRB", "RFIN",
-    "LASI", "RASI", "LPSI", "RPSI",
-    "LTHI", "LKNE", "LTIB", "LANK", "LHEE", "LTOE",
-    "RTHI", "RKNE", "RTIB", "RANK", "RHEE", "RTOE",
-)  # fmt: skip
+PIG_MARKERS = PLUG_IN_GAIT_NAMES
 #: Model outputs Nexus writes as points next to the markers (not markers).
 PIG_SEGMENT_POINTS = tuple(
     f"{seg}{axis}" for seg in ("PEL", "LFE", "RFE", "LTI", "RTI", "LFO", "RFO", "HED", "TRX")
