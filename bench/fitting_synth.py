@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from body.lbs import forward, rest_state
+from body.markers import face_normals
 from body.rotations import rodrigues
 from fitting import shape, skinned
 
@@ -55,7 +56,7 @@ def slide(model, pl: shape.Placement, rng) -> shape.Placement:
     rest = rest_state(model, np.zeros(1)).vertices[0]
     faces = np.asarray(model.faces)
     p = shape.marker_rest_points(rest, faces, pl)
-    n = shape.face_normals(rest, faces[pl.face])
+    n = face_normals(rest, faces[pl.face])
     t = rng.normal(0, SLIDE_SD_M, p.shape)
     t -= np.einsum("md,md->m", t, n)[:, None] * n
     f, b, _ = shape.project_to_surface(rest, faces, p - pl.offset[:, None] * n + t)

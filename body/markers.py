@@ -87,7 +87,7 @@ def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     v = np.asarray(vertices, dtype=float)
     a, b, c = v[..., faces[:, 0], :], v[..., faces[:, 1], :], v[..., faces[:, 2], :]
     n = np.cross(b - a, c - a)
-    return n / np.linalg.norm(n, axis=-1, keepdims=True)
+    return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-15)  # degenerate: 0
 
 
 def marker_positions(vertices: np.ndarray, faces: np.ndarray, markerset: MarkerSet) -> np.ndarray:

@@ -27,6 +27,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from body.lbs import forward, rest_state
+from body.markers import face_normals
 from body.model import BodyModel
 from body.rotations import rodrigues
 from fitting import marker_fit, robust, skinned
@@ -48,13 +49,6 @@ class Placement:
 
 
 # ---------------------------------------------------------------------------- surface helpers
-
-
-def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Unit normals (T, 3) of triangles ``faces (T, 3)`` over ``vertices (V, 3)``."""
-    tri = vertices[faces]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-15)
 
 
 def _face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
