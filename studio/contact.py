@@ -102,3 +102,26 @@ def annotate(verts0: np.ndarray, verts1: np.ndarray, faces: np.ndarray, face_reg
     regions = face_region[pairs]
     return ContactTruth(min_dist, touching, start, end, fr_id, pairs, regions.astype(np.int64),
                         d1[pick])
+
+
+def interpenetration(V0: np.ndarray, V1: np.ndarray, faces: np.ndarray) -> tuple[float, int, int]:
+    """The deepest true interpenetration of two meshes (same topology ``faces``): over the
+    vertices of each body that are inside the other (libigl's fast winding number > 0.5), the
+    largest distance to the other's surface (exact point-to-mesh). Independent of the synthesis'
+    own approximate measure (``motion.pair_distances``).
+
+    V0, V1: (V, 3) metres. Returns (depth metres (0 if none), body (0/1) of the deepest vertex
+    or -1, its vertex id or -1)."""
+    import igl
+
+    V = [np.asarray(V0, float), np.asarray(V1, float)]
+    best = (0.0, -1, -1)
+    for a in range(2):
+        w = igl.fast_winding_number(V[1 - a], faces, V[a])
+        inside = np.flatnonzero(w > 0.5)
+        if len(inside):
+            d2, _, _ = igl.point_mesh_squared_distance(V[a][inside], V[1 - a], faces)
+            k = int(np.argmax(d2))
+            if np.sqrt(d2[k]) > best[0]:
+                best = (float(np.sqrt(d2[k])), a, int(inside[k]))
+    return best

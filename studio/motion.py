@@ -503,10 +503,6 @@ def _synthesize(people, nominal, contacts, movable, passes, check_samples):
             _solve_contacts(people, tracks, nominal, contacts, active=todo, warm_pass=it > 0)
         gaps, limb, pen, need, repelled = measure(None if it <= passes else _grow_mask(todo, 1))
         report = SynthReport(gaps.copy(), pen.copy())
-        if _debug():
-            print(f"DEBUG it {it} pen {pen.max() * 1000:.1f} push {np.abs(push).max() * 1000:.0f} "
-                  f"need {np.abs(need).max() * 1000:.1f} limb {[round(float(-x.min()) * 1000, 1) for x in limb]} "
-                  f"gapmed {[round(float(np.nanmedian(g)) * 1000, 1) if np.isfinite(g).any() else None for g in gaps]}")
         if it == last or (it >= passes and pen.max() <= C.PENETRATION_MAX_M):
             break
         todo = repelled.copy() if it < passes else np.zeros(N, bool)
@@ -570,12 +566,6 @@ def _grow_mask(mask: np.ndarray, n: int) -> np.ndarray:
     from scipy.ndimage import maximum_filter1d
 
     return maximum_filter1d(mask.astype(np.uint8), size=2 * n + 1).astype(bool)
-
-
-def _debug() -> bool:
-    import os
-
-    return bool(os.environ.get("STUDIO_DEBUG"))
 
 
 def _grow(mag: np.ndarray) -> np.ndarray:

@@ -125,8 +125,8 @@ _TEXT = {
             "{a} wraps both arms around {b}, who hugs back."],
     "kick": ["{a} kicks {b} on the {leg} with the right foot.",
              "{a} lifts a leg and kicks {b} lightly on the {leg}."],
-    "posing": ["{a} puts an arm around the shoulders of {b} and they pose for a photo.",
-               "{a} and {b} pose together, {a} with an arm over the shoulders of {b}."],
+    "posing": ["{a} rests a hand on the shoulder of {b} and they pose for a photo.",
+               "{a} and {b} pose side by side, {a} with a hand on the shoulder of {b}."],
     "push": ["{a} pushes {b} in the chest with both hands and {b} steps back.",
              "{a} shoves {b} with both hands; {b} is pushed backwards."],
 }
@@ -136,7 +136,7 @@ def sentence(scenario: str, actor: int, rng: np.random.Generator) -> str:
     """One sentence for a scenario; actor: 0 or 1, the person who initiates."""
     a, b = _WHO[actor], _WHO[1 - actor]
     t = _TEXT[scenario][int(rng.integers(len(_TEXT[scenario])))]
-    s = t.format(a=a, b=b, limb="forearm", part="shoulder", leg="thigh")
+    s = t.format(a=a, b=b, limb="upper arm", part="shoulder", leg="thigh")
     return s[0].upper() + s[1:]
 
 

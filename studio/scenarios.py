@@ -196,16 +196,22 @@ def _pole_body(cast: Cast, role_of_frame: int, point_body) -> callable:
 
 
 def hug(cast: Cast) -> Scene:
+    """Face to face, the taller person's arms go over the partner's shoulders, hands on their
+    upper back; the shorter one's arms go under them, hands on the taller one's lower back.
+    (The other way round, the shorter person's upper arms went through the taller one's
+    shoulders.) The actor opens their arms and closes the hug first."""
     rng, u, N = cast.rng, cast.u, cast.N
     (pa, pb), (aa, ab) = cast.people, cast.an
     s = _front(pa, aa) + _front(pb, ab) + rng.uniform(0.0, 0.02)
     base = [P.standing(p, a, rng) for p, a in zip(cast.people, cast.an, strict=True)]
+    hi = 0 if aa.height >= ab.height else 1  # the role whose arms go over
     w_lean = pulse(u, 0.05, 0.35, 0.78, 0.97)
     lean = [P.bend(p, P.bend(p, b, P.SPINE, LEFT * 0.12), P.NECK, UP * 0.5 + LEFT * 0.05)
             for p, b in zip(cast.people, base, strict=True)]
-    # arms open first (wide, forward), then close around the partner
+    # arms open first (wide, forward: higher for the arms that go over), then close around
     open_ = []
-    for role, up in ((0, 0.15), (1, -0.35)):
+    for role in (0, 1):
+        up = 0.15 if role == hi else -0.35
         o = lean[role]
         for side, sgn in (("L", 1.0), ("R", -1.0)):
             o = P.arm_directions(cast.people[role], cast.an[role], o, side,
@@ -213,37 +219,36 @@ def hug(cast: Cast) -> Scene:
         open_.append(o)
     ta = place(pa, (-s / 2, 0), (1, 0), N, base[0])
     tb = place(pb, (s / 2, 0), (-1, 0), N, base[1])
-    w_a = pulse(u, 0.12, 0.4, 0.76, 0.95)
-    w_b = pulse(u, 0.15, 0.42, 0.74, 0.93)
-    w_open_a = pulse(u, 0.0, 0.25, 0.85, 1.0)
-    w_open_b = pulse(u, 0.03, 0.28, 0.83, 1.0)
-    ta.pose = living(cast, 0, blend(blend(base[0], lean[0], w_lean), open_[0], w_open_a), 0.5)
-    ta.pose = with_fingers(cast, 0, with_fingers(cast, 0, ta.pose, "L", -0.1, w_a), "R", -0.1, w_a)
-    tb.pose = living(cast, 1, blend(blend(base[1], lean[1], w_lean), open_[1], w_open_b), 0.5)
+    w = [pulse(u, 0.12, 0.4, 0.76, 0.95), pulse(u, 0.15, 0.42, 0.74, 0.93)]  # by role
+    w_open = [pulse(u, 0.0, 0.25, 0.85, 1.0), pulse(u, 0.03, 0.28, 0.83, 1.0)]
+    ta.pose = living(cast, 0, blend(blend(base[0], lean[0], w_lean), open_[0], w_open[0]), 0.5)
+    tb.pose = living(cast, 1, blend(blend(base[1], lean[1], w_lean), open_[1], w_open[1]), 0.5)
+    ta.pose = with_fingers(cast, 0, with_fingers(cast, 0, ta.pose, "L", -0.1, w[0]), "R", -0.1, w[0])
     contacts = []
-    # actor: arms over the partner's shoulders, hands on their upper back; receiver: arms
-    # under them, around the actor's waist
-    po, ao = pb, ab
-    half = 0.5 * _shoulder_width(ao, po)
+    lo = 1 - hi
+    ph, ah = cast.people[hi], cast.an[hi]
+    pl, al = cast.people[lo], cast.an[lo]
+    # over: hands on the partner's upper back (they face me: my left hand on their right side)
+    half = 0.5 * _shoulder_width(al, pl)
     for side, sgn in (("L", 1.0), ("R", -1.0)):
-        # my left hand goes to the partner's right side of the back (they face me)
-        start = _joint0(cast, 1, "spine01") + LEFT * (-sgn) * 0.08 + UP * 0.05
-        anc = _anchor(cast, 1, lean[1], "spine01", start, -FWD + UP * 0.3)
-        eff, nrm = palm(cast, 0, side)
-        elbow_pt = _joint0(cast, 1, "spine01") + LEFT * (-sgn) * (half + 0.1) + UP * 0.12
-        poles = [(pa.j(f"lowerarm01.{side}"), np.zeros(3), _pole_body(cast, 1, elbow_pt), 0.3)]
-        contacts.append(Contact(0, P.arm_dofs(pa, aa, side), eff, anc, clearance=0.012, weight=w_a,
-                                region=hand_region(cast, 0, side), eff_normal=nrm, poles=poles,
+        start = _joint0(cast, lo, "spine01") + LEFT * (-sgn) * 0.08 + UP * 0.05
+        anc = _anchor(cast, lo, lean[lo], "spine01", start, -FWD + UP * 0.3)
+        eff, nrm = palm(cast, hi, side)
+        elbow_pt = _joint0(cast, lo, "spine01") + LEFT * (-sgn) * (half + 0.1) + UP * 0.12
+        poles = [(ph.j(f"lowerarm01.{side}"), np.zeros(3), _pole_body(cast, lo, elbow_pt), 0.3)]
+        contacts.append(Contact(hi, P.arm_dofs(ph, ah, side), eff, anc, clearance=0.012, weight=w[hi],
+                                region=hand_region(cast, hi, side), eff_normal=nrm, poles=poles,
                                 name=f"hand.{side}->back"))
-    half_a = 0.5 * _shoulder_width(aa, pa)
+    # under: hands around the partner's waist
+    half_h = 0.5 * _shoulder_width(ah, ph)
     for side, sgn in (("L", 1.0), ("R", -1.0)):
-        start = _joint0(cast, 0, "spine05") - LEFT * sgn * 0.04
-        anc = _anchor(cast, 0, lean[0], "spine05", start, -LEFT * sgn - FWD * 0.25)
-        eff, nrm = palm(cast, 1, side)
-        elbow_pt = _joint0(cast, 0, "spine05") - LEFT * sgn * (half_a + 0.1) + FWD * 0.05
-        poles = [(pb.j(f"lowerarm01.{side}"), np.zeros(3), _pole_body(cast, 0, elbow_pt), 0.3)]
-        contacts.append(Contact(1, P.arm_dofs(pb, ab, side), eff, anc, clearance=0.012, weight=w_b,
-                                region=hand_region(cast, 1, side), eff_normal=nrm, poles=poles,
+        start = _joint0(cast, hi, "spine05") - LEFT * sgn * 0.04
+        anc = _anchor(cast, hi, lean[hi], "spine05", start, -LEFT * sgn - FWD * 0.25)
+        eff, nrm = palm(cast, lo, side)
+        elbow_pt = _joint0(cast, hi, "spine05") - LEFT * sgn * (half_h + 0.1) + FWD * 0.05
+        poles = [(pl.j(f"lowerarm01.{side}"), np.zeros(3), _pole_body(cast, hi, elbow_pt), 0.3)]
+        contacts.append(Contact(lo, P.arm_dofs(pl, al, side), eff, anc, clearance=0.012, weight=w[lo],
+                                region=hand_region(cast, lo, side), eff_normal=nrm, poles=poles,
                                 name=f"hand.{side}->waist"))
     return Scene([ta, tb], contacts, movable=1, contact_hint=(0.42, 0.72))
 
@@ -321,88 +326,91 @@ def kick(cast: Cast) -> Scene:
 
 
 def grab(cast: Cast) -> Scene:
+    """The actor grabs the receiver's left upper arm from the front-outside; the receiver leans
+    and turns away a little while held. (Grabbing the forearm made the actor's forearm run back
+    over the receiver's hand: the upper arm keeps the two arms apart.)"""
     rng, u, N = cast.rng, cast.u, cast.N
     (pa, pb), (aa, ab) = cast.people, cast.an
-    s = 0.55 * (_arm_len(aa, pa) + _arm_len(ab, pb)) + 0.25
+    s = _front(pb, ab) + 0.7 * _arm_len(aa, pa) + rng.uniform(0.1, 0.14)
     base = [P.standing(p, a, rng) for p, a in zip(cast.people, cast.an, strict=True)]
-    # the receiver holds the left forearm forward; later pulls it back a little
-    offer = P.arm_directions(pb, ab, base[1], "L", -UP + FWD * 0.45 + LEFT * 0.1, 1.2)
-    pull = P.arm_directions(pb, ab, base[1], "L", -UP + FWD * 0.15 + LEFT * 0.15, 1.5)
     ta = place(pa, (-s / 2, 0), (1, 0), N, base[0])
     tb = place(pb, (s / 2, 0), (-1, 0), N, base[1])
-    w_off = pulse(u, 0.0, 0.25, 0.85, 1.0)
-    w_pull = ramp(u, 0.5, 0.7) * (1 - ramp(u, 0.85, 1.0))
-    tb.pose = living(cast, 1, blend(blend(base[1], offer, w_off), pull, w_pull), 0.5)
     w = pulse(u, 0.12, 0.4, 0.72, 0.92)
+    w_pull = ramp(u, 0.45, 0.65) * (1 - ramp(u, 0.8, 1.0))
+    away = P.bend(pb, base[1], P.SPINE, -LEFT * 0.1 - UP * 0.12)
+    tb.pose = living(cast, 1, blend(base[1], away, w_pull), 0.5)
     ta.pose = with_fingers(cast, 0, living(cast, 0, base[0], 0.5), "R", 0.0, w)
-    mid = 0.4 * _joint0(cast, 1, "lowerarm01.L") + 0.6 * _joint0(cast, 1, "wrist.L")
-    # anchor on the top of the forearm in the offering pose
-    t, G = pb.fk(offer[None], np.eye(3)[None], np.zeros((1, 3)))
-    mid = 0.4 * t[0, pb.j("lowerarm01.L")] + 0.6 * t[0, pb.j("wrist.L")]
-    anc = _anchor(cast, 1, offer, "lowerarm02.L", mid, UP)
+    mid = 0.45 * _joint0(cast, 1, "upperarm01.L") + 0.55 * _joint0(cast, 1, "lowerarm01.L")
+    anc = _anchor(cast, 1, base[1], "upperarm02.L", mid, FWD + LEFT * 0.6)
     eff, nrm = palm(cast, 0, "R")
     c = Contact(0, P.arm_dofs(pa, aa, "R"), eff, anc, clearance=0.012, weight=w,
                 region=hand_region(cast, 0, "R"), eff_normal=nrm,
-                anchor_region=_region(cast, 1, ("lowerarm", "wrist"), "L"), name="hand.R->forearm.L")
+                anchor_region=_region(cast, 1, ("upperarm",), "L"), name="hand.R->upperarm.L")
     return Scene([ta, tb], [c], movable=1, contact_hint=(0.42, 0.7))
 
 
 def holding_hands(cast: Cast) -> Scene:
+    """Side by side, the actor's left and the receiver's right hand hang between them, palms
+    pressed together (palms facing across, fingers down), swinging. (Palms facing front/back
+    made the two forearms cross.)"""
     rng, u, N = cast.rng, cast.u, cast.N
     (pa, pb), (aa, ab) = cast.people, cast.an
-    s = 0.5 * (_shoulder_width(aa, pa) + _shoulder_width(ab, pb)) + rng.uniform(0.3, 0.38)
+    # far enough apart that the forearms meet in a V (wrists clear of each other)
+    s = 0.5 * (_shoulder_width(aa, pa) + _shoulder_width(ab, pb)) + rng.uniform(0.42, 0.48)
     base = [P.standing(p, a, rng) for p, a in zip(cast.people, cast.an, strict=True)]
     ta = place(pa, (0, -s / 2), (1, 0), N, base[0])
     tb = place(pb, (0, s / 2), (1, 0), N, base[1])
     w_a = pulse(u, 0.05, 0.32, 0.8, 0.97)
-    w_b = pulse(u, 0.08, 0.34, 0.78, 0.95)
+    # the actor lets go first; the receiver's hand stays on the leaving palm, then lets go
+    w_b = pulse(u, 0.08, 0.34, 0.82, 0.99)
     ta.pose = with_fingers(cast, 0, living(cast, 0, base[0], 0.6), "L", -0.15, w_a)
     tb.pose = with_fingers(cast, 1, living(cast, 1, base[1], 0.6), "R", -0.15, w_b)
     za = _floor_height(ta, pa, pa.j("wrist.L"), aa)
     zb = _floor_height(tb, pb, pb.j("wrist.R"), ab)
     swing = 0.07 * np.sin(2 * np.pi * 0.9 * u * cast.span + rng.uniform(0, 6)) * ramp(u, 0.35, 0.45)
-    M = np.stack([rng.uniform(0.04, 0.08) + swing, np.zeros(N), np.full(N, 0.5 * (za + zb) + 0.1)], 1)
+    M = np.stack([rng.uniform(0.04, 0.08) + swing, np.zeros(N), np.full(N, 0.5 * (za + zb))], 1)
     eff_a, n_a = palm(cast, 0, "L")
     eff_b, n_b = palm(cast, 1, "R")
-    # the actor's palm faces backwards, the partner's hand comes from behind (palm forwards)
+    # the actor's palm faces back, the receiver's forward; each elbow stays on its own side,
+    # so the forearms meet in a V and the hands cross like an X (wrists apart)
+    elbow_a = _joint0(cast, 0, "lowerarm01.L") - FWD * 0.03
+    elbow_b = _joint0(cast, 1, "lowerarm01.R") + FWD * 0.03
     ca = Contact(0, P.arm_dofs(pa, aa, "L"), eff_a, Fixed(M, np.array([1.0, 0.0, 0.0])),
                  clearance=0.012, weight=w_a, region=hand_region(cast, 0, "L"), eff_normal=n_a,
+                 poles=[(pa.j("lowerarm01.L"), np.zeros(3), _pole_body(cast, 0, elbow_a), 0.6)],
                  name="hand.L->hand.R", refine=False)
     cb = Contact(1, P.arm_dofs(pb, ab, "R"), eff_b, Anchor(eff_a[0], eff_a[1], n_a),
                  clearance=0.0, weight=w_b, region=hand_region(cast, 1, "R"), eff_normal=n_b,
+                 poles=[(pb.j("lowerarm01.R"), np.zeros(3), _pole_body(cast, 1, elbow_b), 0.6)],
                  anchor_region=hand_region(cast, 0, "L"), name="hand.R->hand.L")
     return Scene([ta, tb], [ca, cb], movable=1, contact_hint=(0.4, 0.75))
 
 
 def posing(cast: Cast) -> Scene:
+    """Side by side for a photo, the actor rests the left hand on top of the receiver's near
+    (right) shoulder, elbow out behind them; the receiver stands. (An arm across the shoulders
+    to the far one, with the receiver's arm around the actor's waist, put the crossing arms
+    through the other's neck and back.)"""
     rng, u, N = cast.rng, cast.u, cast.N
     (pa, pb), (aa, ab) = cast.people, cast.an
-    s = 0.5 * (_shoulder_width(aa, pa) + _shoulder_width(ab, pb)) + rng.uniform(0.12, 0.18)
+    s = 0.5 * (_shoulder_width(aa, pa) + _shoulder_width(ab, pb)) + rng.uniform(0.26, 0.32)
     base = [P.standing(p, a, rng) for p, a in zip(cast.people, cast.an, strict=True)]
     ta = place(pa, (0, -s / 2), (1, 0), N, base[0])
     tb = place(pb, (0, s / 2), (1, 0), N, base[1])
     w_a = pulse(u, 0.06, 0.36, 0.8, 0.97)
-    w_b = pulse(u, 0.1, 0.4, 0.78, 0.95)
-    ta.pose = living(cast, 0, base[0], 0.4)
+    lean = P.bend(pa, base[0], P.SPINE, -FWD * 0.08)
+    ta.pose = living(cast, 0, blend(base[0], lean, w_a), 0.4)
     tb.pose = living(cast, 1, base[1], 0.4)
-    # actor: left arm over the partner's shoulders, hand on their far (left) shoulder
-    anc_a = _anchor(cast, 1, base[1], "clavicle.L", _joint0(cast, 1, "upperarm01.L") - LEFT * 0.04, UP)
+    shoulder = _joint0(cast, 1, "upperarm01.R") + LEFT * 0.02
+    anc_a = _anchor(cast, 1, base[1], "clavicle.R", shoulder, UP)
     eff, nrm = palm(cast, 0, "L")
-    neck_back = _joint0(cast, 1, "neck01") - FWD * 0.14 + UP * 0.02
+    elbow = _joint0(cast, 1, "upperarm01.R") - LEFT * 0.12 + FWD * -0.14 - UP * 0.08
     ca = Contact(0, P.arm_dofs(pa, aa, "L"), eff, anc_a, clearance=0.012, weight=w_a,
                  region=hand_region(cast, 0, "L"), eff_normal=nrm,
-                 poles=[(pa.j("lowerarm01.L"), np.zeros(3), _pole_body(cast, 1, neck_back), 0.3)],
-                 name="hand.L->shoulder.L")
-    # receiver: right arm around the actor's waist, hand on their far (right) hip
-    hip = _joint0(cast, 0, "upperleg01.R") + UP * 0.1
-    anc_b = _anchor(cast, 0, base[0], "root", hip, -LEFT)
-    eff, nrm = palm(cast, 1, "R")
-    waist_back = _joint0(cast, 0, "spine05") - FWD * 0.2
-    cb = Contact(1, P.arm_dofs(pb, ab, "R"), eff, anc_b, clearance=0.012, weight=w_b,
-                 region=hand_region(cast, 1, "R"), eff_normal=nrm,
-                 poles=[(pb.j("lowerarm01.R"), np.zeros(3), _pole_body(cast, 0, waist_back), 0.3)],
-                 name="hand.R->hip.R")
-    return Scene([ta, tb], [ca, cb], movable=1, contact_hint=(0.42, 0.75))
+                 anchor_region=_region(cast, 1, ("clavicle", "shoulder", "upperarm"), "R"),
+                 poles=[(pa.j("lowerarm01.L"), np.zeros(3), _pole_body(cast, 1, elbow), 0.3)],
+                 name="hand.L->shoulder.R")
+    return Scene([ta, tb], [ca], movable=1, contact_hint=(0.42, 0.75))
 
 
 SCENES = {

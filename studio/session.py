@@ -5,7 +5,8 @@ annotation, the ground truth and a contact sheet; finally the recipe.
 Ground truth (``<out>/gt/``, never read by the pipeline):
 
 - ``gt/session.json``: seed, plan, per-sequence facts (who wears the markers, contact frames,
-  measured contact gaps and interpenetration), the studio's source hash;
+  the deepest true interpenetration by ``studio.contact.interpenetration``), the studio's
+  source hash;
 - ``gt/subjects/<id>.npz``: ``betas (S,)``, ``phenotypes (6,)``, ``local_changes (L,)``,
   the scan's pose (``scan_R (3, 3)``, ``scan_T (3,)``, pose 0) and ``scan_vertices (V, 3)``;
   ``gt/subjects/<id>_markers.json``: the subject's true marker placement (body.markers JSON);
@@ -25,7 +26,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -47,7 +48,7 @@ from formats.chi3d import write_joints3d_25
 from formats.video import write_mp4
 from studio import constants as C
 from studio import plan as PL
-from studio.contact import annotate
+from studio.contact import annotate, interpenetration
 from studio.kin import UP, yaw
 from studio.mocap import observe_markers
 from studio.motion import Track, make_timeline, synthesize
@@ -127,9 +128,28 @@ def place_pair(tracks: list[Track], people, R_pair: np.ndarray, t_pair: np.ndarr
     return out
 
 
-def generate_sequence(out: Path, plan: PL.SessionPlan, seq: PL.SequencePlan, model, subjects,
-                      cams, renderer: Renderer, markersets, reg25, regions) -> dict:
-    t0 = time.time()
+@dataclass
+class SequenceMotion:
+    """The true motion of one sequence, on the master (mocap) timeline. order: the two
+    subjects, person 0 = the marker wearer (CHI3D); tracks: their tracks, same order, placed in
+    the studio; cast, scene: what built them (roles: 0 = actor); rng: the sequence's random
+    stream, advanced past the motion (markers and annotation draw from it next)."""
+
+    order: list
+    tracks: list[Track]
+    cast: Cast
+    scene: object
+    rng: np.random.Generator
+
+    @property
+    def video_samples(self) -> np.ndarray:
+        return self.cast.tl.video_samples
+
+
+def sequence_motion(plan: PL.SessionPlan, seq: PL.SequencePlan, subjects) -> SequenceMotion:
+    """Synthesize the motion of one sequence (no rendering, no files): the scenario's nominal
+    motion, its contacts solved by IK and the bodies kept apart, then the pair placed at a random
+    heading and shift."""
     rng = np.random.default_rng([plan.seed, 100 + seq.index])
     tl = make_timeline(seq.frames, plan.fps, plan.mocap_hz, plan.sync_offset_s)
     by_id = {s.id: s for s in subjects}
@@ -138,15 +158,21 @@ def generate_sequence(out: Path, plan: PL.SessionPlan, seq: PL.SequencePlan, mod
     cast = Cast([actor.person, receiver.person], [anatomy(actor.person), anatomy(receiver.person)],
                 tl, rng)
     scene = SCENES[seq.scenario](cast)
-    vs = tl.video_samples
-    tracks, rep = synthesize(cast.people, scene.nominal, scene.contacts, scene.movable, vs)
+    tracks, _ = synthesize(cast.people, scene.nominal, scene.contacts, scene.movable, tl.video_samples)
     ang = rng.uniform(0, 2 * np.pi)
     shift = np.array([*rng.uniform(-1, 1, 2) * C.PAIR_SHIFT_M, 0.0])
     tracks = place_pair(tracks, cast.people, yaw(ang), shift)
     role_of = {actor.id: 0, receiver.id: 1}
-    # person order of the ground truth: 0 = marker wearer (CHI3D)
     order = [by_id[seq.markers_on], by_id[seq.partner]]
-    trk = [tracks[role_of[s.id]] for s in order]
+    return SequenceMotion(order, [tracks[role_of[s.id]] for s in order], cast, scene, rng)
+
+
+def generate_sequence(out: Path, plan: PL.SessionPlan, seq: PL.SequencePlan, model, subjects,
+                      cams, renderer: Renderer, markersets, reg25, regions) -> dict:
+    t0 = time.time()
+    mo = sequence_motion(plan, seq, subjects)
+    cast, scene, rng, order, trk = mo.cast, mo.scene, mo.rng, mo.order, mo.tracks
+    vs = mo.video_samples
     F = seq.frames
     outs = [forward(model, s.betas, t.pose[vs], t.R[vs], t.T[vs], rest=s.person.rest)
             for s, t in zip(order, trk, strict=True)]
@@ -211,7 +237,8 @@ def generate_sequence(out: Path, plan: PL.SessionPlan, seq: PL.SequencePlan, mod
         "markers_on": seq.markers_on, "partner": seq.partner, "actor": plan.subjects[seq.actor],
         "scenario": seq.scenario, "frames": F, "contact_start": ct.start, "contact_end": ct.end,
         "contact_frame": ct.fr_id, "signature_pairs": int(len(ct.faces)),
-        "max_penetration_mm": float(max(0.0, -ct.min_dist.min()) * 1000),
+        "max_penetration_mm": round(1000 * max(interpenetration(verts[0][f], verts[1][f], model.faces)[0]
+                                               for f in range(F)), 2),
         "seconds": round(time.time() - t0, 1),
     }
     _log(f"{seq.seq_id}: {F} frames, contact {ct.start}..{ct.end} (frame {ct.fr_id}, "
@@ -318,7 +345,7 @@ def generate(out: str | Path, plan: PL.SessionPlan) -> Path:
         sig = signature_json(seqs, [c for s, c in zip(plan.sequences, cts, strict=True) if s.group == g],
                              regions)
         (out / g / "interaction_contact_signature.json").write_text(json.dumps(sig))
-    meta = {"plan": _plan_dict(plan), "sequences": infos, "studio_source": source_hash(),
+    meta = {"plan": plan_dict(plan), "sequences": infos, "studio_source": source_hash(),
             "seconds": round(time.time() - t0, 1)}
     (out / "gt" / "session.json").write_text(json.dumps(meta, indent=1))
     recipe = out / "recipe.yaml"
@@ -327,10 +354,11 @@ def generate(out: str | Path, plan: PL.SessionPlan) -> Path:
     return recipe
 
 
-def _plan_dict(plan: PL.SessionPlan) -> dict:
+def plan_dict(plan: PL.SessionPlan) -> dict:
+    """The plan as stored in ``gt/session.json`` (JSON types)."""
     d = asdict(plan)
     d["sequences"] = [asdict(s) for s in plan.sequences]
-    return d
+    return json.loads(json.dumps(d))
 
 
 def write_recipe(path: Path, recipe: dict, header: str = "") -> Path:
