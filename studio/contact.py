@@ -125,3 +125,44 @@ def interpenetration(V0: np.ndarray, V1: np.ndarray, faces: np.ndarray) -> tuple
             if np.sqrt(d2[k]) > best[0]:
                 best = (float(np.sqrt(d2[k])), a, int(inside[k]))
     return best
+
+
+@dataclass(frozen=True)
+class MotionCheck:
+    """What a synthesized motion achieved. depth: (F,) deepest true interpenetration per video
+    frame, metres (:func:`interpenetration`); gaps: {contact name: (H,) signed distance from the
+    effector region to the other body at each video frame where the contact is fully held
+    (weight > 0.98), metres; negative = pressed in}."""
+
+    depth: np.ndarray
+    gaps: dict
+
+    def touching(self, name: str) -> float:
+        """Fraction of the held frames of contact ``name`` where the surfaces touch
+        (gap < constants.TOUCH_M)."""
+        g = self.gaps[name]
+        return float(np.mean(g < C.TOUCH_M)) if len(g) else 0.0
+
+
+def check_motion(model, motion) -> MotionCheck:
+    """Measure a :class:`studio.session.SequenceMotion` on its video frames: interpenetration of
+    the two bodies and, for each contact of its scene, the gap while it is held."""
+    import igl
+
+    from body import forward
+
+    vs = motion.video_samples
+    V = [forward(model, s.betas, t.pose[vs], t.R[vs], t.T[vs], rest=s.person.rest).vertices
+         for s, t in zip(motion.order, motion.tracks, strict=True)]
+    faces = np.asarray(model.faces)
+    depth = np.array([interpenetration(V[0][f], V[1][f], faces)[0] for f in range(len(vs))])
+    cast_people = motion.cast.people
+    person_of_role = [next(i for i, s in enumerate(motion.order) if s.person is p) for p in cast_people]
+    gaps = {}
+    for k, c in enumerate(motion.scene.contacts):
+        held = np.flatnonzero(c.weight[vs] > 0.98)
+        me, other = person_of_role[c.who], person_of_role[1 - c.who]
+        g = [igl.signed_distance(V[me][f][c.region].astype(float), V[other][f].astype(float),
+                                 faces)[0].min() for f in held]
+        gaps[c.name if c.name not in gaps else f"{c.name}#{k}"] = np.array(g)
+    return MotionCheck(depth, gaps)

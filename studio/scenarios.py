@@ -317,7 +317,12 @@ def kick(cast: Cast) -> Scene:
     ta.pose = living(cast, 0, blend(base[0], balance, pulse(u, 0.1, 0.4, 0.55, 0.85)), 0.5)
     flinch = ramp(u, 0.46, 0.6) * (1 - ramp(u, 0.75, 0.97))
     away = P.bend(pb, base[1], P.SPINE, LEFT * 0.2 - UP * 0.15)
-    tb.pose = living(cast, 1, blend(base[1], away, flinch), 0.6)
+    # the receiver raises the hands in front of the chest as the kick comes (off the thigh)
+    guard = base[1]
+    for side, sgn in (("L", 1.0), ("R", -1.0)):
+        guard = P.arm_directions(pb, ab, guard, side, -UP * 0.6 + LEFT * sgn * 0.5 + FWD * 0.3, 2.0)
+    w_guard = pulse(u, 0.05, 0.3, 0.7, 0.95)
+    tb.pose = living(cast, 1, blend(blend(base[1], guard, w_guard), away, flinch), 0.6)
     mid = 0.5 * (_joint0(cast, 1, "upperleg01.L") + _joint0(cast, 1, "lowerleg01.L"))
     anc = _anchor(cast, 1, base[1], "upperleg01.L", mid, LEFT + FWD * 0.8)
     c = Contact(0, P.leg_dofs(pa, aa, "R"), (pa.j("foot.R"), aa.instep_offset["R"]), anc,
@@ -401,10 +406,12 @@ def posing(cast: Cast) -> Scene:
     lean = P.bend(pa, base[0], P.SPINE, -FWD * 0.08)
     ta.pose = living(cast, 0, blend(base[0], lean, w_a), 0.4)
     tb.pose = living(cast, 1, base[1], 0.4)
-    shoulder = _joint0(cast, 1, "upperarm01.R") + LEFT * 0.02
+    # on the outer top of the shoulder, the elbow out behind: the fingers lie forward over the
+    # shoulder, away from the partner's neck
+    shoulder = _joint0(cast, 1, "upperarm01.R") - LEFT * 0.03
     anc_a = _anchor(cast, 1, base[1], "clavicle.R", shoulder, UP)
     eff, nrm = palm(cast, 0, "L")
-    elbow = _joint0(cast, 1, "upperarm01.R") - LEFT * 0.12 + FWD * -0.14 - UP * 0.08
+    elbow = _joint0(cast, 1, "upperarm01.R") - LEFT * 0.06 - FWD * 0.2 - UP * 0.1
     ca = Contact(0, P.arm_dofs(pa, aa, "L"), eff, anc_a, clearance=0.012, weight=w_a,
                  region=hand_region(cast, 0, "L"), eff_normal=nrm,
                  anchor_region=_region(cast, 1, ("clavicle", "shoulder", "upperarm"), "R"),

@@ -1,0 +1,61 @@
+"""The true motion of every one of the paper's eight interaction classes, synthesized without
+rendering (``studio.session.sequence_motion``) and measured by ``studio.contact.check_motion``:
+the planned contact really happens (the effector's surface touches the other body while the
+contact is held) and the bodies never pass through each other (libigl winding number, a
+measure independent of the synthesis' own).
+
+A seed and length that none of the committed presets uses, so the scenarios are not tuned to
+the sessions they were looked at on."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.slow
+
+SEED, FRAMES = 5, 60
+
+
+@pytest.fixture(scope="module")
+def studio_model():
+    from body import load_model
+    from studio import plan as PL
+    from studio.subjects import make_subjects
+
+    model = load_model("anny")
+    plan = PL.make_plan(SEED, FRAMES, tuple(PL.SCENARIOS))
+    subjects = make_subjects(model, plan.subjects, np.random.default_rng([plan.seed, 2]))
+    return model, plan, subjects
+
+
+# Known failures, kept visible (strict: the test fails once they pass, so the mark comes off):
+_OPEN = "issue #5 open: "
+SCENARIOS = [
+    "grab", "handshake", "hit",
+    pytest.param("holding_hands", marks=pytest.mark.xfail(strict=True, reason=_OPEN + (
+        "the hanging hands' palms are pressed front to back; near the end of the hold the "
+        "solver lets one hand slide onto the other's wrist (11 mm here, 24 mm at seed 3 / 100 "
+        "frames)"))),
+    "hug",
+    pytest.param("kick", marks=pytest.mark.xfail(strict=True, reason=_OPEN + (
+        "the big toe grazes the thigh for one frame of the approach (6.5 mm)"))),
+    "posing", "push",
+]
+
+
+@pytest.mark.parametrize("scenario", SCENARIOS)
+def test_interaction_class_touches_without_interpenetrating(studio_model, scenario):
+    from studio.contact import check_motion
+    from studio.session import sequence_motion
+
+    model, plan, subjects = studio_model
+    seq = next(s for s in plan.sequences if s.scenario == scenario)
+    mo = sequence_motion(plan, seq, subjects)
+    chk = check_motion(model, mo)
+    assert chk.depth.max() < 5e-3, (scenario, int(chk.depth.argmax()), chk.depth.max())
+    assert len(chk.gaps) == len(mo.scene.contacts) >= 1
+    for name, g in chk.gaps.items():
+        # a hit lands and the receiver recoils: most, not all, of the held frames touch
+        assert len(g) >= 5, (scenario, name)
+        assert chk.touching(name) >= 0.75, (scenario, name, np.round(g * 1000, 1))
+        assert g.min() > -5e-3, (scenario, name, np.round(g * 1000, 1))
