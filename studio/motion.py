@@ -147,8 +147,9 @@ def anchor_at(person: Person, pose: np.ndarray, point_body: np.ndarray, joint: i
 @dataclass
 class Contact:
     """Person ``who`` puts ``effector`` (joint, offset (3,) in its frame) on ``anchor`` of the
-    other person (an :class:`Anchor`, or a :class:`Fixed` world target), at ``clearance`` metres outside the anchor along its normal (the effector's
-    own thickness; refined on the true surfaces). weight: (N,) in [0, 1] on the master
+    other person (an :class:`Anchor`, or a :class:`Fixed` world target), at ``clearance`` metres
+    outside the anchor along its normal (the effector's own thickness; refined on the true
+    surfaces; a float, or (N,) over the master timeline, e.g. to come in and leave from above). weight: (N,) in [0, 1] on the master
     timeline (1 = in contact). eff_normal: optional (3,) outward normal of the effector surface
     in its frame, turned to face the anchor (orient_weight). poles: extra goals
     ``(joint, offset, fn(i, tracks) -> (3,) world target at master sample i, weight)`` (e.g. an
@@ -192,13 +193,14 @@ def _solve_contacts(people: list[Person], tracks: list[Track], nominal: list[Tra
         if not len(idx):
             continue
         a_pt, a_n = c.anchor.world(people[other], tracks[other], idx)
+        clear = np.broadcast_to(np.asarray(c.clearance, float), (N,))
         joint, off = c.effector
         t0, G0 = P.fk(nom.pose[idx], nom.R[idx], nom.T[idx])
         e_nom = t0[:, joint] + G0[:, joint] @ off
         prev = None
         for k, i in enumerate(idx):
             w = c.weight[i]
-            tgt = a_pt[k] + a_n[k] * (c.clearance + c.adjust[i])
+            tgt = a_pt[k] + a_n[k] * (clear[i] + c.adjust[i])
             goal = (1 - w) * e_nom[k] + w * tgt
             goals = [Goal(joint, tuple(off), tuple(goal), 1.0)]
             if c.eff_normal is not None and c.orient_weight > 0 and w > 0.05:

@@ -317,16 +317,18 @@ def kick(cast: Cast) -> Scene:
     ta.pose = living(cast, 0, blend(base[0], balance, pulse(u, 0.1, 0.4, 0.55, 0.85)), 0.5)
     flinch = ramp(u, 0.46, 0.6) * (1 - ramp(u, 0.75, 0.97))
     away = P.bend(pb, base[1], P.SPINE, LEFT * 0.2 - UP * 0.15)
-    # the receiver raises the hands in front of the chest as the kick comes (off the thigh)
-    guard = base[1]
-    for side, sgn in (("L", 1.0), ("R", -1.0)):
-        guard = P.arm_directions(pb, ab, guard, side, -UP * 0.6 + LEFT * sgn * 0.5 + FWD * 0.3, 2.0)
+    # the receiver swings the arm on the kicked side out and back (off the thigh, out of the
+    # leg's way; hands raised in front were hit by a tall kicker's shin)
+    guard = P.arm_directions(pb, ab, base[1], "L", -UP * 0.4 + LEFT * 0.9 - FWD * 0.35, 0.5)
     w_guard = pulse(u, 0.05, 0.3, 0.7, 0.95)
     tb.pose = living(cast, 1, blend(blend(base[1], guard, w_guard), away, flinch), 0.6)
     mid = 0.5 * (_joint0(cast, 1, "upperleg01.L") + _joint0(cast, 1, "lowerleg01.L"))
     anc = _anchor(cast, 1, base[1], "upperleg01.L", mid, LEFT + FWD * 0.8)
+    # the foot swings in aimed a few cm off the thigh and closes in at the end (aimed straight
+    # at the contact, the big toe grazed the thigh on the way)
+    off = 0.01 + 0.04 * (1 - ramp(u, 0.3, 0.42))
     c = Contact(0, P.leg_dofs(pa, aa, "R"), (pa.j("foot.R"), aa.instep_offset["R"]), anc,
-                clearance=0.01, weight=w, region=aa.foot_vertices["R"], name="foot.R->thigh.L")
+                clearance=off, weight=w, region=aa.foot_vertices["R"], name="foot.R->thigh.L")
     return Scene([ta, tb], [c], movable=1, contact_hint=(0.43, 0.5))
 
 
@@ -405,14 +407,22 @@ def posing(cast: Cast) -> Scene:
     w_a = pulse(u, 0.06, 0.36, 0.8, 0.97)
     lean = P.bend(pa, base[0], P.SPINE, -FWD * 0.08)
     ta.pose = living(cast, 0, blend(base[0], lean, w_a), 0.4)
-    tb.pose = living(cast, 1, base[1], 0.4)
+    # the receiver poses with the hands together in front (a hanging near arm was in the way
+    # of the actor's hand going up to the shoulder)
+    front = base[1]
+    for side, sgn in (("L", 1.0), ("R", -1.0)):
+        front = P.arm_directions(pb, ab, front, side, -UP + FWD * 0.5 - LEFT * sgn * 0.05, 1.1)
+    tb.pose = living(cast, 1, front, 0.4)
     # on the outer top of the shoulder, the elbow out behind: the fingers lie forward over the
     # shoulder, away from the partner's neck
     shoulder = _joint0(cast, 1, "upperarm01.R") - LEFT * 0.03
     anc_a = _anchor(cast, 1, base[1], "clavicle.R", shoulder, UP)
     eff, nrm = palm(cast, 0, "L")
     elbow = _joint0(cast, 1, "upperarm01.R") - LEFT * 0.06 - FWD * 0.2 - UP * 0.1
-    ca = Contact(0, P.arm_dofs(pa, aa, "L"), eff, anc_a, clearance=0.012, weight=w_a,
+    # the hand comes down onto the shoulder from above and lifts off before it goes (sliding
+    # along the partner's upper arm grazed it)
+    above = 0.012 + 0.06 * (1 - ramp(u, 0.26, 0.42)) + 0.06 * ramp(u, 0.8, 0.88)
+    ca = Contact(0, P.arm_dofs(pa, aa, "L"), eff, anc_a, clearance=above, weight=w_a,
                  region=hand_region(cast, 0, "L"), eff_normal=nrm,
                  anchor_region=_region(cast, 1, ("clavicle", "shoulder", "upperarm"), "R"),
                  poles=[(pa.j("lowerarm01.L"), np.zeros(3), _pole_body(cast, 1, elbow), 0.3)],
