@@ -4,8 +4,9 @@ the planned contact really happens (the effector's surface touches the other bod
 contact is held) and the bodies never pass through each other (libigl winding number, a
 measure independent of the synthesis' own).
 
-A seed and length that none of the committed presets uses, so the scenarios are not tuned to
-the sessions they were looked at on."""
+A seed and length that none of the committed presets uses (seed 3 is the demo's, 11 the
+bench's). Honesty note: posing and kick were redesigned while looking at this seed too, so it
+is no longer unseen for them; ``python -m bench studio`` measures all classes on seed 11."""
 from __future__ import annotations
 
 import numpy as np
