@@ -149,8 +149,8 @@ class Contact:
     """Person ``who`` puts ``effector`` (joint, offset (3,) in its frame) on ``anchor`` of the
     other person (an :class:`Anchor`, or a :class:`Fixed` world target), at ``clearance`` metres
     outside the anchor along its normal (the effector's own thickness; refined on the true
-    surfaces; a float, or (N,) over the master timeline, e.g. to come in and leave from above). weight: (N,) in [0, 1] on the master
-    timeline (1 = in contact). eff_normal: optional (3,) outward normal of the effector surface
+    surfaces; a float, or (N,) over the master timeline, e.g. to come in and leave from
+    above). weight: (N,) in [0, 1] on the master timeline (1 = in contact). eff_normal: optional (3,) outward normal of the effector surface
     in its frame, turned to face the anchor (orient_weight). poles: extra goals
     ``(joint, offset, fn(i, tracks) -> (3,) world target at master sample i, weight)`` (e.g. an
     elbow kept outside the partner). region: (n,) vertex ids of the effector's body part (for gap

@@ -357,9 +357,11 @@ def grab(cast: Cast) -> Scene:
 
 
 def holding_hands(cast: Cast) -> Scene:
-    """Side by side, the actor's left and the receiver's right hand hang between them, palms
-    pressed together (palms facing across, fingers down), swinging. (Palms facing front/back
-    made the two forearms cross.)"""
+    """Side by side, the actor's left and the receiver's right hand meet between them, the
+    actor's palm facing back and the receiver's forward, swinging; each elbow is held on its own
+    side (poles), so the forearms meet in a V and the hands cross like an X. (Without the poles
+    the forearms crossed; palms facing across made the wrists collide.) Still interpenetrates
+    late in the hold on some seeds: issue #5."""
     rng, u, N = cast.rng, cast.u, cast.N
     (pa, pb), (aa, ab) = cast.people, cast.an
     # far enough apart that the forearms meet in a V (wrists clear of each other)
@@ -395,7 +397,8 @@ def holding_hands(cast: Cast) -> Scene:
 
 def posing(cast: Cast) -> Scene:
     """Side by side for a photo, the actor rests the left hand on top of the receiver's near
-    (right) shoulder, elbow out behind them; the receiver stands. (An arm across the shoulders
+    (right) shoulder, elbow out behind them; the receiver holds the hands together in front. (An
+    arm across the shoulders
     to the far one, with the receiver's arm around the actor's waist, put the crossing arms
     through the other's neck and back.)"""
     rng, u, N = cast.rng, cast.u, cast.N
