@@ -70,6 +70,13 @@ def _judged(kp, tr, p, min_conf):
         & np.all(np.isfinite(tr[:, :, q]), -1)
 
 
+def _body_only(kp: np.ndarray, truth_uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The body keypoints of detections and truth (float64) and the left/right mirror index
+    among them."""
+    return (np.asarray(kp, dtype=np.float64)[..., layout.BODY, :],
+            np.asarray(truth_uv, dtype=np.float64)[..., layout.BODY, :], layout.FLIP[layout.BODY])
+
+
 def identity_swaps(kp: np.ndarray, truth_uv: np.ndarray, min_conf: float = K.MIN_CONF,
                    min_kp: int = 4) -> np.ndarray:
     """(C, F) bool: in that view and frame a person's body keypoints lie nearer (median) the
@@ -79,9 +86,7 @@ def identity_swaps(kp: np.ndarray, truth_uv: np.ndarray, min_conf: float = K.MIN
     kp : (C, F, 2, K, 3); truth_uv : (C, F, 2, K, 2). A person with fewer than ``min_kp``
     confident body keypoints (with finite truth for both people) is not judged.
     """
-    kp = np.asarray(kp, dtype=np.float64)[..., layout.BODY, :]
-    tr = np.asarray(truth_uv, dtype=np.float64)[..., layout.BODY, :]
-    flip = layout.FLIP[layout.BODY]
+    kp, tr, flip = _body_only(kp, truth_uv)
     swaps = np.zeros(kp.shape[:2], bool)
     for p in (0, 1):
         ok = _judged(kp, tr, p, min_conf)
@@ -99,9 +104,7 @@ def lr_flips(kp: np.ndarray, truth_uv: np.ndarray, min_conf: float = K.MIN_CONF,
     (left and right labels swapped: median error under half that as labelled; in profile views
     both readings fit about as well and nothing is counted), and are not an identity swap."""
     swapped = identity_swaps(kp, truth_uv, min_conf=min_conf, min_kp=min_kp)
-    kp = np.asarray(kp, dtype=np.float64)[..., layout.BODY, :]
-    tr = np.asarray(truth_uv, dtype=np.float64)[..., layout.BODY, :]
-    flip = layout.FLIP[layout.BODY]
+    kp, tr, flip = _body_only(kp, truth_uv)
     out = np.zeros(kp.shape[:3], bool)
     for p in (0, 1):
         ok = _judged(kp, tr, p, min_conf)
