@@ -109,9 +109,11 @@ PAIR_SHIFT_M = 0.25
 #: Scan: random heading, shift (metres) of the subject in the scanner's frame.
 SCAN_SHIFT_M = 0.3
 #: After the passes: where a limb is still deeper than PENETRATION_MAX_M inside the other
-#: body, its target is moved out by that depth, up to RETREAT_ROUNDS times.
+#: body, its repulsion goals are made stronger (doubled, up to REPEL_GAIN_MAX times their
+#: weight), then its target is moved out by that depth; RETREAT_ROUNDS rounds in all.
 PENETRATION_MAX_M = 0.003
-RETREAT_ROUNDS = 4
+RETREAT_ROUNDS = 6
+REPEL_GAIN_MAX = 4.0
 #: Over-relaxation of the gap corrections (the IK follows a moved target only partly).
 REFINE_GAIN = 1.3
 LIMB_NEAR_M = 0.03

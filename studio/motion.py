@@ -168,11 +168,12 @@ class Contact:
     poles: list = field(default_factory=list)
     name: str = ""
     anchor_region: np.ndarray | None = None
-    refine: bool = True
+    refine: bool = True  # measure the true gap and correct the target (False: fixed target)
     chain_vertices: np.ndarray | None = None  # vertices moved by the IK joints (set by synthesize)
     vertex_bone: np.ndarray | None = None  # (V,) dominant bone of each vertex (set by synthesize)
-    repel: dict = field(default_factory=dict)  # sample -> {key: (joint, offset, world target)}  # measure the true gap and correct the target (False: fixed target)
+    repel: dict = field(default_factory=dict)  # sample -> {key: (joint, offset, world target)}
     adjust: np.ndarray | None = None  # (N,) learned clearance corrections
+    repel_gain: np.ndarray | None = None  # (N,) weight factor of the repulsion goals
 
 
 def _solve_contacts(people: list[Person], tracks: list[Track], nominal: list[Track],
@@ -187,6 +188,8 @@ def _solve_contacts(people: list[Person], tracks: list[Track], nominal: list[Tra
         P, tr, nom = people[me], tracks[me], nominal[me]
         if c.adjust is None:
             c.adjust = np.zeros(N)
+        if c.repel_gain is None:
+            c.repel_gain = np.ones(N)
         idx = np.flatnonzero(c.weight > 1e-4)
         if active is not None:
             idx = idx[active[idx]]
@@ -212,7 +215,7 @@ def _solve_contacts(people: list[Person], tracks: list[Track], nominal: list[Tra
                 goals.append(Goal(pj, tuple(poff), tuple(fn(i, tracks)), pw * w))
             for bj, boff, banc in c.repel.get(i, {}).values():
                 btarget = banc.world(people[other], tracks[other], np.array([i]))[0][0]
-                goals.append(Goal(bj, tuple(boff), tuple(btarget), C.REPEL_WEIGHT))
+                goals.append(Goal(bj, tuple(boff), tuple(btarget), C.REPEL_WEIGHT * c.repel_gain[i]))
             start = tr.pose[i] if (prev is None or warm_pass) else _carry(tr.pose[i], prev, c.dofs)
             sol = solve_ik(P, start, tr.R[i], tr.T[i], goals, c.dofs, nominal=nom.pose[i],
                            iters=C.IK_ITERS)
@@ -424,12 +427,14 @@ def _synthesize(people, nominal, contacts, movable, passes, check_samples):
     chain_any = [np.zeros(people[i].model.num_vertices, bool) for i in range(2)]
     for c in contacts:
         c.adjust = np.zeros(N)
+        c.repel_gain = np.ones(N)
         c.repel = {}
         c.vertex_bone = dom
         moved = {d.joint for d in c.dofs}
         sub = np.array([any(_is_desc(j, m, par) for m in moved) for j in range(len(par))])
         c.chain_vertices = np.flatnonzero(sub[dom])
         chain_any[c.who][c.chain_vertices] = True
+    off_region = [np.setdiff1d(c.chain_vertices, c.region) for c in contacts]
     report = None
     todo = np.ones(N, bool)
     faces = people[0].model.faces
@@ -438,6 +443,7 @@ def _synthesize(people, nominal, contacts, movable, passes, check_samples):
     spread = int(np.min(np.diff(check_samples))) - 1 if len(check_samples) > 1 else 0
     gaps = np.full((len(contacts), N), np.nan)
     limb = np.full((len(contacts), N), np.inf)  # deepest point of each contact's limb
+    arm = np.full((len(contacts), N), np.inf)  # ... of the limb without the effector's part
     pen = np.zeros(N)
 
     def measure(only=None):
@@ -449,6 +455,7 @@ def _synthesize(people, nominal, contacts, movable, passes, check_samples):
         clear = check if only is None else check & only
         gaps[:, clear] = np.nan
         limb[:, clear] = np.inf
+        arm[:, clear] = np.inf
         pen[clear] = 0.0
         idx = np.flatnonzero(sel)
         need = np.zeros((N, 3))
@@ -459,6 +466,7 @@ def _synthesize(people, nominal, contacts, movable, passes, check_samples):
             d, cp = pair_distances(V[0], V[1], faces, normals)
             for ci, c in enumerate(contacts):
                 limb[ci, i] = d[c.who][c.chain_vertices].min()
+                arm[ci, i] = d[c.who][off_region[ci]].min(initial=np.inf)
                 if c.weight[i] > 0.05 and c.refine:
                     g = d[c.who][c.region].min()
                     if c.anchor_region is not None:
@@ -534,9 +542,18 @@ def _synthesize(people, nominal, contacts, movable, passes, check_samples):
                     c.weight = base_w[ci] * scale[ci]
                     todo |= cut < 1
         else:
-            # where a limb is still inside the other body: aim further out there
+            # where a limb is still inside the other body: first push it out harder (the hand
+            # stays on its target), then aim further out there (the hand lifts off)
             for ci, c in enumerate(contacts):
                 bad = (limb[ci] < -C.PENETRATION_MAX_M) & check
+                # (only where the limb away from the effector is inside: where the effector
+                # itself is, its target is what is wrong)
+                stiffen = bad & (arm[ci] < -C.PENETRATION_MAX_M) & (c.repel_gain < C.REPEL_GAIN_MAX)
+                if stiffen.any():
+                    grown = _grow_mask(stiffen, spread + 1)
+                    c.repel_gain[grown] = np.minimum(c.repel_gain[grown] * 2.0, C.REPEL_GAIN_MAX)
+                    todo |= grown
+                    bad &= ~stiffen
                 if bad.any():
                     depth = np.zeros(N)
                     depth[bad] = -limb[ci][bad] + C.SEPARATION_MARGIN_M

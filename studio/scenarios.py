@@ -112,6 +112,28 @@ def with_fingers(cast: Cast, role: int, poses: np.ndarray, side: str, amount: fl
     return out
 
 
+def flat_thumb(cast: Cast, role: int, poses: np.ndarray, side: str, w: np.ndarray) -> np.ndarray:
+    """Lay the thumb of ``side`` into the palm's plane beside the index finger (a flat hand),
+    blended in with weight w (N,): in its rest position the thumb stands off the palm, into
+    whatever the palm holds."""
+    person, an = cast.people[role], cast.an[role]
+    J, n = an.joints0, person.j
+    normal = an.hands[side].normal
+    d = J[n(f"finger1-2.{side}")] - J[n(f"finger1-1.{side}")]
+    d /= np.linalg.norm(d)
+    index = J[n(f"finger2-1.{side}")] - J[n(f"wrist.{side}")]
+    index /= np.linalg.norm(index)
+    spread = d - (d @ normal) * normal - (d @ index) * index
+    t = index + 0.35 * spread / max(np.linalg.norm(spread), 1e-9)
+    t /= np.linalg.norm(t)
+    ax = np.cross(d, t)
+    rot = ax / np.linalg.norm(ax) * np.arccos(np.clip(d @ t, -1.0, 1.0))
+    out = poses.copy()
+    j = n(f"finger1-1.{side}")
+    out[:, j] = poses[:, j] + w[:, None] * rot
+    return out
+
+
 def _shoulder_width(an: Anatomy, person: Person) -> float:
     return float(np.linalg.norm(an.joints0[person.j("upperarm01.L")] - an.joints0[person.j("upperarm01.R")]))
 
@@ -199,7 +221,9 @@ def hug(cast: Cast) -> Scene:
     """Face to face, the taller person's arms go over the partner's shoulders, hands on their
     upper back; the shorter one's arms go under them, hands on the taller one's lower back.
     (The other way round, the shorter person's upper arms went through the taller one's
-    shoulders.) The actor opens their arms and closes the hug first."""
+    shoulders.) The actor opens their arms and closes the hug first. The arms open sideways,
+    the over-arms up and the under-arms down (opened forward, the hands went through the
+    other's forearms before the hug)."""
     rng, u, N = cast.rng, cast.u, cast.N
     (pa, pb), (aa, ab) = cast.people, cast.an
     s = _front(pa, aa) + _front(pb, ab) + rng.uniform(0.0, 0.02)
@@ -208,14 +232,15 @@ def hug(cast: Cast) -> Scene:
     w_lean = pulse(u, 0.05, 0.35, 0.78, 0.97)
     lean = [P.bend(p, P.bend(p, b, P.SPINE, LEFT * 0.12), P.NECK, UP * 0.5 + LEFT * 0.05)
             for p, b in zip(cast.people, base, strict=True)]
-    # arms open first (wide, forward: higher for the arms that go over), then close around
+    # arms open first (wide, sideways: up for the arms that go over, down for the
+    # others, so the opening hands pass above and below each other), then close around
     open_ = []
     for role in (0, 1):
-        up = 0.15 if role == hi else -0.35
+        up = 0.4 if role == hi else -0.5
         o = lean[role]
         for side, sgn in (("L", 1.0), ("R", -1.0)):
             o = P.arm_directions(cast.people[role], cast.an[role], o, side,
-                                 LEFT * sgn * 0.8 + FWD * 0.6 + UP * up, 0.7)
+                                 LEFT * sgn * 0.8 + UP * up, 0.7)
         open_.append(o)
     ta = place(pa, (-s / 2, 0), (1, 0), N, base[0])
     tb = place(pb, (s / 2, 0), (-1, 0), N, base[1])
@@ -356,12 +381,18 @@ def grab(cast: Cast) -> Scene:
     return Scene([ta, tb], [c], movable=1, contact_hint=(0.42, 0.7))
 
 
+HANDS_APART = 0.05  # m: holding hands, how far apart (along the palm normal) the hands come in
+
+
 def holding_hands(cast: Cast) -> Scene:
     """Side by side, the actor's left and the receiver's right hand meet between them, the
     actor's palm facing back and the receiver's forward, swinging; each elbow is held on its own
     side (poles), so the forearms meet in a V and the hands cross like an X. (Without the poles
-    the forearms crossed; palms facing across made the wrists collide.) Still interpenetrates
-    late in the hold on some seeds: issue #5."""
+    the forearms crossed; palms facing across made the wrists collide.) Both thumbs lie flat
+    along the palm (standing off it, they went into the other hand and wrist). The actor's hand
+    arrives first, from the front; the receiver's comes from behind once it is there. Still
+    interpenetrates on some seeds (a tall and a short subject): the forearms cross while the
+    receiver's hand comes and goes, issue #5."""
     rng, u, N = cast.rng, cast.u, cast.N
     (pa, pb), (aa, ab) = cast.people, cast.an
     # far enough apart that the forearms meet in a V (wrists clear of each other)
@@ -369,11 +400,12 @@ def holding_hands(cast: Cast) -> Scene:
     base = [P.standing(p, a, rng) for p, a in zip(cast.people, cast.an, strict=True)]
     ta = place(pa, (0, -s / 2), (1, 0), N, base[0])
     tb = place(pb, (0, s / 2), (1, 0), N, base[1])
-    w_a = pulse(u, 0.05, 0.32, 0.8, 0.97)
-    # the actor lets go first; the receiver's hand stays on the leaving palm, then lets go
-    w_b = pulse(u, 0.08, 0.34, 0.82, 0.99)
-    ta.pose = with_fingers(cast, 0, living(cast, 0, base[0], 0.6), "L", -0.15, w_a)
-    tb.pose = with_fingers(cast, 1, living(cast, 1, base[1], 0.6), "R", -0.15, w_b)
+    # the actor's hand comes first and goes last: the receiver's hand takes it once it is
+    # there and lets go before it leaves (both moving at once, the hands went through each other)
+    w_a = pulse(u, 0.03, 0.25, 0.84, 0.98)
+    w_b = pulse(u, 0.18, 0.36, 0.76, 0.9)
+    ta.pose = flat_thumb(cast, 0, with_fingers(cast, 0, living(cast, 0, base[0], 0.6), "L", -0.15, w_a), "L", w_a)
+    tb.pose = flat_thumb(cast, 1, with_fingers(cast, 1, living(cast, 1, base[1], 0.6), "R", -0.15, w_b), "R", w_b)
     za = _floor_height(ta, pa, pa.j("wrist.L"), aa)
     zb = _floor_height(tb, pb, pb.j("wrist.R"), ab)
     swing = 0.07 * np.sin(2 * np.pi * 0.9 * u * cast.span + rng.uniform(0, 6)) * ramp(u, 0.35, 0.45)
@@ -384,12 +416,15 @@ def holding_hands(cast: Cast) -> Scene:
     # so the forearms meet in a V and the hands cross like an X (wrists apart)
     elbow_a = _joint0(cast, 0, "lowerarm01.L") - FWD * 0.03
     elbow_b = _joint0(cast, 1, "lowerarm01.R") + FWD * 0.03
+    # the actor's hand comes in from the front, the receiver's from behind, and they part the
+    # same way
+    apart = HANDS_APART * ((1 - ramp(u, 0.3, 0.4)) + ramp(u, 0.72, 0.8))
     ca = Contact(0, P.arm_dofs(pa, aa, "L"), eff_a, Fixed(M, np.array([1.0, 0.0, 0.0])),
-                 clearance=0.012, weight=w_a, region=hand_region(cast, 0, "L"), eff_normal=n_a,
+                 clearance=0.012 + apart, weight=w_a, region=hand_region(cast, 0, "L"), eff_normal=n_a,
                  poles=[(pa.j("lowerarm01.L"), np.zeros(3), _pole_body(cast, 0, elbow_a), 0.6)],
                  name="hand.L->hand.R", refine=False)
     cb = Contact(1, P.arm_dofs(pb, ab, "R"), eff_b, Anchor(eff_a[0], eff_a[1], n_a),
-                 clearance=0.0, weight=w_b, region=hand_region(cast, 1, "R"), eff_normal=n_b,
+                 clearance=apart, weight=w_b, region=hand_region(cast, 1, "R"), eff_normal=n_b,
                  poles=[(pb.j("lowerarm01.R"), np.zeros(3), _pole_body(cast, 1, elbow_b), 0.6)],
                  anchor_region=hand_region(cast, 0, "L"), name="hand.R->hand.L")
     return Scene([ta, tb], [ca, cb], movable=1, contact_hint=(0.4, 0.75))
