@@ -404,8 +404,10 @@ def holding_hands(cast: Cast) -> Scene:
     # there and lets go before it leaves (both moving at once, the hands went through each other)
     w_a = pulse(u, 0.03, 0.25, 0.84, 0.98)
     w_b = pulse(u, 0.18, 0.36, 0.76, 0.9)
-    ta.pose = flat_thumb(cast, 0, with_fingers(cast, 0, living(cast, 0, base[0], 0.6), "L", -0.15, w_a), "L", w_a)
-    tb.pose = flat_thumb(cast, 1, with_fingers(cast, 1, living(cast, 1, base[1], 0.6), "R", -0.15, w_b), "R", w_b)
+    ta.pose = flat_thumb(cast, 0, with_fingers(cast, 0, living(cast, 0, base[0], 0.6), "L", -0.15, w_a),
+                         "L", w_a)
+    tb.pose = flat_thumb(cast, 1, with_fingers(cast, 1, living(cast, 1, base[1], 0.6), "R", -0.15, w_b),
+                         "R", w_b)
     za = _floor_height(ta, pa, pa.j("wrist.L"), aa)
     zb = _floor_height(tb, pb, pb.j("wrist.R"), ab)
     swing = 0.07 * np.sin(2 * np.pi * 0.9 * u * cast.span + rng.uniform(0, 6)) * ramp(u, 0.35, 0.45)
