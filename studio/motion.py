@@ -150,8 +150,9 @@ class Contact:
     other person (an :class:`Anchor`, or a :class:`Fixed` world target), at ``clearance`` metres
     outside the anchor along its normal (the effector's own thickness; refined on the true
     surfaces; a float, or (N,) over the master timeline, e.g. to come in and leave from
-    above). weight: (N,) in [0, 1] on the master timeline (1 = in contact). eff_normal: optional (3,) outward normal of the effector surface
-    in its frame, turned to face the anchor (orient_weight). poles: extra goals
+    above). weight: (N,) in [0, 1] on the master timeline (1 = in contact). eff_normal:
+    optional (3,) outward normal of the effector surface in its frame, turned to face the
+    anchor (orient_weight). poles: extra goals
     ``(joint, offset, fn(i, tracks) -> (3,) world target at master sample i, weight)`` (e.g. an
     elbow kept outside the partner). region: (n,) vertex ids of the effector's body part (for gap
     measurement). name: for reports (``"hand.R->back"``)."""
@@ -181,15 +182,12 @@ def _solve_contacts(people: list[Person], tracks: list[Track], nominal: list[Tra
                     warm_pass: bool = False) -> None:
     """Run the IK of every contact over the timeline (in place on tracks), at the samples
     ``active`` (N,) bool (default all). warm_pass: start each sample from its own current
-    solution (a later pass) instead of the previous sample's."""
+    solution (a later pass) instead of the previous sample's. Each contact's ``adjust`` and
+    ``repel_gain`` are set (by :func:`_synthesize`)."""
     N = len(tracks[0].T)
     for c in contacts:
         me, other = c.who, 1 - c.who
         P, tr, nom = people[me], tracks[me], nominal[me]
-        if c.adjust is None:
-            c.adjust = np.zeros(N)
-        if c.repel_gain is None:
-            c.repel_gain = np.ones(N)
         idx = np.flatnonzero(c.weight > 1e-4)
         if active is not None:
             idx = idx[active[idx]]

@@ -434,10 +434,9 @@ def holding_hands(cast: Cast) -> Scene:
 
 def posing(cast: Cast) -> Scene:
     """Side by side for a photo, the actor rests the left hand on top of the receiver's near
-    (right) shoulder, elbow out behind them; the receiver holds the hands together in front. (An
-    arm across the shoulders
-    to the far one, with the receiver's arm around the actor's waist, put the crossing arms
-    through the other's neck and back.)"""
+    (right) shoulder, elbow out behind them; the receiver holds the hands together in front.
+    (An arm across the shoulders to the far one, with the receiver's arm around the actor's
+    waist, put the crossing arms through the other's neck and back.)"""
     rng, u, N = cast.rng, cast.u, cast.N
     (pa, pb), (aa, ab) = cast.people, cast.an
     s = 0.5 * (_shoulder_width(aa, pa) + _shoulder_width(ab, pb)) + rng.uniform(0.26, 0.32)
