@@ -118,6 +118,20 @@ class Fixed:
         return self.points[idx], np.broadcast_to(self.normal, (len(idx), 3))
 
 
+@dataclass(frozen=True)
+class Shifted:
+    """A target moved by a world offset per master sample: ``base`` (an :class:`Anchor` or
+    :class:`Fixed`) plus ``shift`` (N, 3) metres (e.g. a hand held in place while the hand it is
+    anchored to moves away)."""
+
+    base: Anchor | Fixed
+    shift: np.ndarray
+
+    def world(self, person: Person, track: Track, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p, n = self.base.world(person, track, idx)
+        return p + self.shift[idx], n
+
+
 def anchor_at(person: Person, pose: np.ndarray, point_body: np.ndarray, joint: int,
               direction: np.ndarray | None = None) -> Anchor:
     """The anchor on ``person`` (posed by ``pose`` (J, 3) in the body frame) at the surface point
@@ -147,12 +161,12 @@ def anchor_at(person: Person, pose: np.ndarray, point_body: np.ndarray, joint: i
 @dataclass
 class Contact:
     """Person ``who`` puts ``effector`` (joint, offset (3,) in its frame) on ``anchor`` of the
-    other person (an :class:`Anchor`, or a :class:`Fixed` world target), at ``clearance`` metres
-    outside the anchor along its normal (the effector's own thickness; refined on the true
-    surfaces; a float, or (N,) over the master timeline, e.g. to come in and leave from
-    above). weight: (N,) in [0, 1] on the master timeline (1 = in contact). eff_normal:
-    optional (3,) outward normal of the effector surface in its frame, turned to face the
-    anchor (orient_weight). poles: extra goals
+    other person (an :class:`Anchor`, a :class:`Fixed` world target, or either moved by
+    :class:`Shifted`), at ``clearance`` metres outside the anchor along its normal (the
+    effector's own thickness; refined on the true surfaces; a float, or (N,) over the master
+    timeline, e.g. to come in and leave from above). weight: (N,) in [0, 1] on the master
+    timeline (1 = in contact). eff_normal: optional (3,) outward normal of the effector surface
+    in its frame, turned to face the anchor (orient_weight). poles: extra goals
     ``(joint, offset, fn(i, tracks) -> (3,) world target at master sample i, weight)`` (e.g. an
     elbow kept outside the partner). region: (n,) vertex ids of the effector's body part (for gap
     measurement). name: for reports (``"hand.R->back"``)."""
@@ -160,7 +174,7 @@ class Contact:
     who: int
     dofs: list[Dof]
     effector: tuple[int, np.ndarray]
-    anchor: Anchor | Fixed
+    anchor: Anchor | Fixed | Shifted
     clearance: float
     weight: np.ndarray
     region: np.ndarray

@@ -16,7 +16,7 @@ import numpy as np
 from studio import constants as C
 from studio import posture as P
 from studio.kin import FWD, LEFT, UP, Person, heading_rotation
-from studio.motion import Anchor, Contact, Fixed, Timeline, Track, anchor_at, pulse, ramp
+from studio.motion import Anchor, Contact, Fixed, Shifted, Timeline, Track, anchor_at, pulse, ramp
 from studio.posture import Anatomy
 
 
@@ -381,55 +381,76 @@ def grab(cast: Cast) -> Scene:
     return Scene([ta, tb], [c], movable=1, contact_hint=(0.42, 0.7))
 
 
-HANDS_APART = 0.05  # m: holding hands, how far apart (along the palm normal) the hands come in
+HANDS_APART = 0.05  # m: holding hands, how far above its place the actor's hand waits
+
+
+def _palm_body(cast: Cast, role: int, pose: np.ndarray, side: str) -> np.ndarray:
+    """Body-frame palm point of hand ``side`` of ``role`` at ``pose`` (J, 3)."""
+    person, h = cast.people[role], cast.an[role].hands[side]
+    t, G = person.fk(pose[None], np.eye(3)[None], np.zeros((1, 3)))
+    return t[0, h.wrist] + G[0, h.wrist] @ h.palm_offset
+
+
+def _swing_in(cast: Cast, role: int, track: Track, pose: np.ndarray, side: str, toward: float,
+              fwd: float, flex: float) -> tuple[np.ndarray, np.ndarray]:
+    """The arm of ``side`` swung in from the shoulder toward the partner (LEFT * toward) until
+    its palm reaches the middle between the two (world y = 0): (the pose (J, 3), the palm's
+    world point (3,)) at master sample 0."""
+    person, best = cast.people[role], None
+    for phi in np.deg2rad(np.arange(8.0, 70.0, 1.0)):
+        d = -UP * np.cos(phi) + LEFT * toward * np.sin(phi) + FWD * fwd
+        p = P.arm_directions(person, cast.an[role], pose, side, d, flex)
+        pw = body_to_world(track, 0, _palm_body(cast, role, p, side), person)
+        if best is None or abs(pw[1]) < best[0]:
+            best = (abs(pw[1]), p, pw)
+    return best[1], best[2]
 
 
 def holding_hands(cast: Cast) -> Scene:
     """Side by side, the actor's left and the receiver's right hand meet between them, the
-    actor's palm facing back and the receiver's forward, swinging; each elbow is held on its own
-    side (poles), so the forearms meet in a V and the hands cross like an X. (Without the poles
-    the forearms crossed; palms facing across made the wrists collide.) Both thumbs lie flat
-    along the palm (standing off it, they went into the other hand and wrist). The actor's hand
-    arrives first, from the front; the receiver's comes from behind once it is there. Still
-    interpenetrates on some seeds (a tall and a short subject): the forearms cross while the
-    receiver's hand comes and goes, issue #5."""
+    actor's palm facing back and the receiver's forward, swinging. Each arm swings in from the
+    shoulder, a little forward, until its hand reaches the middle (the nominal pose, so the hand
+    travels along the arm's arc, not a straight line through the other arm); the hands meet
+    halfway between those two palms, each elbow held where the swing put it. Both thumbs lie
+    flat along the palm (standing off it, they went into the other hand and wrist). The actor's
+    hand arrives first and waits above its place while the receiver's hand comes in below it,
+    then comes down onto it; they part the same way. Still interpenetrates on some seeds (a
+    tall and a short subject): the short one's forearm crosses the tall one's wrist while the
+    hands come and go, issue #5."""
     rng, u, N = cast.rng, cast.u, cast.N
     (pa, pb), (aa, ab) = cast.people, cast.an
-    # far enough apart that the forearms meet in a V (wrists clear of each other)
-    s = 0.5 * (_shoulder_width(aa, pa) + _shoulder_width(ab, pb)) + rng.uniform(0.42, 0.48)
+    s = 0.5 * (_shoulder_width(aa, pa) + _shoulder_width(ab, pb)) + rng.uniform(0.3, 0.36)
     base = [P.standing(p, a, rng) for p, a in zip(cast.people, cast.an, strict=True)]
-    ta = place(pa, (0, -s / 2), (1, 0), N, base[0])
-    tb = place(pb, (0, s / 2), (1, 0), N, base[1])
+    tracks = [place(pa, (0, -s / 2), (1, 0), N, base[0]), place(pb, (0, s / 2), (1, 0), N, base[1])]
+    side, toward = ("L", "R"), (1.0, -1.0)  # by role: the hand between them, the partner's side
+    swung = [_swing_in(cast, r, tracks[r], base[r], side[r], toward[r], 0.15, 0.35) for r in (0, 1)]
     # the actor's hand comes first and goes last: the receiver's hand takes it once it is
     # there and lets go before it leaves (both moving at once, the hands went through each other)
-    w_a = pulse(u, 0.03, 0.25, 0.84, 0.98)
-    w_b = pulse(u, 0.18, 0.36, 0.76, 0.9)
-    ta.pose = flat_thumb(cast, 0, with_fingers(cast, 0, living(cast, 0, base[0], 0.6), "L", -0.15, w_a),
-                         "L", w_a)
-    tb.pose = flat_thumb(cast, 1, with_fingers(cast, 1, living(cast, 1, base[1], 0.6), "R", -0.15, w_b),
-                         "R", w_b)
-    za = _floor_height(ta, pa, pa.j("wrist.L"), aa)
-    zb = _floor_height(tb, pb, pb.j("wrist.R"), ab)
+    w = [pulse(u, 0.03, 0.25, 0.84, 0.98), pulse(u, 0.18, 0.36, 0.76, 0.9)]
+    for r in (0, 1):
+        nom = living(cast, r, blend(base[r], swung[r][0], w[r]), 0.6)
+        tracks[r].pose = flat_thumb(cast, r, with_fingers(cast, r, nom, side[r], -0.15, w[r]), side[r], w[r])
     swing = 0.07 * np.sin(2 * np.pi * 0.9 * u * cast.span + rng.uniform(0, 6)) * ramp(u, 0.35, 0.45)
-    M = np.stack([rng.uniform(0.04, 0.08) + swing, np.zeros(N), np.full(N, 0.5 * (za + zb))], 1)
+    mid = 0.5 * (swung[0][1] + swung[1][1])
+    M = np.stack([mid[0] + swing, np.zeros(N), np.full(N, mid[2])], 1)
+    # the actor's hand waits above its place while the receiver's comes and goes (in front of
+    # it, its forearm swept through the receiver's hand); the receiver's target stays put
+    above = (HANDS_APART * ((1 - ramp(u, 0.3, 0.4)) + ramp(u, 0.72, 0.8)))[:, None] * UP[None]
     eff_a, n_a = palm(cast, 0, "L")
     eff_b, n_b = palm(cast, 1, "R")
-    # the actor's palm faces back, the receiver's forward; each elbow stays on its own side,
-    # so the forearms meet in a V and the hands cross like an X (wrists apart)
-    elbow_a = _joint0(cast, 0, "lowerarm01.L") - FWD * 0.03
-    elbow_b = _joint0(cast, 1, "lowerarm01.R") + FWD * 0.03
-    # the actor's hand comes in from the front, the receiver's from behind, and they part the
-    # same way
-    apart = HANDS_APART * ((1 - ramp(u, 0.3, 0.4)) + ramp(u, 0.72, 0.8))
-    ca = Contact(0, P.arm_dofs(pa, aa, "L"), eff_a, Fixed(M, np.array([1.0, 0.0, 0.0])),
-                 clearance=0.012 + apart, weight=w_a, region=hand_region(cast, 0, "L"), eff_normal=n_a,
-                 poles=[(pa.j("lowerarm01.L"), np.zeros(3), _pole_body(cast, 0, elbow_a), 0.6)],
-                 name="hand.L->hand.R", refine=False)
-    cb = Contact(1, P.arm_dofs(pb, ab, "R"), eff_b, Anchor(eff_a[0], eff_a[1], n_a),
-                 clearance=apart, weight=w_b, region=hand_region(cast, 1, "R"), eff_normal=n_b,
-                 poles=[(pb.j("lowerarm01.R"), np.zeros(3), _pole_body(cast, 1, elbow_b), 0.6)],
-                 anchor_region=hand_region(cast, 0, "L"), name="hand.R->hand.L")
-    return Scene([ta, tb], [ca, cb], movable=1, contact_hint=(0.4, 0.75))
+
+    def elbow_pole(r):
+        t, _ = cast.people[r].fk(swung[r][0][None], np.eye(3)[None], np.zeros((1, 3)))
+        j = cast.people[r].j(f"lowerarm01.{side[r]}")
+        return [(j, np.zeros(3), _pole_body(cast, r, t[0, j]), 0.6)]
+
+    ca = Contact(0, P.arm_dofs(pa, aa, "L"), eff_a, Fixed(M + above, np.array([1.0, 0.0, 0.0])),
+                 clearance=0.012, weight=w[0], region=hand_region(cast, 0, "L"), eff_normal=n_a,
+                 poles=elbow_pole(0), name="hand.L->hand.R", refine=False)
+    cb = Contact(1, P.arm_dofs(pb, ab, "R"), eff_b, Shifted(Anchor(eff_a[0], eff_a[1], n_a), -above),
+                 clearance=0.0, weight=w[1], region=hand_region(cast, 1, "R"), eff_normal=n_b,
+                 poles=elbow_pole(1), anchor_region=hand_region(cast, 0, "L"), name="hand.R->hand.L")
+    return Scene(tracks, [ca, cb], movable=1, contact_hint=(0.4, 0.75))
 
 
 def posing(cast: Cast) -> Scene:

@@ -208,6 +208,53 @@ def test_ik_puts_the_hand_on_a_target_with_a_hinged_elbow(anny):
     assert np.linalg.norm(e - (e @ axis) * axis) < 1e-9
 
 
+def test_shifted_target_moves_its_base_by_the_offset(anny):
+    from studio import posture as P
+    from studio.kin import Person
+    from studio.motion import Anchor, Fixed, Shifted, Track
+
+    p = Person.make(anny, np.zeros(10))
+    pose = P.standing(p, P.anatomy(p), np.random.default_rng(1))
+    N = 5
+    tr = Track(np.repeat(pose[None], N, 0), np.repeat(np.eye(3)[None], N, 0),
+               np.tile([0.3, -0.2, p.floor_z], (N, 1)))
+    rng = np.random.default_rng(2)
+    shift = rng.normal(0, 0.05, (N, 3))
+    idx = np.array([4, 0, 2])
+    for base in (Anchor(p.j("wrist.L"), np.array([0.0, 0.02, -0.05]), np.array([1.0, 0.0, 0.0])),
+                 Fixed(rng.normal(0, 1, (N, 3)), np.array([0.0, 0.0, 1.0]))):
+        pts, nrm = base.world(p, tr, idx)
+        got, got_n = Shifted(base, shift).world(p, tr, idx)
+        np.testing.assert_allclose(got, pts + shift[idx], atol=1e-12)
+        np.testing.assert_allclose(got_n, nrm, atol=1e-12)
+
+
+def test_holding_hands_arm_swings_in_to_the_middle(anny):
+    """The nominal hold pose: the arm swung in from the shoulder until the palm is at the middle
+    between the two people (world y = 0), whichever side the partner is on."""
+    from studio import posture as P
+    from studio.kin import Person
+    from studio.motion import make_timeline
+    from studio.scenarios import Cast, _palm_body, _swing_in, body_to_world, place
+
+    people = [Person.make(anny, np.zeros(10)), Person.make(anny, np.full(10, 0.3))]
+    an = [P.anatomy(q) for q in people]
+    tl = make_timeline(10)
+    cast = Cast(people, an, tl, np.random.default_rng(0))
+    for r, (y, side, toward) in enumerate(((-0.4, "L", 1.0), (0.4, "R", -1.0))):
+        base = P.standing(people[r], an[r], np.random.default_rng(r))
+        tr = place(people[r], (0, y), (1, 0), cast.N, base)
+        hang = body_to_world(tr, 0, _palm_body(cast, r, base, side), people[r])
+        pose, palm = _swing_in(cast, r, tr, base, side, toward, 0.15, 0.35)
+        assert abs(palm[1]) < 0.01, (r, palm)
+        # only the arm moved, and the palm went toward the partner, not past the middle
+        moved = {int(j) for j in np.flatnonzero(np.abs(pose - base).max(1) > 1e-9)}
+        assert moved <= {people[r].j(f"upperarm01.{side}"), people[r].j(f"lowerarm01.{side}")}
+        assert abs(palm[1]) < abs(hang[1])
+        np.testing.assert_allclose(body_to_world(tr, 0, _palm_body(cast, r, pose, side), people[r]),
+                                   palm, atol=1e-9)
+
+
 def test_timeline_maps_video_frames_to_mocap_samples():
     from studio.motion import make_timeline
 
