@@ -1,0 +1,146 @@
+"""``python -m studio.inspect GT_NPZ [--frame F] [--out PNG]``: where a studio sequence's two
+true bodies go through each other, as a picture.
+
+Reads a sequence's ground truth (``<session>/gt/<group>/<action>.npz``), finds the frame with
+the deepest true interpenetration (``studio.contact.interpenetration``; or takes ``--frame``),
+prints the body parts involved (the dominant bone of the deepest vertices of each body and of
+the surface they are in) and writes a close-up of the four sides of the deepest point
+(default ``<npz stem>_f<frame>_inspect.png`` beside the npz). The tool for working on a
+scenario: the close-up is what shows which limb crosses which.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+#: close-up cameras: distance (m) from the inspected point, image size (px)
+CLOSE_M = 0.7
+SIZE_PX = 900
+
+
+@dataclass(frozen=True)
+class Inspection:
+    """frame: the inspected video frame; depth_m: its deepest interpenetration (0 if none);
+    point: (3,) world point inspected (the deepest vertex, or the middle of the two bodies);
+    parts: [(inside body, its part, the other's part, depth m)], deepest first; png: the picture."""
+
+    frame: int
+    depth_m: float
+    point: np.ndarray
+    parts: list
+    png: Path
+
+
+def deepest_frame(vertices: np.ndarray, faces: np.ndarray) -> tuple[int, np.ndarray]:
+    """vertices (2, F, V, 3): the frame of the deepest interpenetration and (F,) depths (m)."""
+    from studio.contact import interpenetration
+
+    depth = np.array([interpenetration(vertices[0, f], vertices[1, f], faces)[0]
+                      for f in range(vertices.shape[1])])
+    return int(np.argmax(depth)), depth
+
+
+def parts_inside(V0: np.ndarray, V1: np.ndarray, faces: np.ndarray, bone_names: list[str],
+                 dominant: np.ndarray, top: int = 6, min_m: float = 0.002) -> list:
+    """The body parts that are inside each other: for the vertices of each body inside the other
+    (winding number > 0.5) deeper than ``min_m``, (body, its part, the part of the other whose
+    surface is nearest, depth m), the deepest per pair of parts, ``top`` deepest overall."""
+    import igl
+
+    V = [np.asarray(V0, float), np.asarray(V1, float)]
+    pairs: Counter = Counter()
+    for a in range(2):
+        w = igl.fast_winding_number(V[1 - a], faces, V[a])
+        ins = np.flatnonzero(w > 0.5)
+        if not len(ins):
+            continue
+        d2, fi, _ = igl.point_mesh_squared_distance(V[a][ins], V[1 - a], faces)
+        d = np.sqrt(d2)
+        for k in np.flatnonzero(d > min_m):
+            key = (a, bone_names[dominant[ins[k]]], bone_names[dominant[faces[fi[k], 0]]])
+            pairs[key] = max(pairs[key], float(d[k]))
+    return [(*k, v) for k, v in pairs.most_common(top)]
+
+
+def close_up_cameras(point: np.ndarray, dist: float = CLOSE_M, size: int = SIZE_PX) -> list:
+    """Four cameras around ``point`` (3,), a little above it, looking at it."""
+    from calib.camera import look_at
+
+    cams = []
+    for k, az in enumerate((20.0, 110.0, 200.0, 290.0)):
+        a = np.deg2rad(az)
+        c = point + dist * np.array([np.cos(a), np.sin(a), 0.5])
+        cams.append(look_at(f"close{k}", c, point, (size, size), (size / 2, size / 2), size, size))
+    return cams
+
+
+def inspect(gt_npz: str | Path, frame: int | None = None, out: str | Path | None = None,
+            model_name: str = "anny") -> Inspection:
+    from body import load_model
+    from formats.errors import InputError
+    from studio.contact import interpenetration
+    from studio.render import PersonMesh, Renderer
+    from studio.sheet import contact_sheet, write_png
+
+    path = Path(gt_npz)
+    if not path.is_file():
+        raise InputError(path, "file", "no such ground-truth file")
+    with np.load(path) as z:
+        if "vertices" not in z or "faces" not in z:
+            raise InputError(path, "vertices", "not a studio ground truth (needs 'vertices' and "
+                             "'faces')")
+        Vs, faces = np.asarray(z["vertices"], float), np.asarray(z["faces"])
+    F = Vs.shape[1]
+    if frame is None:
+        frame, _ = deepest_frame(Vs, faces)
+    elif not 0 <= frame < F:
+        raise InputError(path, "vertices", f"out of range (0..{F - 1})", frame)
+    model = load_model(model_name)
+    if model.num_vertices != Vs.shape[2]:
+        raise InputError(path, "vertices", f"{Vs.shape[2]} vertices per body, the {model_name} "
+                         f"model has {model.num_vertices}")
+    V = [Vs[0, frame], Vs[1, frame]]
+    depth, body, vid = interpenetration(V[0], V[1], faces)
+    point = V[body][vid] if body >= 0 else 0.5 * (V[0].mean(0) + V[1].mean(0))
+    dominant = np.asarray(model.weights.argmax(axis=1)).ravel()
+    parts = parts_inside(V[0], V[1], faces, list(model.joint_names), dominant)
+    cams = close_up_cameras(point)
+    colors = [np.tile(np.array([[230, 80, 50]], np.uint8), (len(V[0]), 1)),
+              np.tile(np.array([[50, 100, 230]], np.uint8), (len(V[1]), 1))]
+    with Renderer(cams) as r:
+        imgs = r.render([PersonMesh(V[k], faces, colors[k]) for k in range(2)])
+    title = f"{path.stem} frame {frame}: {1000 * depth:.1f} mm (person 0 red, 1 blue)"
+    png = Path(out) if out else path.with_name(f"{path.stem.replace(' ', '_')}_f{frame}_inspect.png")
+    write_png(png, contact_sheet(imgs, cams, title, point[None], scale=0.5))
+    return Inspection(frame, depth, point, parts, png)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from formats.errors import InputError
+
+    ap = argparse.ArgumentParser(prog="python -m studio.inspect", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("gt_npz", help="a sequence's ground truth, <session>/gt/<group>/<action>.npz")
+    ap.add_argument("--frame", type=int, default=None, help="video frame (default: the deepest)")
+    ap.add_argument("--out", default=None, help="PNG to write")
+    a = ap.parse_args(argv)
+    try:
+        res = inspect(a.gt_npz, a.frame, a.out)
+    except InputError as e:
+        print(f"python -m studio.inspect: {e}", file=sys.stderr)
+        return 2
+    print(f"frame {res.frame}: deepest interpenetration {1000 * res.depth_m:.1f} mm at "
+          f"{np.round(res.point, 3).tolist()}")
+    for body, mine, theirs, d in res.parts:
+        print(f"  person {body} {mine} inside person {1 - body} {theirs}: {1000 * d:.1f} mm")
+    print(res.png)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
