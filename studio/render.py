@@ -98,7 +98,8 @@ def _gl_pose(cam: Camera) -> np.ndarray:
 
 class Renderer:
     """Offscreen renderer for a fixed camera rig. Use as a context manager (it owns a GL
-    context). Not thread-safe."""
+    context). Not thread-safe, and one at a time per process: closing one terminates the EGL
+    display (pyrender's teardown), which breaks any other renderer still open."""
 
     def __init__(self, cams: list[Camera]):
         os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
