@@ -104,6 +104,39 @@ def annotate(verts0: np.ndarray, verts1: np.ndarray, faces: np.ndarray, face_reg
                         d1[pick])
 
 
+def inside_points(V0: np.ndarray, V1: np.ndarray, faces: np.ndarray) -> list[tuple]:
+    """The vertices of each of two meshes (same topology ``faces``) that are inside the other
+    (libigl's fast winding number > 0.5), with their exact distance to the other's surface.
+
+    V0, V1: (V, 3) metres. Returns, per body, (vertex ids (n,), distances (n,) metres, the
+    nearest face of the other body (n,))."""
+    import igl
+
+    V = [np.asarray(V0, float), np.asarray(V1, float)]
+    out = []
+    for a in range(2):
+        w = igl.fast_winding_number(V[1 - a], faces, V[a])
+        ins = np.flatnonzero(w > 0.5)
+        if len(ins):
+            d2, fi, _ = igl.point_mesh_squared_distance(V[a][ins], V[1 - a], faces)
+            out.append((ins, np.sqrt(d2), np.asarray(fi)))
+        else:
+            out.append((ins, np.zeros(0), np.zeros(0, np.int64)))
+    return out
+
+
+def deepest_inside(inside: list[tuple]) -> tuple[float, int, int]:
+    """(depth metres (0 if none), body (0/1) of the deepest vertex or -1, its vertex id or -1)
+    from :func:`inside_points`."""
+    best = (0.0, -1, -1)
+    for a, (ins, d, _) in enumerate(inside):
+        if len(ins):
+            k = int(np.argmax(d))
+            if d[k] > best[0]:
+                best = (float(d[k]), a, int(ins[k]))
+    return best
+
+
 def interpenetration(V0: np.ndarray, V1: np.ndarray, faces: np.ndarray) -> tuple[float, int, int]:
     """The deepest true interpenetration of two meshes (same topology ``faces``): over the
     vertices of each body that are inside the other (libigl's fast winding number > 0.5), the
@@ -112,19 +145,12 @@ def interpenetration(V0: np.ndarray, V1: np.ndarray, faces: np.ndarray) -> tuple
 
     V0, V1: (V, 3) metres. Returns (depth metres (0 if none), body (0/1) of the deepest vertex
     or -1, its vertex id or -1)."""
-    import igl
+    return deepest_inside(inside_points(V0, V1, faces))
 
-    V = [np.asarray(V0, float), np.asarray(V1, float)]
-    best = (0.0, -1, -1)
-    for a in range(2):
-        w = igl.fast_winding_number(V[1 - a], faces, V[a])
-        inside = np.flatnonzero(w > 0.5)
-        if len(inside):
-            d2, _, _ = igl.point_mesh_squared_distance(V[a][inside], V[1 - a], faces)
-            k = int(np.argmax(d2))
-            if np.sqrt(d2[k]) > best[0]:
-                best = (float(np.sqrt(d2[k])), a, int(inside[k]))
-    return best
+
+def interpenetration_per_frame(V0: np.ndarray, V1: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F,) deepest true interpenetration (metres) of two bodies' vertices (F, V, 3) per frame."""
+    return np.array([interpenetration(V0[f], V1[f], faces)[0] for f in range(len(V0))])
 
 
 @dataclass(frozen=True)
@@ -155,7 +181,7 @@ def check_motion(model, motion) -> MotionCheck:
     V = [forward(model, s.betas, t.pose[vs], t.R[vs], t.T[vs], rest=s.person.rest).vertices
          for s, t in zip(motion.order, motion.tracks, strict=True)]
     faces = np.asarray(model.faces)
-    depth = np.array([interpenetration(V[0][f], V[1][f], faces)[0] for f in range(len(vs))])
+    depth = interpenetration_per_frame(V[0], V[1], faces)
     cast_people = motion.cast.people
     person_of_role = [next(i for i, s in enumerate(motion.order) if s.person is p) for p in cast_people]
     gaps = {}

@@ -36,31 +36,13 @@ class Inspection:
     png: Path
 
 
-def deepest_frame(vertices: np.ndarray, faces: np.ndarray) -> tuple[int, np.ndarray]:
-    """vertices (2, F, V, 3): the frame of the deepest interpenetration and (F,) depths (m)."""
-    from studio.contact import interpenetration
-
-    depth = np.array([interpenetration(vertices[0, f], vertices[1, f], faces)[0]
-                      for f in range(vertices.shape[1])])
-    return int(np.argmax(depth)), depth
-
-
-def parts_inside(V0: np.ndarray, V1: np.ndarray, faces: np.ndarray, bone_names: list[str],
+def parts_inside(inside: list[tuple], faces: np.ndarray, bone_names: list[str],
                  dominant: np.ndarray, top: int = 6, min_m: float = 0.002) -> list:
-    """The body parts that are inside each other: for the vertices of each body inside the other
-    (winding number > 0.5) deeper than ``min_m``, (body, its part, the part of the other whose
+    """The body parts that are inside each other, from :func:`studio.contact.inside_points`:
+    over the inside vertices deeper than ``min_m``, (body, its part, the part of the other whose
     surface is nearest, depth m), the deepest per pair of parts, ``top`` deepest overall."""
-    import igl
-
-    V = [np.asarray(V0, float), np.asarray(V1, float)]
     pairs: Counter = Counter()
-    for a in range(2):
-        w = igl.fast_winding_number(V[1 - a], faces, V[a])
-        ins = np.flatnonzero(w > 0.5)
-        if not len(ins):
-            continue
-        d2, fi, _ = igl.point_mesh_squared_distance(V[a][ins], V[1 - a], faces)
-        d = np.sqrt(d2)
+    for a, (ins, d, fi) in enumerate(inside):
         for k in np.flatnonzero(d > min_m):
             key = (a, bone_names[dominant[ins[k]]], bone_names[dominant[faces[fi[k], 0]]])
             pairs[key] = max(pairs[key], float(d[k]))
@@ -83,7 +65,7 @@ def inspect(gt_npz: str | Path, frame: int | None = None, out: str | Path | None
             model_name: str = "anny") -> Inspection:
     from body import load_model
     from formats.errors import InputError
-    from studio.contact import interpenetration
+    from studio.contact import deepest_inside, inside_points, interpenetration_per_frame
     from studio.render import PersonMesh, Renderer
     from studio.sheet import contact_sheet, write_png
 
@@ -97,7 +79,7 @@ def inspect(gt_npz: str | Path, frame: int | None = None, out: str | Path | None
         Vs, faces = np.asarray(z["vertices"], float), np.asarray(z["faces"])
     F = Vs.shape[1]
     if frame is None:
-        frame, _ = deepest_frame(Vs, faces)
+        frame = int(np.argmax(interpenetration_per_frame(Vs[0], Vs[1], faces)))
     elif not 0 <= frame < F:
         raise InputError(path, "vertices", f"out of range (0..{F - 1})", frame)
     model = load_model(model_name)
@@ -105,10 +87,11 @@ def inspect(gt_npz: str | Path, frame: int | None = None, out: str | Path | None
         raise InputError(path, "vertices", f"{Vs.shape[2]} vertices per body, the {model_name} "
                          f"model has {model.num_vertices}")
     V = [Vs[0, frame], Vs[1, frame]]
-    depth, body, vid = interpenetration(V[0], V[1], faces)
+    inside = inside_points(V[0], V[1], faces)
+    depth, body, vid = deepest_inside(inside)
     point = V[body][vid] if body >= 0 else 0.5 * (V[0].mean(0) + V[1].mean(0))
     dominant = np.asarray(model.weights.argmax(axis=1)).ravel()
-    parts = parts_inside(V[0], V[1], faces, list(model.joint_names), dominant)
+    parts = parts_inside(inside, faces, list(model.joint_names), dominant)
     cams = close_up_cameras(point)
     colors = [np.tile(np.array([[230, 80, 50]], np.uint8), (len(V[0]), 1)),
               np.tile(np.array([[50, 100, 230]], np.uint8), (len(V[1]), 1))]

@@ -15,7 +15,7 @@ import numpy as np
 
 from studio import constants as C
 from studio import posture as P
-from studio.kin import FWD, LEFT, UP, Person, heading_rotation
+from studio.kin import FWD, LEFT, UP, Person, effector, heading_rotation
 from studio.motion import Anchor, Contact, Fixed, Shifted, Timeline, Track, anchor_at, pulse, ramp
 from studio.posture import Anatomy
 
@@ -384,23 +384,16 @@ def grab(cast: Cast) -> Scene:
 HANDS_APART = 0.05  # m: holding hands, how far above its place the actor's hand waits
 
 
-def _palm_body(cast: Cast, role: int, pose: np.ndarray, side: str) -> np.ndarray:
-    """Body-frame palm point of hand ``side`` of ``role`` at ``pose`` (J, 3)."""
-    person, h = cast.people[role], cast.an[role].hands[side]
-    t, G = person.fk(pose[None], np.eye(3)[None], np.zeros((1, 3)))
-    return t[0, h.wrist] + G[0, h.wrist] @ h.palm_offset
-
-
 def _swing_in(cast: Cast, role: int, track: Track, pose: np.ndarray, side: str, toward: float,
               fwd: float, flex: float) -> tuple[np.ndarray, np.ndarray]:
     """The arm of ``side`` swung in from the shoulder toward the partner (LEFT * toward) until
     its palm reaches the middle between the two (world y = 0): (the pose (J, 3), the palm's
     world point (3,)) at master sample 0."""
-    person, best = cast.people[role], None
+    person, h, best = cast.people[role], cast.an[role].hands[side], None
     for phi in np.deg2rad(np.arange(8.0, 70.0, 1.0)):
         d = -UP * np.cos(phi) + LEFT * toward * np.sin(phi) + FWD * fwd
         p = P.arm_directions(person, cast.an[role], pose, side, d, flex)
-        pw = body_to_world(track, 0, _palm_body(cast, role, p, side), person)
+        pw = effector(person, p[None], track.R[:1], track.T[:1], h.wrist, h.palm_offset)[0]
         if best is None or abs(pw[1]) < best[0]:
             best = (abs(pw[1]), p, pw)
     return best[1], best[2]

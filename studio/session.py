@@ -48,7 +48,7 @@ from formats.chi3d import write_joints3d_25
 from formats.video import write_mp4
 from studio import constants as C
 from studio import plan as PL
-from studio.contact import annotate, interpenetration
+from studio.contact import annotate, interpenetration_per_frame
 from studio.kin import UP, yaw
 from studio.mocap import observe_markers
 from studio.motion import Track, make_timeline, synthesize
@@ -237,8 +237,8 @@ def generate_sequence(out: Path, plan: PL.SessionPlan, seq: PL.SequencePlan, mod
         "markers_on": seq.markers_on, "partner": seq.partner, "actor": plan.subjects[seq.actor],
         "scenario": seq.scenario, "frames": F, "contact_start": ct.start, "contact_end": ct.end,
         "contact_frame": ct.fr_id, "signature_pairs": int(len(ct.faces)),
-        "max_penetration_mm": round(1000 * max(interpenetration(verts[0][f], verts[1][f], model.faces)[0]
-                                               for f in range(F)), 2),
+        "max_penetration_mm": round(1000 * float(interpenetration_per_frame(verts[0], verts[1],
+                                                                            model.faces).max()), 2),
         "seconds": round(time.time() - t0, 1),
     }
     _log(f"{seq.seq_id}: {F} frames, contact {ct.start}..{ct.end} (frame {ct.fr_id}, "

@@ -233,9 +233,9 @@ def test_holding_hands_arm_swings_in_to_the_middle(anny):
     """The nominal hold pose: the arm swung in from the shoulder until the palm is at the middle
     between the two people (world y = 0), whichever side the partner is on."""
     from studio import posture as P
-    from studio.kin import Person
+    from studio.kin import Person, effector
     from studio.motion import make_timeline
-    from studio.scenarios import Cast, _palm_body, _swing_in, body_to_world, place
+    from studio.scenarios import Cast, _swing_in, place
 
     people = [Person.make(anny, np.zeros(10)), Person.make(anny, np.full(10, 0.3))]
     an = [P.anatomy(q) for q in people]
@@ -244,15 +244,17 @@ def test_holding_hands_arm_swings_in_to_the_middle(anny):
     for r, (y, side, toward) in enumerate(((-0.4, "L", 1.0), (0.4, "R", -1.0))):
         base = P.standing(people[r], an[r], np.random.default_rng(r))
         tr = place(people[r], (0, y), (1, 0), cast.N, base)
-        hang = body_to_world(tr, 0, _palm_body(cast, r, base, side), people[r])
+        h = an[r].hands[side]
+        hang = effector(people[r], base[None], tr.R[:1], tr.T[:1], h.wrist, h.palm_offset)[0]
         pose, palm = _swing_in(cast, r, tr, base, side, toward, 0.15, 0.35)
         assert abs(palm[1]) < 0.01, (r, palm)
         # only the arm moved, and the palm went toward the partner, not past the middle
         moved = {int(j) for j in np.flatnonzero(np.abs(pose - base).max(1) > 1e-9)}
         assert moved <= {people[r].j(f"upperarm01.{side}"), people[r].j(f"lowerarm01.{side}")}
         assert abs(palm[1]) < abs(hang[1])
-        np.testing.assert_allclose(body_to_world(tr, 0, _palm_body(cast, r, pose, side), people[r]),
-                                   palm, atol=1e-9)
+        np.testing.assert_allclose(
+            effector(people[r], pose[None], tr.R[:1], tr.T[:1], h.wrist, h.palm_offset)[0], palm,
+            atol=1e-9)
 
 
 def test_timeline_maps_video_frames_to_mocap_samples():
@@ -373,4 +375,3 @@ def test_ensure_generated_regenerates_data_made_from_another_plan(tmp_path, monk
     ensure_generated(recipe)  # now current: nothing generated
     assert len(calls) == 1
     assert not any((tmp_path / "data").glob(".*tmp*"))
-
