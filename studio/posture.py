@@ -151,9 +151,9 @@ NECK = ("neck01", "head")
 
 
 def arm_dofs(person: Person, an: Anatomy, side: str, clavicle: bool = True, wrist: bool = True,
-             weight: float = 0.02) -> list[Dof]:
-    """IK unknowns of an arm: clavicle (stiff), shoulder (ball), elbow (hinge), forearm twist,
-    wrist (ball, stiff), thumb (two joints, stiff)."""
+             weight: float = 0.02, twist_max: float = 1.2) -> list[Dof]:
+    """IK unknowns of an arm: clavicle (stiff), shoulder (ball), elbow (hinge), forearm twist
+    (up to ``twist_max`` radians), wrist (ball, stiff), thumb (two joints, stiff)."""
     n = person.j
     d = []
     if clavicle:
@@ -161,7 +161,7 @@ def arm_dofs(person: Person, an: Anatomy, side: str, clavicle: bool = True, wris
     d.append(Dof(n(f"upperarm01.{side}"), weight=weight, limits=(0, 2.6)))
     d.append(Dof(n(f"lowerarm01.{side}"), kind="hinge", axis=tuple(an.elbow_axis[side]),
                  limits=(0.05 - an.elbow_flex0, 2.4 - an.elbow_flex0), weight=weight))
-    d.append(Dof(n(f"lowerarm02.{side}"), weight=weight * 4, limits=(0, 1.2)))
+    d.append(Dof(n(f"lowerarm02.{side}"), weight=weight * 4, limits=(0, twist_max)))
     if wrist:
         d.append(Dof(n(f"wrist.{side}"), weight=weight * 6, limits=(0, 0.9)))
         # the thumb may move out of the way (it is what pokes into the other person)

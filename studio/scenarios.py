@@ -9,13 +9,13 @@ whole interaction.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from studio import constants as C
 from studio import posture as P
-from studio.kin import FWD, LEFT, UP, Person, effector, heading_rotation
+from studio.kin import FWD, LEFT, UP, Person, effector, heading_rotation, rotate_about_joint
 from studio.motion import Anchor, Contact, Fixed, Shifted, Timeline, Track, anchor_at, pulse, ramp
 from studio.posture import Anatomy
 
@@ -348,12 +348,17 @@ def kick(cast: Cast) -> Scene:
     w_guard = pulse(u, 0.05, 0.3, 0.7, 0.95)
     tb.pose = living(cast, 1, blend(blend(base[1], guard, w_guard), away, flinch), 0.6)
     mid = 0.5 * (_joint0(cast, 1, "upperleg01.L") + _joint0(cast, 1, "lowerleg01.L"))
-    anc = _anchor(cast, 1, base[1], "upperleg01.L", mid, LEFT + FWD * 0.8)
+    # on the thigh as it is when the foot lands, the arm swung out of the way (found on the
+    # standing pose, the ray could leave the body through the hanging hand: the foot then
+    # aimed at a point in the air where that hand had been)
+    anc = _anchor(cast, 1, guard, "upperleg01.L", mid, LEFT + FWD * 0.8)
     # the foot swings in aimed a few cm off the thigh and closes in at the end (aimed straight
-    # at the contact, the big toe grazed the thigh on the way)
+    # at the contact, the big toe grazed the thigh on the way); the top of the foot faces the
+    # thigh (free to turn, the toes went in first and the instep stayed a few mm off)
     off = 0.01 + 0.04 * (1 - ramp(u, 0.3, 0.42))
     c = Contact(0, P.leg_dofs(pa, aa, "R"), (pa.j("foot.R"), aa.instep_offset["R"]), anc,
-                clearance=off, weight=w, region=aa.foot_vertices["R"], name="foot.R->thigh.L")
+                clearance=off, weight=w, region=aa.foot_vertices["R"], eff_normal=UP,
+                name="foot.R->thigh.L")
     return Scene([ta, tb], [c], movable=1, contact_hint=(0.43, 0.5))
 
 
@@ -381,7 +386,14 @@ def grab(cast: Cast) -> Scene:
     return Scene([ta, tb], [c], movable=1, contact_hint=(0.42, 0.7))
 
 
-HANDS_APART = 0.05  # m: holding hands, how far above its place the actor's hand waits
+# holding hands
+HANDS_APART = 0.05  # m: how far above its place the lead's hand waits
+RECEIVER_BELOW = 0.04  # m: the other palm below the lead's (its thumb clear of the lead's wrist)
+WRIST_TILT_DEG = 55.0  # each hand leans this far from vertical toward the partner
+WRIST_POLE_WEIGHT = 0.5
+HOLD_SWING_M = 0.04  # amplitude of the hands' swing back and forth
+FOREARM_TWIST_MAX = 1.8  # rad: the hold turns each palm about 90 degrees from hanging
+HOLD_ORIENT_WEIGHT = 1.0  # the palms kept parallel (each facing the other hand)
 
 
 def _swing_in(cast: Cast, role: int, track: Track, pose: np.ndarray, side: str, toward: float,
@@ -399,50 +411,113 @@ def _swing_in(cast: Cast, role: int, track: Track, pose: np.ndarray, side: str, 
     return best[1], best[2]
 
 
+def _palm_facing(cast: Cast, role: int, track: Track, pose: np.ndarray, side: str,
+                 want: np.ndarray) -> np.ndarray:
+    """``pose`` (J, 3) with the forearm of ``side`` turned (pronation / supination: a rotation
+    about the forearm's axis at lowerarm02, 3-degree search within +-120) so that the palm
+    faces the world direction ``want`` (3,) at master sample 0, as nearly as it can."""
+    person, h = cast.people[role], cast.an[role].hands[side]
+    tw = person.j(f"lowerarm02.{side}")
+    t, _ = person.fk(pose[None], np.eye(3)[None], np.zeros((1, 3)))
+    axis = t[0, h.wrist] - t[0, tw]
+    axis /= np.linalg.norm(axis)
+    poses = np.stack([rotate_about_joint(person, pose, tw, axis * a)
+                      for a in np.deg2rad(np.arange(-120.0, 121.0, 3.0))])
+    K = len(poses)
+    _, G = person.fk(poses, np.repeat(track.R[:1], K, 0), np.repeat(track.T[:1], K, 0))
+    return poses[int(np.argmax(G[:, h.wrist] @ h.normal @ want))]
+
+
 def holding_hands(cast: Cast) -> Scene:
-    """Side by side, the actor's left and the receiver's right hand meet between them, the
-    actor's palm facing back and the receiver's forward, swinging. Each arm swings in from the
-    shoulder, a little forward, until its hand reaches the middle (the nominal pose, so the hand
-    travels along the arm's arc, not a straight line through the other arm); the hands meet
-    halfway between those two palms, each elbow held where the swing put it. Both thumbs lie
-    flat along the palm (standing off it, they went into the other hand and wrist). The actor's
-    hand arrives first and waits above its place while the receiver's hand comes in below it,
-    then comes down onto it; they part the same way. Still interpenetrates on some seeds (a
-    tall and a short subject): the short one's forearm crosses the tall one's wrist while the
-    hands come and go, issue #5."""
+    """Side by side, two hands meet between them and hold, swinging a little. The shorter
+    person leads (whether actor or receiver: seen from the text, the one who takes the other's
+    hand takes the hand that waits for it): its hand comes first, waits above its place, lies
+    in front. With the taller one leading, the short one's hand, held up almost level, went
+    under the tall one's fingers."""
+    tall = [float(np.ptp(a.pose0_vertices[:, 2])) for a in cast.an]
+    if tall[0] <= tall[1]:
+        return _holding_hands(cast)
+    scene = _holding_hands(Cast(cast.people[::-1], cast.an[::-1], cast.tl, cast.rng))
+    return Scene(scene.nominal[::-1], [_swap_roles(c) for c in scene.contacts], 1 - scene.movable,
+                 scene.contact_hint)
+
+
+def _swap_roles(c: Contact) -> Contact:
+    """A contact of a scene built with the roles swapped, for the roles as they are."""
+    poles = [(j, off, (lambda i, tracks, f=fn: f(i, tracks[::-1])), w) for j, off, fn, w in c.poles]
+    return replace(c, who=1 - c.who, poles=poles)
+
+
+def _holding_hands(cast: Cast) -> Scene:
+    """Holding hands with role 0 leading: its left and the other's right hand meet between
+    them, palm on palm. The lead's palm faces back, the other's forward (each forearm turned
+    about 90 degrees from hanging; not turned, the hands met edge on and the wrists went
+    through each other), swinging a little. The near arms hang close to the body before and
+    after (hanging a little away from it, the two hands started a few cm apart). Each arm
+    swings in from the shoulder, a little forward, until its hand reaches the middle (the
+    nominal pose, so the hand travels along the arm's arc); the hands meet halfway between
+    those two palms, each elbow held where the swing put it and each wrist on its own side above
+    its palm, so the hands cross like an X, palms kept parallel. Both thumbs lie flat along the
+    palm, and the other's palm sits RECEIVER_BELOW lower than the lead's (its thumb points at
+    the lead's wrist). The lead's hand arrives first and waits above its place while the other
+    hand comes in below it, then comes down onto it; they part the same way."""
     rng, u, N = cast.rng, cast.u, cast.N
     (pa, pb), (aa, ab) = cast.people, cast.an
     s = 0.5 * (_shoulder_width(aa, pa) + _shoulder_width(ab, pb)) + rng.uniform(0.3, 0.36)
-    base = [P.standing(p, a, rng) for p, a in zip(cast.people, cast.an, strict=True)]
-    tracks = [place(pa, (0, -s / 2), (1, 0), N, base[0]), place(pb, (0, s / 2), (1, 0), N, base[1])]
     side, toward = ("L", "R"), (1.0, -1.0)  # by role: the hand between them, the partner's side
-    swung = [_swing_in(cast, r, tracks[r], base[r], side[r], toward[r], 0.15, 0.35) for r in (0, 1)]
-    # the actor's hand comes first and goes last: the receiver's hand takes it once it is
-    # there and lets go before it leaves (both moving at once, the hands went through each other)
+    base = [P.standing(p, a, rng) for p, a in zip(cast.people, cast.an, strict=True)]
+    for r in (0, 1):
+        d = -UP + LEFT * toward[r] * rng.uniform(0.05, 0.1) - FWD * rng.uniform(0.0, 0.05)
+        base[r] = P.arm_directions(cast.people[r], cast.an[r], base[r], side[r], d, rng.uniform(0.2, 0.4))
+    tracks = [place(pa, (0, -s / 2), (1, 0), N, base[0]), place(pb, (0, s / 2), (1, 0), N, base[1])]
+    fwd_w, left_w = tracks[0].R[0] @ FWD, tracks[0].R[0] @ LEFT  # the pair's world axes
+    faces = (-fwd_w, fwd_w)  # by role: where the palm faces in the hold
+    hold, palms = [], []
+    for r in (0, 1):
+        p = _swing_in(cast, r, tracks[r], base[r], side[r], toward[r], 0.15, 0.35)[0]
+        hold.append(_palm_facing(cast, r, tracks[r], p, side[r], faces[r]))
+        h = cast.an[r].hands[side[r]]
+        palms.append(effector(cast.people[r], hold[r][None], tracks[r].R[:1], tracks[r].T[:1],
+                              h.wrist, h.palm_offset)[0])
+    # the lead's hand comes first and goes last: the other hand takes it once it is there and
+    # lets go before it leaves (both moving at once, the hands went through each other)
     w = [pulse(u, 0.03, 0.25, 0.84, 0.98), pulse(u, 0.18, 0.36, 0.76, 0.9)]
     for r in (0, 1):
-        nom = living(cast, r, blend(base[r], swung[r][0], w[r]), 0.6)
+        nom = living(cast, r, blend(base[r], hold[r], w[r]), 0.6)
         tracks[r].pose = flat_thumb(cast, r, with_fingers(cast, r, nom, side[r], -0.15, w[r]), side[r], w[r])
-    swing = 0.07 * np.sin(2 * np.pi * 0.9 * u * cast.span + rng.uniform(0, 6)) * ramp(u, 0.35, 0.45)
-    mid = 0.5 * (swung[0][1] + swung[1][1])
-    M = np.stack([mid[0] + swing, np.zeros(N), np.full(N, mid[2])], 1)
-    # the actor's hand waits above its place while the receiver's comes and goes (in front of
-    # it, its forearm swept through the receiver's hand); the receiver's target stays put
+    swing = HOLD_SWING_M * np.sin(2 * np.pi * 0.9 * u * cast.span + rng.uniform(0, 6)) * ramp(u, 0.35, 0.45)
+    mid = 0.5 * (palms[0] + palms[1])
+    M = mid[None] + swing[:, None] * fwd_w[None]
+    M[:, 1] = 0.0
+    # the lead's hand waits above its place while the other comes and goes (in front of it,
+    # its forearm swept through the other hand); the other's target stays put
     above = (HANDS_APART * ((1 - ramp(u, 0.3, 0.4)) + ramp(u, 0.72, 0.8)))[:, None] * UP[None]
     eff_a, n_a = palm(cast, 0, "L")
     eff_b, n_b = palm(cast, 1, "R")
+    clear_a = 0.012
 
-    def elbow_pole(r):
-        t, _ = cast.people[r].fk(swung[r][0][None], np.eye(3)[None], np.zeros((1, 3)))
-        j = cast.people[r].j(f"lowerarm01.{side[r]}")
-        return [(j, np.zeros(3), _pole_body(cast, r, t[0, j]), 0.6)]
+    def poles(r, palm_at):
+        """The elbow where the swing put it; the wrist on its own side above the palm (the
+        hand leaning WRIST_TILT_DEG toward the partner), off the palm by the hand's thickness."""
+        person, h = cast.people[r], cast.an[r].hands[side[r]]
+        t, _ = person.fk(hold[r][None], np.eye(3)[None], np.zeros((1, 3)))
+        elbow = person.j(f"lowerarm01.{side[r]}")
+        depth = float(h.palm_offset @ h.normal)
+        length = float(np.linalg.norm(h.palm_offset - depth * h.normal))
+        tilt = np.deg2rad(WRIST_TILT_DEG)
+        back = length * (UP * np.cos(tilt) - left_w * toward[r] * np.sin(tilt)) - depth * faces[r]
+        return [(elbow, np.zeros(3), _pole_body(cast, r, t[0, elbow]), 0.6),
+                (h.wrist, np.zeros(3), lambda i, _tracks: palm_at[i] + back, WRIST_POLE_WEIGHT)]
 
-    ca = Contact(0, P.arm_dofs(pa, aa, "L"), eff_a, Fixed(M + above, np.array([1.0, 0.0, 0.0])),
-                 clearance=0.012, weight=w[0], region=hand_region(cast, 0, "L"), eff_normal=n_a,
-                 poles=elbow_pole(0), name="hand.L->hand.R", refine=False)
-    cb = Contact(1, P.arm_dofs(pb, ab, "R"), eff_b, Shifted(Anchor(eff_a[0], eff_a[1], n_a), -above),
+    ca = Contact(0, P.arm_dofs(pa, aa, "L", twist_max=FOREARM_TWIST_MAX), eff_a, Fixed(M + above, fwd_w),
+                 clearance=clear_a, weight=w[0], region=hand_region(cast, 0, "L"), eff_normal=n_a,
+                 orient_weight=HOLD_ORIENT_WEIGHT, poles=poles(0, M + above + clear_a * fwd_w),
+                 name="hand.L->hand.R")
+    cb = Contact(1, P.arm_dofs(pb, ab, "R", twist_max=FOREARM_TWIST_MAX), eff_b,
+                 Shifted(Anchor(eff_a[0], eff_a[1], n_a), -above - RECEIVER_BELOW * UP),
                  clearance=0.0, weight=w[1], region=hand_region(cast, 1, "R"), eff_normal=n_b,
-                 poles=elbow_pole(1), anchor_region=hand_region(cast, 0, "L"), name="hand.R->hand.L")
+                 orient_weight=HOLD_ORIENT_WEIGHT, poles=poles(1, M),
+                 anchor_region=hand_region(cast, 0, "L"), name="hand.R->hand.L")
     return Scene(tracks, [ca, cb], movable=1, contact_hint=(0.4, 0.75))
 
 
