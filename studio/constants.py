@@ -102,6 +102,14 @@ REPEL_WEIGHT = 0.7
 TOUCH_M = 0.005
 SIGNATURE_DIST_M = 0.006
 SIGNATURE_PAIRS = (3, 6)
+#: What a sequence's true motion must achieve (``studio.contact.MotionCheck.ok``): no true
+#: interpenetration deeper than MAX_TRUE_PENETRATION_M in any video frame, and each contact
+#: touching (gap < TOUCH_M) in at least MIN_TOUCHING of the frames where it is fully held.
+#: A draw that misses is drawn again from the next random stream, up to MOTION_ATTEMPTS draws
+#: (then the best one is kept and the session says so).
+MAX_TRUE_PENETRATION_M = 0.005
+MIN_TOUCHING = 0.75
+MOTION_ATTEMPTS = 4
 
 # ------------------------------------------------------------------------------------ placement
 #: The pair is rotated by a random heading and shifted by up to this much (metres).

@@ -169,17 +169,32 @@ class MotionCheck:
         g = self.gaps[name]
         return float(np.mean(g < C.TOUCH_M)) if len(g) else 0.0
 
+    @property
+    def ok(self) -> bool:
+        """The motion is good ground truth: never deeper than constants.MAX_TRUE_PENETRATION_M
+        inside the other body, every contact touching in at least constants.MIN_TOUCHING of
+        its held frames."""
+        return bool(self.depth.max(initial=0.0) <= C.MAX_TRUE_PENETRATION_M
+                    and all(self.touching(k) >= C.MIN_TOUCHING for k in self.gaps))
 
-def check_motion(model, motion) -> MotionCheck:
+    def summary(self) -> str:
+        """One line: the deepest interpenetration and each contact's touching fraction."""
+        t = ", ".join(f"{k} touching {self.touching(k):.2f}" for k in self.gaps)
+        return f"deepest {1000 * self.depth.max(initial=0.0):.1f} mm" + (f", {t}" if t else "")
+
+
+def check_motion(model, motion, verts: list[np.ndarray] | None = None) -> MotionCheck:
     """Measure a :class:`studio.session.SequenceMotion` on its video frames: interpenetration of
-    the two bodies and, for each contact of its scene, the gap while it is held."""
+    the two bodies and, for each contact of its scene, the gap while it is held. verts: the two
+    bodies' vertices (F, V, 3) at the video frames, if already skinned."""
     import igl
 
     from body import forward
 
     vs = motion.video_samples
-    V = [forward(model, s.betas, t.pose[vs], t.R[vs], t.T[vs], rest=s.person.rest).vertices
-         for s, t in zip(motion.order, motion.tracks, strict=True)]
+    V = verts if verts is not None else [
+        forward(model, s.betas, t.pose[vs], t.R[vs], t.T[vs], rest=s.person.rest).vertices
+        for s, t in zip(motion.order, motion.tracks, strict=True)]
     faces = np.asarray(model.faces)
     depth = interpenetration_per_frame(V[0], V[1], faces)
     cast_people = motion.cast.people

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -48,7 +49,7 @@ from formats.chi3d import write_joints3d_25
 from formats.video import write_mp4
 from studio import constants as C
 from studio import plan as PL
-from studio.contact import annotate, interpenetration_per_frame
+from studio.contact import annotate, check_motion
 from studio.kin import UP, yaw
 from studio.mocap import observe_markers
 from studio.motion import Track, make_timeline, synthesize
@@ -78,8 +79,8 @@ def source_hash() -> str:
     return h.hexdigest()[:16]
 
 
-def _log(msg: str) -> None:
-    print(f"[studio] {msg}", flush=True)
+def _log(msg: str, warn: bool = False) -> None:
+    print(f"[studio] {msg}", flush=True, file=sys.stderr if warn else sys.stdout)
 
 
 # ------------------------------------------------------------------------------ subjects
@@ -146,11 +147,13 @@ class SequenceMotion:
         return self.cast.tl.video_samples
 
 
-def sequence_motion(plan: PL.SessionPlan, seq: PL.SequencePlan, subjects) -> SequenceMotion:
+def sequence_motion(plan: PL.SessionPlan, seq: PL.SequencePlan, subjects,
+                    attempt: int = 0) -> SequenceMotion:
     """Synthesize the motion of one sequence (no rendering, no files): the scenario's nominal
     motion, its contacts solved by IK and the bodies kept apart, then the pair placed at a random
-    heading and shift."""
-    rng = np.random.default_rng([plan.seed, 100 + seq.index])
+    heading and shift. attempt: which draw (0: the sequence's own random stream; k > 0: stream k
+    of it, see :func:`verified_motion`)."""
+    rng = np.random.default_rng([plan.seed, 100 + seq.index] + ([attempt] if attempt else []))
     tl = make_timeline(seq.frames, plan.fps, plan.mocap_hz, plan.sync_offset_s)
     by_id = {s.id: s for s in subjects}
     actor = subjects[seq.actor]
@@ -167,15 +170,46 @@ def sequence_motion(plan: PL.SessionPlan, seq: PL.SequencePlan, subjects) -> Seq
     return SequenceMotion(order, [tracks[role_of[s.id]] for s in order], cast, scene, rng)
 
 
+def skin_video(model, motion: SequenceMotion) -> list:
+    """The two bodies' model outputs (vertices, joints) at the video frames, in ``order``."""
+    vs = motion.video_samples
+    return [forward(model, s.betas, t.pose[vs], t.R[vs], t.T[vs], rest=s.person.rest)
+            for s, t in zip(motion.order, motion.tracks, strict=True)]
+
+
+def verified_motion(plan: PL.SessionPlan, seq: PL.SequencePlan, subjects, model):
+    """The true motion of one sequence, checked (:func:`studio.contact.check_motion`): a draw
+    that goes through the other body or misses its contact (``MotionCheck.ok``) is drawn again
+    from the next random stream (the scenario's random choices: spacing, stance, timing of the
+    swing...), up to constants.MOTION_ATTEMPTS draws. Returns (motion, its check, the draw's
+    index, the skinned outputs at the video frames); when no draw passes, the best one (least
+    deep, then most touching) with a warning on stderr: the session's ``gt/session.json``
+    records ``motion_ok`` per sequence either way."""
+    best = None
+    for attempt in range(C.MOTION_ATTEMPTS):
+        mo = sequence_motion(plan, seq, subjects, attempt)
+        outs = skin_video(model, mo)
+        chk = check_motion(model, mo, [o.vertices for o in outs])
+        if chk.ok:
+            return mo, chk, attempt, outs
+        _log(f"{seq.seq_id}: draw {attempt} rejected ({chk.summary()})")
+        key = (round(float(chk.depth.max(initial=0.0)), 4),
+               -min((chk.touching(k) for k in chk.gaps), default=1.0))
+        if best is None or key < best[0]:
+            best = (key, (mo, chk, attempt, outs))
+    mo, chk, attempt, outs = best[1]
+    _log(f"WARNING {seq.seq_id}: none of {C.MOTION_ATTEMPTS} draws met the motion checks; "
+         f"keeping draw {attempt} ({chk.summary()})", warn=True)
+    return mo, chk, attempt, outs
+
+
 def generate_sequence(out: Path, plan: PL.SessionPlan, seq: PL.SequencePlan, model, subjects,
                       cams, renderer: Renderer, markersets, reg25, regions) -> dict:
     t0 = time.time()
-    mo = sequence_motion(plan, seq, subjects)
+    mo, chk, attempt, outs = verified_motion(plan, seq, subjects, model)
     cast, scene, rng, order, trk = mo.cast, mo.scene, mo.rng, mo.order, mo.tracks
     vs = mo.video_samples
     F = seq.frames
-    outs = [forward(model, s.betas, t.pose[vs], t.R[vs], t.T[vs], rest=s.person.rest)
-            for s, t in zip(order, trk, strict=True)]
     verts = [o.vertices for o in outs]
     j25 = np.stack([regress(reg25, o.vertices, o.joints) for o in outs])
     # markers of the wearer at every mocap sample
@@ -237,8 +271,9 @@ def generate_sequence(out: Path, plan: PL.SessionPlan, seq: PL.SequencePlan, mod
         "markers_on": seq.markers_on, "partner": seq.partner, "actor": plan.subjects[seq.actor],
         "scenario": seq.scenario, "frames": F, "contact_start": ct.start, "contact_end": ct.end,
         "contact_frame": ct.fr_id, "signature_pairs": int(len(ct.faces)),
-        "max_penetration_mm": round(1000 * float(interpenetration_per_frame(verts[0], verts[1],
-                                                                            model.faces).max()), 2),
+        "max_penetration_mm": round(1000 * float(chk.depth.max(initial=0.0)), 2),
+        "contact_touching": {k: round(chk.touching(k), 3) for k in chk.gaps},
+        "motion_ok": chk.ok, "motion_draw": attempt,
         "seconds": round(time.time() - t0, 1),
     }
     _log(f"{seq.seq_id}: {F} frames, contact {ct.start}..{ct.end} (frame {ct.fr_id}, "

@@ -257,6 +257,101 @@ def test_holding_hands_arm_swings_in_to_the_middle(anny):
             atol=1e-9)
 
 
+def test_palm_facing_turns_only_the_forearm(anny):
+    """The hold's palm orientation: a hanging arm's forearm turned (pronation / supination)
+    until the palm faces the wanted direction, back or forward."""
+    from studio import posture as P
+    from studio.kin import FWD, Person
+    from studio.motion import make_timeline
+    from studio.scenarios import Cast, _palm_facing, place
+
+    person = Person.make(anny, np.zeros(10))
+    an = P.anatomy(person)
+    cast = Cast([person, person], [an, an], make_timeline(10), np.random.default_rng(0))
+    base = P.standing(person, an, np.random.default_rng(1))
+    tr = place(person, (0, 0), (1, 0), cast.N, base)
+    for side in ("L", "R"):
+        h = an.hands[side]
+        for want in (tr.R[0] @ FWD, -(tr.R[0] @ FWD)):
+            palm_normal = lambda pose: person.fk(pose[None], tr.R[:1], tr.T[:1])[1][0, h.wrist] @ h.normal  # noqa: E731, B023
+            assert palm_normal(base) @ want < 0.6  # hanging, the palm faces the thigh
+            turned = _palm_facing(cast, 0, tr, base, side, want)
+            assert palm_normal(turned) @ want > 0.9, (side, want)  # the forearm is not vertical
+            moved = np.flatnonzero(np.abs(turned - base).max(1) > 1e-9)
+            assert list(moved) == [person.j(f"lowerarm02.{side}")]
+
+
+def test_holding_hands_is_led_by_the_shorter_person(anny):
+    """Whoever the actor is, the shorter person's hand comes first and lies in front (the
+    contact on a fixed target); built with the roles swapped, the contacts and their pole
+    targets still refer to the right person."""
+    from studio import posture as P
+    from studio.kin import Person
+    from studio.motion import Fixed, make_timeline
+    from studio.scenarios import Cast, holding_hands
+
+    people = [Person.make(anny, np.zeros(10)), Person.make(anny, np.full(10, 0.3))]
+    an = [P.anatomy(q) for q in people]
+    tall = [float(np.ptp(a.pose0_vertices[:, 2])) for a in an]
+    assert abs(tall[0] - tall[1]) > 0.02
+    short = int(np.argmin(tall))
+    for order in ((0, 1), (1, 0)):
+        cast = Cast([people[k] for k in order], [an[k] for k in order], make_timeline(40),
+                    np.random.default_rng(0))
+        scene = holding_hands(cast)
+        lead = next(c for c in scene.contacts if isinstance(c.anchor, Fixed))
+        assert cast.people[lead.who] is people[short]
+        assert scene.movable == 1 - lead.who
+        for c in scene.contacts:
+            # the elbow pole is on the contact's own person, at its swung elbow
+            j, _, fn, _ = c.poles[0]
+            i = int(np.argmax(c.weight))
+            tr = scene.nominal[c.who]
+            elbow = cast.people[c.who].fk(tr.pose[i:i + 1], tr.R[i:i + 1], tr.T[i:i + 1])[0][0, j]
+            assert np.linalg.norm(fn(i, scene.nominal) - elbow) < 0.1
+
+
+def test_verified_motion_draws_again_until_the_checks_pass(monkeypatch, capsys):
+    """A draw that goes through the other body is drawn again; when none passes, the least deep
+    one is kept, with a warning."""
+    from types import SimpleNamespace
+
+    from studio import session as S
+    from studio.contact import MotionCheck
+
+    depth = {0: 0.02, 1: 0.009, 2: 0.001, 3: 0.03}
+    calls = []
+
+    def motion(plan, seq, subjects, attempt=0):  # noqa: ARG001
+        calls.append(attempt)
+        return SimpleNamespace(attempt=attempt)
+
+    monkeypatch.setattr(S, "sequence_motion", motion)
+    monkeypatch.setattr(S, "skin_video", lambda model, mo: [SimpleNamespace(vertices=None)] * 2)
+    monkeypatch.setattr(S, "check_motion", lambda model, mo, verts=None: MotionCheck(
+        np.array([0.0, depth[mo.attempt]]), {"hand": np.array([0.001, 0.002, 0.003])}))
+    seq = SimpleNamespace(seq_id="s01/Hug 1")
+    mo, chk, attempt, _ = S.verified_motion(None, seq, None, None)
+    assert (attempt, calls, chk.ok) == (2, [0, 1, 2], True)
+    assert "draw 0 rejected (deepest 20.0 mm, hand touching 1.00)" in capsys.readouterr().out
+    depth[2] = 0.008
+    calls.clear()
+    mo, chk, attempt, _ = S.verified_motion(None, seq, None, None)
+    assert (attempt, calls, chk.ok) == (2, [0, 1, 2, 3], False)
+    assert "WARNING s01/Hug 1: none of 4 draws" in capsys.readouterr().err
+
+
+def test_motion_check_needs_depth_and_touching():
+    from studio import constants as C
+    from studio.contact import MotionCheck
+
+    held = np.array([0.001, 0.002, 0.003, 0.02])
+    assert MotionCheck(np.array([0.0, 0.004]), {"a": held}).ok
+    assert not MotionCheck(np.array([0.0, 0.006]), {"a": held}).ok
+    assert C.MIN_TOUCHING > 0.5
+    assert not MotionCheck(np.array([0.0, 0.001]), {"a": np.array([0.001, 0.02, 0.03])}).ok
+
+
 def test_timeline_maps_video_frames_to_mocap_samples():
     from studio.motion import make_timeline
 
