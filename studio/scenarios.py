@@ -353,12 +353,10 @@ def kick(cast: Cast) -> Scene:
     # aimed at a point in the air where that hand had been)
     anc = _anchor(cast, 1, guard, "upperleg01.L", mid, LEFT + FWD * 0.8)
     # the foot swings in aimed a few cm off the thigh and closes in at the end (aimed straight
-    # at the contact, the big toe grazed the thigh on the way); the top of the foot faces the
-    # thigh (free to turn, the toes went in first and the instep stayed a few mm off)
+    # at the contact, the big toe grazed the thigh on the way)
     off = 0.01 + 0.04 * (1 - ramp(u, 0.3, 0.42))
     c = Contact(0, P.leg_dofs(pa, aa, "R"), (pa.j("foot.R"), aa.instep_offset["R"]), anc,
-                clearance=off, weight=w, region=aa.foot_vertices["R"], eff_normal=UP,
-                name="foot.R->thigh.L")
+                clearance=off, weight=w, region=aa.foot_vertices["R"], name="foot.R->thigh.L")
     return Scene([ta, tb], [c], movable=1, contact_hint=(0.43, 0.5))
 
 
