@@ -277,8 +277,8 @@ def generate_sequence(out: Path, plan: PL.SessionPlan, seq: PL.SequencePlan, mod
         "seconds": round(time.time() - t0, 1),
     }
     _log(f"{seq.seq_id}: {F} frames, contact {ct.start}..{ct.end} (frame {ct.fr_id}, "
-         f"{len(ct.faces)} pairs), deepest interpenetration {info['max_penetration_mm']:.1f} mm, "
-         f"{info['seconds']} s")
+         f"{len(ct.faces)} pairs), deepest interpenetration {info['max_penetration_mm']:.1f} mm"
+         f"{f' (draw {attempt})' if attempt else ''}, {info['seconds']} s")
     return info, ct
 
 

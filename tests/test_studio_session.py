@@ -169,7 +169,11 @@ def test_no_true_interpenetration(session):
         worst = max(interpenetration(g["vertices"][0, f], g["vertices"][1, f], faces)[0]
                     for f in range(0, len(g["frames"]), 2))
         assert worst < 5e-3, (sid, worst)
-        assert session["meta"]["sequences"][sid]["max_penetration_mm"] < 5.0
+        info = session["meta"]["sequences"][sid]
+        # the generator's own check agrees (it measures every frame, this test every other one)
+        assert worst * 1000 <= info["max_penetration_mm"] + 0.01 < 5.0, (sid, worst, info)
+        assert info["motion_ok"] and info["motion_draw"] >= 0
+        assert all(t >= 0.75 for t in info["contact_touching"].values()), info
 
 
 def test_motion_is_smooth(session):
