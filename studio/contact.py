@@ -189,10 +189,8 @@ def check_motion(model, motion, verts: list[np.ndarray] | None = None) -> Motion
     bodies' vertices (F, V, 3) at the video frames, if already skinned."""
     import igl
 
-    from studio.session import skin_video
-
     vs = motion.video_samples
-    V = verts if verts is not None else [o.vertices for o in skin_video(model, motion)]
+    V = verts if verts is not None else [o.vertices for o in motion.skin(model)]
     faces = np.asarray(model.faces)
     depth = interpenetration_per_frame(V[0], V[1], faces)
     cast_people = motion.cast.people

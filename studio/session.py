@@ -146,6 +146,12 @@ class SequenceMotion:
     def video_samples(self) -> np.ndarray:
         return self.cast.tl.video_samples
 
+    def skin(self, model) -> list:
+        """The two bodies' model outputs (vertices, joints) at the video frames, in ``order``."""
+        vs = self.video_samples
+        return [forward(model, s.betas, t.pose[vs], t.R[vs], t.T[vs], rest=s.person.rest)
+                for s, t in zip(self.order, self.tracks, strict=True)]
+
 
 def sequence_motion(plan: PL.SessionPlan, seq: PL.SequencePlan, subjects,
                     attempt: int = 0) -> SequenceMotion:
@@ -170,13 +176,6 @@ def sequence_motion(plan: PL.SessionPlan, seq: PL.SequencePlan, subjects,
     return SequenceMotion(order, [tracks[role_of[s.id]] for s in order], cast, scene, rng)
 
 
-def skin_video(model, motion: SequenceMotion) -> list:
-    """The two bodies' model outputs (vertices, joints) at the video frames, in ``order``."""
-    vs = motion.video_samples
-    return [forward(model, s.betas, t.pose[vs], t.R[vs], t.T[vs], rest=s.person.rest)
-            for s, t in zip(motion.order, motion.tracks, strict=True)]
-
-
 def verified_motion(plan: PL.SessionPlan, seq: PL.SequencePlan, subjects, model):
     """The true motion of one sequence, checked (:func:`studio.contact.check_motion`): a draw
     that goes through the other body or misses its contact (``MotionCheck.ok``) is drawn again
@@ -188,7 +187,7 @@ def verified_motion(plan: PL.SessionPlan, seq: PL.SequencePlan, subjects, model)
     best = None
     for attempt in range(C.MOTION_ATTEMPTS):
         mo = sequence_motion(plan, seq, subjects, attempt)
-        outs = skin_video(model, mo)
+        outs = mo.skin(model)
         chk = check_motion(model, mo, [o.vertices for o in outs])
         if chk.ok:
             return mo, chk, attempt, outs

@@ -324,10 +324,9 @@ def test_verified_motion_draws_again_until_the_checks_pass(monkeypatch, capsys):
 
     def motion(plan, seq, subjects, attempt=0):  # noqa: ARG001
         calls.append(attempt)
-        return SimpleNamespace(attempt=attempt)
+        return SimpleNamespace(attempt=attempt, skin=lambda model: [SimpleNamespace(vertices=None)] * 2)
 
     monkeypatch.setattr(S, "sequence_motion", motion)
-    monkeypatch.setattr(S, "skin_video", lambda model, mo: [SimpleNamespace(vertices=None)] * 2)
     monkeypatch.setattr(S, "check_motion", lambda model, mo, verts=None: MotionCheck(
         np.array([0.0, depth[mo.attempt]]), {"hand": np.array([0.001, 0.002, 0.003])}))
     seq = SimpleNamespace(seq_id="s01/Hug 1")
