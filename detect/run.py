@@ -9,7 +9,6 @@ results do not depend on the number of workers.
 from __future__ import annotations
 
 import concurrent.futures as cf
-import multiprocessing as mp
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, Protocol
@@ -20,6 +19,7 @@ from detect import layout
 from detect.base import DetectorFactory, quiet_native_logs
 from detect.hints import WearerHints
 from detect.people import PeopleOptions, find_people
+from pipeline.procs import process_pool
 
 
 class FrameReader(Protocol):
@@ -184,9 +184,9 @@ def detect_sequence(source: FrameSource, factory: DetectorFactory, hints: Wearer
         for j, sl in enumerate(progress(parts, total=len(parts), desc="keypoints")):
             results[j] = _run_chunk(source, factory, hints.frames(sl), frames[sl], n_cam, opts)
     else:
-        ctx = mp.get_context("spawn")
-        with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
-                                    initializer=_silence_native_stderr) as pool:
+        # workers die with this process (kill -9 included) and are killed, not awaited, when
+        # the block is left by an exception (a failed chunk, SIGTERM during the stage)
+        with process_pool(workers, initializer=_silence_native_stderr) as pool:
             futs = {pool.submit(_run_chunk, source, factory, hints.frames(sl), frames[sl], n_cam,
                                 opts): j for j, sl in enumerate(parts)}
             for fut in progress(cf.as_completed(futs), total=len(futs), desc="keypoints"):

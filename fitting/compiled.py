@@ -14,6 +14,12 @@ cost is the fitting speed. What DESIGN.md measured and this module follows:
   generated C source, the compiler and its flags, like any artifact (write to a temporary
   file, then ``os.replace``). No compiler: the interpreted function is used instead (same
   results, ~2x slower).
+- The compiler dies with us: it runs under a small guard process that leads a new process
+  group and reads a pipe only we hold; when we die (even by ``kill -9``) the pipe closes and
+  the guard kills the whole group (gcc, cc1, as, ld). An exception while waiting (SIGTERM
+  turned into an exception by the engine, Ctrl-C) kills the group at once. A killed build's
+  leftovers in the cache folder, ``.gen-<pid>-*`` work folders and ``.<lib>.so.<pid>.tmp``
+  outputs of a process that is gone, are removed by the next build (:func:`clean_stale`).
 
 Shapes: ``x (n,) float64``, ``p (q,) float64``, residuals ``r (m,)``, Jacobian nonzeros
 ``(nnz,)`` in CasADi's column-major order with triplets ``rows (nnz,)``, ``cols (nnz,)``.
@@ -23,8 +29,11 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
+import signal
 import subprocess
+import sys
 import tempfile
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -36,6 +45,23 @@ import numpy as np
 DEFAULT_CACHE = Path(__file__).resolve().parents[1] / "assets" / "cache" / "casadi"
 CACHE_ENV = "CASADI_CACHE_DIR"  # overrides the cache folder when set
 KEY_CHARS = 20
+GEN_PREFIX = ".gen-"     # work folders: .gen-<pid>-<random>
+STALE_LEGACY_S = 3600.0  # a .gen-* folder without a pid (older code) is stale after this long
+
+# Run as ``python -c _GUARD compiler args...`` in a new session (process group): starts the
+# compiler in the group, and kills the group when stdin (a pipe only our process holds)
+# reaches EOF, i.e. when we die; exits with the compiler's return code otherwise.
+_GUARD = """
+import os, signal, subprocess, sys, threading
+child = subprocess.Popen(sys.argv[1:], stdin=subprocess.DEVNULL)
+def watch():
+    while os.read(0, 65536):
+        pass
+    os.killpg(0, signal.SIGKILL)
+threading.Thread(target=watch, daemon=True).start()
+code = child.wait()
+os._exit(code if code >= 0 else 128 - code)
+"""
 
 
 @dataclass(frozen=True)
@@ -139,14 +165,93 @@ def _generate_source(func: ca.Function, workdir: Path) -> str:
     return (workdir / f"{func.name()}.c").read_text()
 
 
+def run_guarded(cmd: list[str], out) -> int:
+    """Run ``cmd`` (stdout and stderr to the open file ``out``) so that it and everything it
+    starts die with this process (see the module docstring); on any exception while waiting
+    (KeyboardInterrupt, SystemExit from a signal handler) kill them first. Returns the exit
+    code."""
+    proc = subprocess.Popen([sys.executable, "-c", _GUARD, *cmd], stdin=subprocess.PIPE,
+                            stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        return proc.wait()
+    except BaseException:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+        proc.wait()
+        raise
+    finally:
+        proc.stdin.close()
+
+
 def _compile(src_path: Path, lib_path: Path, compiler: str, flags: tuple[str, ...]) -> None:
     tmp = lib_path.with_name(f".{lib_path.name}.{os.getpid()}.tmp")
     cmd = [compiler, *flags, "-shared", "-fPIC", "-o", str(tmp), str(src_path), "-lm"]
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    if proc.returncode != 0:
+    log_path = src_path.with_name(f"{src_path.stem}.compiler.log")
+    try:
+        with open(log_path, "wb") as out:
+            code = run_guarded(cmd, out)
+        if code != 0:
+            raise RuntimeError(f"compiling {src_path.name} failed: "
+                               f"{log_path.read_text(errors='replace')[-2000:]}")
+        os.replace(tmp, lib_path)
+    finally:
         tmp.unlink(missing_ok=True)
-        raise RuntimeError(f"compiling {src_path.name} failed: {proc.stderr[-2000:]}")
-    os.replace(tmp, lib_path)
+
+
+def _pid_of(text: str) -> int | None:
+    return int(text) if text.isdigit() else None
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def clean_stale(folder: Path) -> list[Path]:
+    """Remove what killed builds left in the cache ``folder``: ``.gen-<pid>-*`` work folders
+    and ``.<lib>.so.<pid>.tmp`` files whose process no longer runs on this host (and
+    ``.gen-*`` folders without a pid older than ``STALE_LEGACY_S``). Returns what went."""
+    gone = []
+    try:
+        entries = list(Path(folder).iterdir())
+    except FileNotFoundError:
+        return gone
+    now = time.time()
+    for p in entries:
+        name = p.name
+        if name.startswith(GEN_PREFIX):
+            head, sep, _ = name[len(GEN_PREFIX):].partition("-")
+            pid = _pid_of(head) if sep else None
+        elif name.startswith(".") and name.endswith(".tmp") and ".so." in name:
+            pid = _pid_of(name[:-len(".tmp")].rsplit(".", 1)[-1])
+            if pid is None:
+                continue
+        else:
+            continue
+        try:
+            if pid is None:
+                stale = now - p.stat().st_mtime > STALE_LEGACY_S
+            else:
+                stale = not _alive(pid)
+            if not stale:
+                continue
+            if p.is_dir():
+                shutil.rmtree(p)
+            else:
+                p.unlink()
+        except FileNotFoundError:  # another process cleaned it first
+            continue
+        gone.append(p)
+    return gone
 
 
 def library_key(source: str, compiler: str, flags: tuple[str, ...]) -> str:
@@ -189,7 +294,10 @@ def build(
         return ResidualFunction(func, rows, cols, compiled=False, library=None)
     folder = cache_dir(opts)
     folder.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=folder, prefix=".gen-") as tmpd:
+    gone = clean_stale(folder)
+    if gone and log:
+        log(f"{name}: removed {len(gone)} leftover(s) of killed builds from {folder}")
+    with tempfile.TemporaryDirectory(dir=folder, prefix=f"{GEN_PREFIX}{os.getpid()}-") as tmpd:
         work = Path(tmpd)
         source = _generate_source(func, work)
         key = library_key(source, compiler, opts.flags)

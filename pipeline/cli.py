@@ -135,6 +135,10 @@ def _main(args, log) -> int:
         plan = eng.plan("release", until=args.until)
     else:
         plan = eng.plan("demo", until=args.until)
+    problems = eng.check(plan)
+    if problems:
+        raise CliError(f"{len(problems)} problem(s) in the recipe or its inputs; nothing was run:\n"
+                       + "\n".join(problems))
     report = eng.run(plan, force=args.force)
     log(f"{args.command}: {report.summary()}")
     if args.command == "demo":

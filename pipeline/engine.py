@@ -24,8 +24,9 @@ from typing import Any, Callable, Iterable, Mapping
 from pipeline.executors import Executor, Outcome, SerialExecutor
 from pipeline.hashing import FileHasher
 from pipeline.plan import Node, NodeId, Plan, PlanError, build_plan, check_registry
-from pipeline.spec import Registry, StageContext
-from pipeline.store import Store
+from pipeline.procs import Interrupted, end_children, signals_raise
+from pipeline.spec import RecipeView, Registry, StageContext
+from pipeline.store import CorruptArtifactError, Store
 
 
 def stderr_log(msg: str) -> None:
@@ -105,6 +106,32 @@ class StatusRow:
     detail: str = ""
 
 
+class _UpstreamCorrupt(Exception):
+    """Raised out of ``_build`` when the stage failed on an unreadable upstream file."""
+
+    def __init__(self, err: CorruptArtifactError, manifest: dict | None, detail: str):
+        super().__init__(str(err))
+        self.err, self.manifest, self.detail = err, manifest, detail
+
+
+def _corrupt_cause(exc: BaseException) -> CorruptArtifactError | None:
+    """The CorruptArtifactError ``exc`` is or was raised from (a stage may wrap it)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, CorruptArtifactError):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def _manifest_of(inputs: Mapping[str, Any], err: CorruptArtifactError) -> dict | None:
+    """The manifest of the artifact (err.stage, err.unit) among a stage's inputs."""
+    v = inputs.get(err.stage)
+    arts = v.values() if isinstance(v, dict) else [v]
+    return next((a.manifest for a in arts if getattr(a, "unit", None) == err.unit), None)
+
+
 class Engine:
     """Runs stages of ``registry`` for one recipe, storing artifacts under
     ``outputs/<session>/``.
@@ -144,6 +171,19 @@ class Engine:
         return build_plan(self.registry, self.recipe, self.recipe_path, targets, until,
                           self.hasher)
 
+    def check(self, plan: Plan) -> list[str]:
+        """Every problem that stops ``plan`` from running, one message each, before anything
+        runs: the nodes' planning errors (bad stage options, missing raw files, unknown recipe
+        fields; deduplicated) and the registry's own checks of the recipe (``Registry.check``)
+        for the sequences of the plan."""
+        errs = [n.error for n in plan.nodes if n.error]
+        roots = [e for e in errs if not e.startswith("upstream ")]  # the rest follow from these
+        out = list(dict.fromkeys(roots or errs))
+        if self.registry.check is not None:
+            seqs = sorted({n.unit for n in plan.nodes if n.stage.per == "sequence"})
+            out += list(self.registry.check(self.recipe, self.recipe_path, seqs))
+        return list(dict.fromkeys(out))
+
     # -- running ----------------------------------------------------------------------------
     def run(self, plan: Plan, force: Iterable[str] = ()) -> RunReport:
         """Run every node of ``plan``. ``force``: stage names (or ``"all"``) to recompute even
@@ -157,6 +197,7 @@ class Engine:
                 raise PlanError(f"--force {f}: no such stage (known: {', '.join(self.stage_names)})")
         seeds = {n.id for n in plan.nodes if "all" in force or n.stage.name in force}
         forced = plan.descendants(seeds)
+        self._plan = plan  # a corrupt upstream artifact is rebuilt from its node
         outcomes = self.executor.run(
             plan.nodes, lambda node, done: self._run_logged(node, done, node.id in forced))
         return RunReport(plan, outcomes)
@@ -177,7 +218,8 @@ class Engine:
             self.log(o.detail.rstrip())
         return o
 
-    def _run_node(self, node: Node, done: Mapping[NodeId, Outcome], force: bool) -> Outcome:
+    def _run_node(self, node: Node, done: Mapping[NodeId, Outcome], force: bool,
+                  retry: bool = True) -> Outcome:
         st = node.stage
         if not st.implemented:
             return Outcome("planned", detail="not implemented yet")
@@ -187,25 +229,80 @@ class Engine:
                 why = {None: "not run", "planned": "not implemented", "failed": "failed",
                        "skipped": "skipped"}[up.status if up else None]
                 return Outcome("skipped", detail=f"needs {uid[0]} [{uid[1]}]: {why}")
+        self._clean_stale(node)  # a killed run's temp folders go even when this is a hit
         if not force:
             e = self.store.entry(node.unit, st.name)
             if e.state == "complete" and e.manifest["key"] == node.key:
                 return Outcome("hit")
+        bad = self._check_upstream(node, done)
+        if bad is not None:
+            return bad
 
         def waiting() -> None:
             self.log(f"{datetime.now():%H:%M:%S}  {st.name:<12} {node.unit:<16} waiting "
                      "(another process holds the lock)")
 
-        with self.store.lock(node.unit, st.name, on_wait=waiting):
-            self.store.clean_leftovers(node.unit, st.name)
-            e = self.store.entry(node.unit, st.name)
-            if e.state == "corrupt":
-                self.log(f"WARNING: {self.store.dir(node.unit, st.name)}: corrupt artifact "
-                         f"({e.problem}); deleting it and recomputing")
-                self.store.remove(node.unit, st.name)
-            elif not force and e.state == "complete" and e.manifest["key"] == node.key:
-                return Outcome("hit", detail="built by another process")
-            return self._build(node)
+        try:
+            with self.store.lock(node.unit, st.name, on_wait=waiting):
+                self.store.clean_leftovers(node.unit, st.name)
+                e = self.store.entry(node.unit, st.name)
+                if e.state == "corrupt":
+                    self.log(f"WARNING: {self.store.dir(node.unit, st.name)}: corrupt artifact "
+                             f"({e.problem}); deleting it and recomputing")
+                    self.store.remove(node.unit, st.name)
+                elif not force and e.state == "complete" and e.manifest["key"] == node.key:
+                    return Outcome("hit", detail="built by another process")
+                return self._build(node)
+        except _UpstreamCorrupt as c:  # the stage could not read an upstream file
+            if not retry:
+                return Outcome("failed", detail=c.detail)
+            bad = self._rebuild_corrupt((c.err.stage, c.err.unit), f"{c.err.file}: {c.err.problem}",
+                                        c.manifest, done)
+            return bad if bad is not None else self._run_node(node, done, force, retry=False)
+
+    def _clean_stale(self, node: Node) -> None:
+        """Remove the leftovers of killed runs of this node that nobody is building."""
+        gone = self.store.clean_stale_leftovers(node.unit, node.stage.name)
+        if gone:
+            self.log(f"          {node.stage.name} [{node.unit}]: removed what a killed run left: "
+                     + ", ".join(p.name for p in gone))
+
+    def _check_upstream(self, node: Node, done: Mapping[NodeId, Outcome]) -> Outcome | None:
+        """Before building ``node``: compare each upstream artifact's files with the sha256
+        of its manifest; rebuild the corrupt ones. None when all is well, else the outcome
+        of ``node`` (its upstream could not be rebuilt)."""
+        for s, u in node.upstream_ids():
+            e = self.store.entry(u, s)
+            if e.state != "complete":
+                continue  # _build reports it
+            problem = self.store.verify(u, s, e.manifest)
+            if problem:
+                bad = self._rebuild_corrupt((s, u), problem, e.manifest, done)
+                if bad is not None:
+                    return bad
+        return None
+
+    def _rebuild_corrupt(self, uid: NodeId, problem: str, seen: dict | None,
+                         done: Mapping[NodeId, Outcome]) -> Outcome | None:
+        """Warn, delete the corrupt artifact ``uid`` (if its manifest is still ``seen``: not
+        replaced by another process meanwhile) and build it again from its plan node. None
+        when rebuilt, else the failed outcome for the node that needed it."""
+        s, u = uid
+        d = self.store.dir(u, s)
+        self.log(f"WARNING: {d}: corrupt artifact ({problem}); recomputing {s} [{u}]")
+        up = getattr(self, "_plan", None) and self._plan.by_id.get(uid)
+        if not up:
+            return Outcome("failed", detail=f"upstream {s} [{u}]: {d}: corrupt artifact "
+                           f"({problem}), and it is not part of this plan to rebuild it")
+        with self.store.lock(u, s):
+            e = self.store.entry(u, s)
+            if e.state != "absent" and (seen is None or e.manifest == seen):
+                self.store.remove(u, s)
+        o = self._run_logged(up, done, False)
+        if not o.ok:
+            return Outcome("failed", detail=f"upstream {s} [{u}] was corrupt ({problem}) and "
+                           f"rebuilding it {o.status}: {o.detail}")
+        return None
 
     def _build(self, node: Node) -> Outcome:
         st = node.stage
@@ -227,7 +324,8 @@ class Engine:
         writer = self.store.begin(node.unit, st.name)
         label = f"{st.name} [{node.unit}]"
         ctx = StageContext(
-            stage=st.name, unit=node.unit, recipe=self.recipe, params=node.params,
+            stage=st.name, unit=node.unit, recipe=RecipeView(node.recipe_view, st.name),
+            params=node.params, recipe_path=self.recipe_path,
             inputs=inputs, raw=dict(node.raw), out=writer, progress=make_progress(label),
             log=lambda msg: self.log(f"          {label}: {msg}"),
             extras={"key": node.key, "session": self.session, "outputs": self.store.root},
@@ -235,11 +333,20 @@ class Engine:
         started = datetime.now(timezone.utc)
         t0 = time.perf_counter()
         try:
-            st.func(ctx)
+            with signals_raise():  # SIGTERM/SIGINT -> Interrupted (exit code 128 + signum)
+                st.func(ctx)
         except BaseException as exc:  # noqa: BLE001 - the temp folder must go in every case
             self.store.abort(writer)
+            if isinstance(exc, Interrupted):
+                end_children()
+                self.log(f"{datetime.now():%H:%M:%S}  {st.name:<12} {node.unit:<16} interrupted "
+                         f"by {exc.signal_name}: its temporary folder was removed; exiting with "
+                         f"code {exc.code}")
             if not isinstance(exc, Exception):
                 raise
+            bad = _corrupt_cause(exc)
+            if bad is not None and (bad.stage, bad.unit) in node.upstream_ids():
+                raise _UpstreamCorrupt(bad, _manifest_of(inputs, bad), traceback.format_exc()) from exc
             return Outcome("failed", detail=traceback.format_exc())
         seconds = time.perf_counter() - t0
         if self._packages is None:
@@ -253,6 +360,7 @@ class Engine:
                         for n, p in node.raw.items()},
             },
             "parameters": node.params_canon,
+            "recipe_fields": node.recipe_view,
             "timings": {"started": started.isoformat(timespec="seconds"),
                         "finished": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                         "seconds": round(seconds, 4)},

@@ -4,7 +4,12 @@ An executor receives the plan's nodes in DAG order and a ``run_node(node, done)`
 where ``done`` maps the ids of finished nodes to their :class:`Outcome`; it must call
 ``run_node`` for a node only after all of ``node.upstream_ids()`` are in ``done``.
 ``run_node`` does the cache check, the locking and the atomic write itself, so it is safe to
-call from several processes or machines that share the ``outputs`` folder.
+call from several processes or machines that share the ``outputs`` folder. When SIGTERM or
+SIGINT interrupts a stage, ``run_node`` raises :class:`pipeline.procs.Interrupted` (a
+``SystemExit``) after cleaning up: an executor lets it through (no further node starts).
+Signal handlers can only be set in the main thread, so an executor running nodes in other
+threads gets no such cleanup for them; one running them in child processes should start
+those with :func:`pipeline.procs.die_with_parent`.
 
 Only :class:`SerialExecutor` exists today. The seam for scale-out: a ``DaskExecutor`` would
 submit ``run_node`` per node to a ``dask.distributed`` client with the upstream futures as

@@ -4,7 +4,8 @@ with its artifact key.
 Key of a node = sha256 of the canonical JSON of::
 
     {"stage": name, "version": Stage.version, "source": sha256 of the module source of func,
-     "params": validated parameters, "upstream": {stage: {unit: key}},
+     "params": validated parameters, "recipe": the declared recipe fields (Stage.reads) and
+     their values for the unit, "upstream": {stage: {unit: key}},
      "raw": {name: sha256 of the file or folder}}
 
 Keys depend only on code, recipe and raw files, never on what is on disk, so ``status`` can
@@ -21,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.hashing import FileHasher, UnhashableError, canonical, digest
-from pipeline.spec import Registry, Stage
+from pipeline.spec import Registry, Stage, build_view_tree
 
 GRANULARITIES = ("subject", "sequence", "session")
 NodeId = tuple[str, str]  # (stage, unit)
@@ -45,6 +46,7 @@ class Node:
     raw: dict[str, Path] = field(default_factory=dict)
     raw_hashes: dict[str, str] = field(default_factory=dict)
     upstream_keys: dict[str, dict[str, str]] = field(default_factory=dict)
+    recipe_view: dict = field(default_factory=dict)
     key: str | None = None
     error: str = ""
 
@@ -235,6 +237,29 @@ def _construct(cls: type, raw: dict, where: str) -> Any:
         raise PlanError(f"{where}: {e}") from None
 
 
+def recipe_view_tree(reg: Registry, recipe: Any, stage: Stage, unit: str) -> dict:
+    """The canonical nested dict of the recipe fields ``stage`` declares (``Stage.reads``) for
+    ``unit``; it enters the key and becomes the stage's ``ctx.recipe``. PlanError for a name the
+    registry does not know or a value that can't be hashed."""
+    if not stage.reads:
+        return {}
+    if reg.recipe_view is None:
+        raise PlanError(f"stage {stage.name}: declares reads {list(stage.reads)} but the registry "
+                        "has no recipe_view")
+    values = {}
+    for name in stage.reads:
+        try:
+            values[name] = _canon(reg.recipe_view(recipe, unit, name),
+                                  f"stage {stage.name}: recipe field {name}")
+        except KeyError as e:
+            raise PlanError(f"stage {stage.name}: Stage.reads names {name!r}, which the registry "
+                            f"does not know for unit {unit} ({e.args[0] if e.args else e})") from None
+    try:
+        return build_view_tree(values)
+    except ValueError as e:
+        raise PlanError(f"stage {stage.name}: {e}") from None
+
+
 def closure(reg: Registry, recipe: Any, targets: list[NodeId]) -> dict[NodeId, dict[str, list[str]]]:
     """Every node needed for ``targets``: ``{(stage, unit): {upstream stage: [units]}}``."""
     by = {s.name: s for s in reg.stages}
@@ -318,6 +343,7 @@ def build_plan(reg: Registry, recipe: Any, recipe_path: Path, targets: list[Node
             node.error = f"upstream {bad_up[0][0]} [{bad_up[0][1]}] has no key"
             continue
         try:
+            node.recipe_view = recipe_view_tree(reg, recipe, st, node.unit)
             node.raw = dict(st.raw_inputs(recipe, node.unit)) if st.raw_inputs else {}
             for name, p in node.raw.items():
                 p = Path(p)
@@ -334,7 +360,8 @@ def build_plan(reg: Registry, recipe: Any, recipe_path: Path, targets: list[Node
                               for s, us in node.upstream.items()}
         node.key = digest({
             "stage": st.name, "version": st.version, "source": sources[st.name],
-            "params": node.params_canon, "upstream": node.upstream_keys, "raw": node.raw_hashes,
+            "params": node.params_canon, "recipe": node.recipe_view,
+            "upstream": node.upstream_keys, "raw": node.raw_hashes,
         })
     hasher.save()
     return Plan([nodes[i] for i in ids], reg.session_name(recipe))

@@ -33,6 +33,11 @@ class Stage:
         unknown keys are errors. ``None``: the stage takes no parameters.
     raw_inputs : ``raw_inputs(recipe, unit) -> {name: Path}``: raw files read from the recipe;
         their content hashes enter the key. ``None``: no raw inputs.
+    reads : the recipe fields the stage reads, as dotted names the registry resolves for a unit
+        (``"cameras"``, ``"sequence.fps"``, ``"sequence.mocap"`` for a whole sub-tree). Their
+        values enter the key, and the stage's ``ctx.recipe`` is a :class:`RecipeView` of exactly
+        them: reading anything else raises :class:`UndeclaredRead`. Files are not read through
+        the view but through ``raw_inputs`` (keyed by content, not by path).
     implemented : False for a planned stage that does not exist yet (the CLI says so plainly).
     """
 
@@ -45,6 +50,7 @@ class Stage:
     raw_inputs: Callable[[Any, str], dict[str, Path]] | None = None
     implemented: bool = True
     doc: str = ""
+    reads: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -62,6 +68,14 @@ class Registry:
         that run stages (``demo``, ``sequence``, ``release``; not ``status``), e.g. to generate
         the synthetic demo data when it is missing. Must be idempotent and cheap when there is
         nothing to do.
+    recipe_view(recipe, unit, name) -> value, optional: the value of the declared recipe field
+        ``name`` (one entry of ``Stage.reads``) for ``unit``: plain data (str, numbers, bools,
+        lists, dicts); raises ``KeyError`` for a name it does not know. Without it a stage may
+        declare no ``reads``.
+    check(recipe, recipe_path, units) -> list[str], optional: every problem of the recipe that
+        the schema cannot see (e.g. input files that disagree with each other), one message per
+        problem naming the file and the field, for the sequences ``units`` about to run (None:
+        all). The CLI runs it before any stage and stops with exit code 2 on any message.
     """
 
     stages: tuple[Stage, ...]
@@ -71,6 +85,74 @@ class Registry:
     upstream_units: Callable[[Any, str, str, str], list[str]]
     stage_params: Callable[[Any, str], dict]
     prepare: Callable[[Path], None] | None = None
+    recipe_view: Callable[[Any, str, str], Any] | None = None
+    check: Callable[[Any, Path, list[str] | None], list[str]] | None = None
+
+
+class UndeclaredRead(LookupError):
+    """A stage read a recipe field it did not declare in ``Stage.reads`` (the field would be
+    missing from the artifact key, so an edit of it would reuse stale results)."""
+
+
+class RecipeView:
+    """The part of the recipe a stage declared (``Stage.reads``), as read-only attributes:
+    ``view.sequence.fps``, ``view.cameras``. ``tree`` is the nested dict of declared values.
+    A missing attribute is an :class:`UndeclaredRead` naming the stage and the field."""
+
+    __slots__ = ("_tree", "_stage", "_prefix")
+
+    def __init__(self, tree: dict, stage: str, prefix: str = ""):
+        object.__setattr__(self, "_tree", tree)
+        object.__setattr__(self, "_stage", stage)
+        object.__setattr__(self, "_prefix", prefix)
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("__"):
+            raise AttributeError(name)
+        tree = object.__getattribute__(self, "_tree")
+        stage = object.__getattribute__(self, "_stage")
+        prefix = object.__getattribute__(self, "_prefix")
+        full = f"{prefix}{name}"
+        if name not in tree:
+            raise UndeclaredRead(f"stage {stage} reads recipe field {full!r} but does not declare "
+                                 f"it in Stage.reads (declared here: {sorted(tree) or 'nothing'})")
+        v = tree[name]
+        return RecipeView(v, stage, f"{full}.") if isinstance(v, dict) else v
+
+    __getitem__ = __getattr__
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise AttributeError("the recipe view is read-only")
+
+    def __contains__(self, name: str) -> bool:
+        return name in object.__getattribute__(self, "_tree")
+
+    def as_dict(self) -> dict:
+        return object.__getattribute__(self, "_tree")
+
+    def __repr__(self) -> str:
+        return f"RecipeView({object.__getattribute__(self, '_tree')!r})"
+
+
+def build_view_tree(values: dict[str, Any]) -> dict:
+    """``{"sequence.fps": 50, "cameras": [...]}`` -> ``{"sequence": {"fps": 50}, "cameras":
+    [...]}``. A name that is a prefix of another merges (``sequence.mocap`` and
+    ``sequence.mocap.rate_hz`` give one sub-tree)."""
+    tree: dict = {}
+    for name in sorted(values, key=lambda n: n.count(".")):
+        parts = name.split(".")
+        node = tree
+        for p in parts[:-1]:
+            nxt = node.setdefault(p, {})
+            if not isinstance(nxt, dict):
+                raise ValueError(f"recipe field {name!r}: {p!r} is a value, not a group")
+            node = nxt
+        v = values[name]
+        if isinstance(v, dict) and isinstance(node.get(parts[-1]), dict):
+            node[parts[-1]].update(v)
+        else:
+            node[parts[-1]] = v
+    return tree
 
 
 class Artifact(Protocol):
@@ -107,6 +189,8 @@ class StageContext:
         (it maps to this very unit), else ``{upstream_stage: {unit: Artifact}}`` in the order
         ``upstream_units`` gives (a sequence reading a per-subject stage gets
         ``{markers_on: ..., partner: ...}``), even when that dict has a single entry.
+    recipe : a :class:`RecipeView` of the fields the stage declared in ``Stage.reads``.
+    recipe_path : the recipe file, for error messages only (it is not part of the key).
     raw : the raw input files of this unit, ``{name: Path}``.
     progress : ``progress(iterable, total=None, desc="")`` wraps per-frame loops in a bar
         that is quiet when stderr is not a terminal.
@@ -122,3 +206,4 @@ class StageContext:
     progress: Callable[..., Any]
     log: Callable[[str], None]
     extras: dict[str, Any] = field(default_factory=dict)
+    recipe_path: Path | None = None

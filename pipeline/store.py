@@ -9,22 +9,37 @@ Life of an artifact:
    the kernel drops it when the holder dies, even by ``kill -9``);
 2. leftovers of earlier crashes (``.tmp-<stage>-*``, ``.trash-<stage>-*``) are removed;
 3. the stage writes into a fresh ``<root>/<unit>/.tmp-<stage>-<pid>-<rand>/``;
-4. the engine writes ``manifest.json`` last (with each file's size), fsyncs it, and renames
-   the folder to ``<stage>`` (an old artifact is first renamed to ``.trash-...``, then
-   deleted).
+4. the engine writes ``manifest.json`` last (with each file's size in ``files`` and its
+   sha256 in ``sha256``), fsyncs it, and renames the folder to ``<stage>`` (an old artifact
+   is first renamed to ``.trash-...``, then deleted).
 
 So a folder named ``<stage>`` always had a complete manifest when it was renamed; a killed
-stage leaves only a ``.tmp-`` folder, which never looks complete. On read, an entry whose
-manifest is unreadable or whose files are missing or of the wrong size is *corrupt*: the
-engine warns, deletes it and recomputes.
+stage leaves only a ``.tmp-`` folder, which never looks complete.
+
+Leftovers of killed runs: every time the engine considers a node, hit or not, it removes the
+``.tmp-``/``.trash-`` folders of that (unit, stage) that nobody is building
+(:meth:`Store.clean_stale_leftovers`): it takes the artifact's lock without waiting; if it
+gets it, no live process is building there (a builder holds the lock from step 1 to 4), so
+they are a killed run's; if not, it leaves them to their builder.
+
+Corruption: on read, an entry whose manifest is unreadable or whose files are missing or of
+the wrong size is *corrupt* (:meth:`Store.entry`): the engine warns, deletes it and
+recomputes. A change that keeps the size is found by content: before a node is built from
+an upstream artifact the engine compares the upstream files with the manifest's sha256
+(:meth:`Store.verify`), and a file that can't be read inside a stage raises
+:class:`CorruptArtifactError` naming stage, unit and file; either way the upstream node is
+rebuilt first. Manifests written before ``sha256`` existed are checked by size only.
 """
 from __future__ import annotations
 
 import fcntl
+import hashlib
 import json
 import os
 import secrets
 import shutil
+import zipfile
+import zlib
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,8 +48,29 @@ from typing import Any, Callable, Iterator
 MANIFEST = "manifest.json"
 
 
+HASH_CHUNK = 1 << 20  # bytes read at a time when hashing a file
+
+
 class StoreError(ValueError):
     """A unit or stage name that can't be turned into a folder."""
+
+
+class CorruptArtifactError(RuntimeError):
+    """A file of a completed artifact can't be read (its content was damaged after commit).
+    ``stage``, ``unit``, ``file``: which one; the message names them and the folder."""
+
+    def __init__(self, dir: Path, stage: str, unit: str, file: str, problem: str):
+        self.dir, self.stage, self.unit, self.file, self.problem = Path(dir), stage, unit, file, problem
+        super().__init__(f"{stage} [{unit}]: {dir / file}: corrupt artifact file ({problem})")
+
+
+def file_sha256(path: Path) -> str:
+    """Hex sha256 of a file's content."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(HASH_CHUNK):
+            h.update(chunk)
+    return h.hexdigest()
 
 
 def _check_part(kind: str, name: str) -> None:
@@ -66,18 +102,29 @@ class StoredArtifact:
     manifest: dict
 
     def arrays(self, name: str) -> dict:
-        """The arrays of ``<name>.npz`` as a dict of read-only numpy arrays."""
+        """The arrays of ``<name>.npz`` as a dict of read-only numpy arrays.
+        CorruptArtifactError if the file can't be read."""
         import numpy as np
 
-        with np.load(self.path(f"{name}.npz"), allow_pickle=False) as z:
-            out = {k: z[k] for k in z.files}
+        p = self.path(f"{name}.npz")
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                out = {k: z[k] for k in z.files}
+        except (zipfile.BadZipFile, zlib.error, ValueError, EOFError, OSError, KeyError) as e:
+            raise CorruptArtifactError(self.dir, self.stage, self.unit, p.name,
+                                       f"{type(e).__name__}: {e}") from e
         for a in out.values():
             a.flags.writeable = False
         return out
 
     def json(self, name: str) -> Any:
-        """The content of ``<name>.json``."""
-        return json.loads(self.path(f"{name}.json").read_text())
+        """The content of ``<name>.json``. CorruptArtifactError if it can't be read."""
+        p = self.path(f"{name}.json")
+        try:
+            return json.loads(p.read_text())
+        except (OSError, ValueError) as e:  # JSONDecodeError, UnicodeDecodeError
+            raise CorruptArtifactError(self.dir, self.stage, self.unit, p.name,
+                                       f"{type(e).__name__}: {e}") from e
 
     def path(self, filename: str) -> Path:
         """Path of a file of this artifact; FileNotFoundError naming the artifact if absent."""
@@ -173,6 +220,22 @@ class Store:
     def open(self, unit: str, stage: str, manifest: dict) -> StoredArtifact:
         return StoredArtifact(self.dir(unit, stage), manifest["key"], unit, stage, manifest)
 
+    def verify(self, unit: str, stage: str, manifest: dict) -> str:
+        """Compare the artifact's files with the manifest's ``sha256``; returns "" when they
+        match (or the manifest predates hashes), else what differs (``"<file>: ..."``)."""
+        hashes = manifest.get("sha256")
+        if not isinstance(hashes, dict):
+            return ""
+        d = self.dir(unit, stage)
+        for name, want in sorted(hashes.items()):
+            try:
+                got = file_sha256(d / name)
+            except OSError as e:
+                return f"{name}: unreadable ({e})"
+            if got != want:
+                return f"{name}: content changed (sha256 {got[:12]}, manifest says {str(want)[:12]})"
+        return ""
+
     @contextmanager
     def lock(self, unit: str, stage: str, on_wait: Callable[[], None] | None = None
              ) -> Iterator[None]:
@@ -191,6 +254,36 @@ class Store:
             yield
         finally:
             os.close(fd)  # closing drops the flock
+
+    @contextmanager
+    def try_lock(self, unit: str, stage: str) -> Iterator[bool]:
+        """Take the lock of (unit, stage) if nobody holds it, without waiting: yields True
+        (held for the block) or False (another process, or this one, holds it)."""
+        d = self.dir(unit, stage)
+        if not d.parent.is_dir():
+            yield True  # no folder: nothing to build in or clean, nobody to race with
+            return
+        fd = os.open(d.parent / f".{stage}.lock", os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                yield False
+                return
+            yield True
+        finally:
+            os.close(fd)
+
+    def clean_stale_leftovers(self, unit: str, stage: str) -> list[Path]:
+        """Remove the ``.tmp-<stage>-*``/``.trash-<stage>-*`` folders of killed runs when no
+        live process is building (unit, stage) (its lock is free); needs no lock held, and
+        leaves everything alone while someone holds the lock. Returns what was removed."""
+        parent = self.dir(unit, stage).parent
+        if not parent.is_dir() or not any(
+                p.name.startswith((f".tmp-{stage}-", f".trash-{stage}-")) for p in parent.iterdir()):
+            return []
+        with self.try_lock(unit, stage) as free:
+            return self.clean_leftovers(unit, stage) if free else []
 
     # The methods below must be called with the lock held.
 
@@ -225,13 +318,15 @@ class Store:
             shutil.rmtree(trash, ignore_errors=True)
 
     def commit(self, writer: Writer, unit: str, stage: str, manifest: dict) -> dict:
-        """Write the manifest (with every file's size) into the temporary folder and rename
-        it into place, replacing any older artifact. Returns the manifest written."""
-        files = {}
+        """Write the manifest (with every file's size and sha256) into the temporary folder
+        and rename it into place, replacing any older artifact. Returns the manifest written."""
+        files, hashes = {}, {}
         for p in sorted(writer.dir.rglob("*")):
             if p.is_file():
-                files[p.relative_to(writer.dir).as_posix()] = p.stat().st_size
-        manifest = {**manifest, "stage": stage, "unit": unit, "files": files}
+                name = p.relative_to(writer.dir).as_posix()
+                files[name] = p.stat().st_size
+                hashes[name] = file_sha256(p)
+        manifest = {**manifest, "stage": stage, "unit": unit, "files": files, "sha256": hashes}
         mf = writer.dir / MANIFEST
         with open(mf, "w") as f:
             json.dump(manifest, f, indent=1, default=json_default)

@@ -12,10 +12,14 @@ action has a space and a take number (``"Grab 4"``).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+# Numbers a capture can have: finite, and positive where a rate or a length is meant.
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Rate = Annotated[float, Field(gt=0, le=100_000, allow_inf_nan=False)]
 
 
 class RecipeError(ValueError):
@@ -46,8 +50,16 @@ class BodyModelSpec(_Strict):
 class GroundPlaneSpec(_Strict):
     """The floor: points ``x`` with ``normal . x = offset`` (metres, world z-up)."""
 
-    normal: tuple[float, float, float] = (0.0, 0.0, 1.0)
-    offset: float = 0.0
+    normal: tuple[Finite, Finite, Finite] = (0.0, 0.0, 1.0)
+    offset: Finite = 0.0
+
+    @field_validator("normal")
+    @classmethod
+    def _unit_normal(cls, v):
+        n = sum(c * c for c in v) ** 0.5
+        if not 0.99 < n < 1.01:
+            raise ValueError(f"must be a unit vector, got length {n:.3g}")
+        return v
 
 
 class MocapSpec(_Strict):
@@ -56,8 +68,8 @@ class MocapSpec(_Strict):
     video time, so video frame ``f`` is at mocap time ``f / fps - sync_offset_s``.
     ``rate_hz`` overrides the C3D's own rate."""
 
-    sync_offset_s: float = 0.0
-    rate_hz: float | None = None
+    sync_offset_s: Annotated[float, Field(ge=-3600, le=3600, allow_inf_nan=False)] = 0.0
+    rate_hz: Rate | None = None
 
 
 class SequenceSpec(_Strict):
@@ -73,7 +85,7 @@ class SequenceSpec(_Strict):
     calibration: dict[str, Path]
     contact: Path | None = None
     text: str = ""
-    fps: float = 50.0
+    fps: Rate = 50.0
     mocap: MocapSpec = MocapSpec()
     keypoints: dict[str, Path] | None = None
     keypoints_format: Literal["openpose", "coco"] | None = None

@@ -94,6 +94,77 @@ def make_upstream_units(all_stages: tuple[Stage, ...]):
     return upstream_units
 
 
+def _subject_fields(recipe: Session, sid: str) -> dict:
+    sub = recipe.subjects[sid]
+    return {"markerset": "file" if sub.markerset.endswith(".json") else sub.markerset,
+            "sex": sub.sex}
+
+
+def recipe_view(recipe: Session, unit: str, name: str):
+    """The value of the recipe field ``name`` (an entry of a stage's ``Stage.reads``) for
+    ``unit``, as plain data. Names (docs/ARCHITECTURE.md, "The recipe view"):
+
+    - ``cameras``: camera ids in recipe order; ``body_model.kind``;
+    - per sequence: ``sequence.<fps | mocap | mocap.sync_offset_s | mocap.rate_hz | markers_on |
+      partner | text | keypoints_format | has_keypoints>``, ``wearer.<markerset | sex>`` and
+      ``partner_subject.<markerset | sex>`` (the subjects of ``markers_on`` / ``partner``);
+    - per subject: ``subject.<markerset | sex | has_scan | marker_sequences>``;
+    - ``ground_plane.<normal | offset>`` (or ``ground_plane``).
+
+    Files are never part of the view (they are raw inputs, keyed by content): a marker set
+    given as a ``.json`` file reads as ``"file"``. KeyError for any other name."""
+    parts = name.split(".")
+    head, rest = parts[0], parts[1:]
+    if name == "cameras":
+        return list(recipe.cameras)
+    if name == "body_model.kind":
+        return recipe.body_model.kind
+    if head == "ground_plane":
+        tree = {"normal": list(recipe.ground_plane.normal), "offset": recipe.ground_plane.offset}
+        return _pick(tree, rest, name)
+    if head in ("sequence", "wearer", "partner_subject"):
+        if unit not in recipe.sequences:
+            raise KeyError(f"{name}: unit {unit!r} is not a sequence")
+        seq = recipe.sequences[unit]
+        if head == "sequence":
+            tree = {"fps": seq.fps, "markers_on": seq.markers_on, "partner": seq.partner,
+                    "text": seq.text, "keypoints_format": seq.keypoints_format,
+                    "has_keypoints": bool(seq.keypoints),
+                    "mocap": {"sync_offset_s": seq.mocap.sync_offset_s,
+                              "rate_hz": seq.mocap.rate_hz}}
+        else:
+            tree = _subject_fields(recipe, seq.markers_on if head == "wearer" else seq.partner)
+        return _pick(tree, rest, name)
+    if head == "subject":
+        if unit not in recipe.subjects:
+            raise KeyError(f"{name}: unit {unit!r} is not a subject")
+        tree = {**_subject_fields(recipe, unit), "has_scan": recipe.subjects[unit].scan is not None,
+                "marker_sequences": [q for q in recipe.sequences_of(unit)
+                                     if recipe.sequences[q].markers_on == unit]}
+        return _pick(tree, rest, name)
+    raise KeyError(name)
+
+
+def _pick(tree: dict, rest: list[str], name: str):
+    v = tree
+    for p in rest:
+        if not isinstance(v, dict) or p not in v:
+            raise KeyError(name)
+        v = v[p]
+    return v
+
+
+def view_for(recipe: Session, stage: str, unit: str):
+    """The :class:`pipeline.spec.RecipeView` the engine hands ``stage`` for ``unit`` (for tests
+    and tools that call a stage's ``run`` directly)."""
+    from pipeline.plan import recipe_view_tree
+    from pipeline.spec import RecipeView
+
+    reg = registry()
+    st = next(s for s in reg.stages if s.name == stage)
+    return RecipeView(recipe_view_tree(reg, recipe, st, unit), stage)
+
+
 def stage_params(recipe: Session, stage: str) -> dict:
     """The recipe's ``stages.<stage>`` section (empty when absent)."""
     return dict(recipe.stages.get(stage) or {})
@@ -146,9 +217,26 @@ def _demo_missing(demo_recipe: Path) -> str:
     return f"{len(missing)} files missing, e.g. {missing[0][1]}" if missing else ""
 
 
+def check(recipe: Session, recipe_path: Path, sequences: list[str] | None = None) -> list[str]:
+    """Problems of the recipe the schema cannot see, one message per problem naming the file and
+    the field, found before any stage runs: each sequence's videos must all have the same number
+    of frames and the recipe's ``fps`` (``stages.common.check_videos``). Stage options are
+    validated by the engine when it plans (every stage's, before anything runs)."""
+    from stages import common
+
+    errors: list[str] = []
+    for q in sequences if sequences is not None else list(recipe.sequences):
+        seq = recipe.sequences[q]
+        if seq.videos:
+            errors += [f"{recipe_path}: sequences.{q}.videos: {m}"
+                       for m in common.check_videos([seq.videos[c] for c in recipe.cameras],
+                                                    seq.fps)]
+    return errors
+
+
 def registry() -> Registry:
     """The registry the engine loads by name."""
     st = stages()
     return Registry(stages=st, load_recipe=load, session_name=lambda r: r.session, units=units,
                     upstream_units=make_upstream_units(st), stage_params=stage_params,
-                    prepare=prepare)
+                    prepare=prepare, recipe_view=recipe_view, check=check)

@@ -98,7 +98,7 @@ def test_manifest_records_key_inputs_parameters_timings_packages_host(toy):
     assert m["key"] == node.key
     assert m["inputs"]["upstream"]["scale"] == {
         "a": rep.plan.by_id[("scale", "a")].key, "b": rep.plan.by_id[("scale", "b")].key}
-    assert m["parameters"] == {"weight": 1.0}
+    assert m["parameters"] == {"weight": 1.0, "peek": False}
     assert m["timings"]["seconds"] >= 0 and "started" in m["timings"]
     assert m["packages"]["numpy"] == np.__version__
     assert m["host"]["cpus"] == os.cpu_count()

@@ -9,7 +9,7 @@ Recipe (YAML)::
       g/x: {markers_on: a, partner: b, file: x.txt}
     stages:
       scale: {factor: 2.0}
-      detect: {sleep_s: 0.0}
+      detect: {sleep_s: 0.0}          # also offset, fail, pool_workers (see DetectOptions)
 
 DAG: ``scale`` (per subject, raw: the subject file) and ``detect`` (per sequence, raw: the
 sequence file) feed ``fit`` (per sequence), then ``report`` (per sequence), then ``summary``
@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from pipeline.procs import process_pool
 from pipeline.spec import Registry, Stage, StageContext
 
 
@@ -62,7 +63,8 @@ def load_recipe(path: Path) -> ToyRecipe:
 
 def _count(ctx: StageContext, what: str) -> None:
     # O_APPEND writes of one short line are atomic between processes.
-    fd = os.open(ctx.recipe.counter, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    counter = Path(ctx.recipe_path).resolve().parent / ctx.recipe.counter
+    fd = os.open(counter, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
     try:
         os.write(fd, f"{what} {ctx.stage} {ctx.unit}\n".encode())
     finally:
@@ -89,6 +91,12 @@ class DetectOptions:
     sleep_s: float = 0.0
     offset: float = 0.0
     fail: bool = False
+    pool_workers: int = 0  # > 0: that many worker processes (pipeline.procs) sleep along
+
+
+def _sleep(ctx: StageContext) -> None:
+    for _ in ctx.progress(range(10), total=10, desc="frames"):
+        time.sleep(ctx.params.sleep_s / 10)
 
 
 def run_detect(ctx: StageContext) -> None:
@@ -96,8 +104,16 @@ def run_detect(ctx: StageContext) -> None:
     # Write a partial output first, so a kill during the sleep leaves a half-built folder.
     ctx.out.save_json("partial", {"half": True})
     vals = _numbers(ctx.raw["values"])
-    for _ in ctx.progress(range(10), total=10, desc="frames"):
-        time.sleep(ctx.params.sleep_s / 10)
+    n = ctx.params.pool_workers
+    if n > 0:
+        with process_pool(n) as pool:
+            [f.result() for f in [pool.submit(os.getpid) for _ in range(n)]]  # workers are up
+            busy = [pool.submit(time.sleep, ctx.params.sleep_s) for _ in range(n)]
+            _count(ctx, "pool")
+            _sleep(ctx)
+            [f.result() for f in busy]
+    else:
+        _sleep(ctx)
     if ctx.params.fail:
         raise RuntimeError("detect: asked to fail")
     ctx.out.save_arrays("detections", values=vals + ctx.params.offset)
@@ -107,13 +123,16 @@ def run_detect(ctx: StageContext) -> None:
 @dataclass(frozen=True)
 class FitOptions:
     weight: float = 1.0
+    peek: bool = False  # read a recipe field the stage does not declare (an UndeclaredRead)
 
 
 def run_fit(ctx: StageContext) -> None:
     _count(ctx, "start")
     scales = ctx.inputs["scale"]  # {subject: Artifact}, markers_on first
     det = ctx.inputs["detect"].arrays("detections")["values"]
-    total = det.sum() * ctx.params.weight + sum(a.arrays("scaled")["values"].sum()
+    if ctx.params.peek:
+        ctx.recipe.sequence.file  # noqa: B018 - not declared: raises UndeclaredRead
+    total = det.sum() * ctx.params.weight * ctx.recipe.sequence.gain + sum(a.arrays("scaled")["values"].sum()
                                                   for a in scales.values())
     ctx.out.save_arrays("fit", total=np.array([total]), order=np.array(list(scales)))
     _count(ctx, "end")
@@ -137,17 +156,31 @@ def run_publish(ctx: StageContext) -> None:  # never reached: polish is not impl
     _count(ctx, "start")
 
 
+C = ("counter",)  # every toy stage appends to the counter file
 STAGES = (
     Stage("scale", run_scale, per="subject", params=ScaleOptions,
-          raw_inputs=lambda r, u: {"values": r.subjects[u]}),
+          raw_inputs=lambda r, u: {"values": r.subjects[u]}, reads=C),
     Stage("detect", run_detect, per="sequence", params=DetectOptions,
-          raw_inputs=lambda r, u: {"values": r.sequences[u]["file"]}),
-    Stage("fit", run_fit, per="sequence", upstream=("scale", "detect"), params=FitOptions),
-    Stage("report", run_report, per="sequence", upstream=("fit",)),
-    Stage("summary", run_summary, per="session", upstream=("report",)),
+          raw_inputs=lambda r, u: {"values": r.sequences[u]["file"]}, reads=C),
+    Stage("fit", run_fit, per="sequence", upstream=("scale", "detect"), params=FitOptions,
+          reads=C + ("sequence.gain",)),
+    Stage("report", run_report, per="sequence", upstream=("fit",), reads=C),
+    Stage("summary", run_summary, per="session", upstream=("report",), reads=C),
     Stage("polish", None, per="sequence", upstream=("report",), implemented=False),
-    Stage("publish", run_publish, per="sequence", upstream=("polish",)),
+    Stage("publish", run_publish, per="sequence", upstream=("polish",), reads=C),
 )
+
+
+def recipe_view(r: ToyRecipe, unit: str, name: str):
+    """``counter`` (the counter file's path) and ``sequence.gain`` (a per-sequence number,
+    default 1) are the toy recipe's fields a stage may declare."""
+    if name == "counter":  # relative to the recipe's folder: keys must not depend on where it lives
+        return os.path.relpath(r.counter, r.source.resolve().parent)
+    if name == "sequence.gain":
+        return float(r.sequences[unit].get("gain", 1.0))
+    if name == "sequence.file":
+        return str(r.sequences[unit]["file"])
+    raise KeyError(name)
 
 
 def units(r: ToyRecipe, per: str) -> list[str]:
@@ -167,7 +200,7 @@ def registry() -> Registry:
     return Registry(
         stages=STAGES, load_recipe=load_recipe, session_name=lambda r: r.session,
         units=units, upstream_units=upstream_units,
-        stage_params=lambda r, s: r.stages.get(s, {}),
+        stage_params=lambda r, s: r.stages.get(s, {}), recipe_view=recipe_view,
     )
 
 
