@@ -28,6 +28,7 @@ import numpy as np
 from body.model import BodyModel
 from body.rotations import rodrigues
 from formats.errors import InputError
+from geometry import face_normals
 
 DEFAULT_OFFSET_M = 0.0095
 RAY_MAX_M = 0.25  # markers are placed by casting rays this far from inside the body
@@ -82,14 +83,6 @@ def make_markerset(names, faces, bary, offsets=DEFAULT_OFFSET_M) -> MarkerSet:
     return MarkerSet(names, faces.copy(), bary.copy(), offsets)
 
 
-def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Unit normals (..., NF, 3) of triangles ``faces`` (NF, 3) of vertices (..., V, 3)."""
-    v = np.asarray(vertices, dtype=float)
-    a, b, c = v[..., faces[:, 0], :], v[..., faces[:, 1], :], v[..., faces[:, 2], :]
-    n = np.cross(b - a, c - a)
-    return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-15)  # degenerate: 0
-
-
 def marker_positions(vertices: np.ndarray, faces: np.ndarray, markerset: MarkerSet) -> np.ndarray:
     """Marker positions. vertices: (F, V, 3) or (V, 3) metres; faces: (NF, 3) the model's faces.
     Returns (F, M, 3) (or (M, 3)), same frame as the vertices."""
@@ -97,9 +90,7 @@ def marker_positions(vertices: np.ndarray, faces: np.ndarray, markerset: MarkerS
     tri = np.asarray(faces)[markerset.faces]  # (M, 3)
     corners = v[..., tri, :]  # (..., M, 3, 3)
     p = np.einsum("...mkd,mk->...md", corners, markerset.bary)
-    n = np.cross(corners[..., 1, :] - corners[..., 0, :], corners[..., 2, :] - corners[..., 0, :])
-    n = n / np.linalg.norm(n, axis=-1, keepdims=True)
-    return p + markerset.offsets[:, None] * n
+    return p + markerset.offsets[:, None] * face_normals(v, tri)
 
 
 # ----------------------------------------------------------------------------- JSON

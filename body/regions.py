@@ -30,6 +30,7 @@ import scipy.sparse as sp
 
 from body.model import BodyModel
 from formats.errors import InputError
+from geometry import face_normals
 
 _PAIRS = (
     "face", "head_back", "chest_upper", "chest_lower", "abdomen", "groin", "upper_back",
@@ -226,8 +227,7 @@ def region_map(model: BodyModel) -> RegionMap:
                       -1 if (n.endswith(".R") or n.startswith("right_")) else 0
                       for n in model.joint_names])
     c = V[F].mean(1)
-    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    n = _unit(n)
+    n = face_normals(V, F)
     return RegionMap(REGIONS_75, _assign(names, part, jside[dom], c, n, lmk), 75)
 
 

@@ -28,10 +28,8 @@ CAMERA_PRINCIPAL_JITTER_PX = 8.0
 CAMERA_K_RANGE = ((-0.16, -0.06), (0.02, 0.12), (-0.02, 0.02))
 CAMERA_P_ABS = 6e-4
 
-# ------------------------------------------------------------------------------------ render
-BACKGROUND_RGB = (205, 208, 212)
-FLOOR_RGB = (150, 142, 128)
-FLOOR_HALF_SIZE_M = 12.0
+# ------------------------------------------------------------------------------------ look
+#: Skin and clothing colours (the renderer's background, floor and lights: drawing.constants).
 SKIN_RGB = (224, 178, 148)
 #: Clothing palettes per person: shirt, sleeves, trousers, shoes (RGB 0-255). Person 0 is
 #: the first subject of the session (blue/grey), person 1 the second (red/olive).
@@ -39,10 +37,6 @@ CLOTHING = (
     {"shirt": (40, 90, 200), "sleeve": (70, 130, 230), "trousers": (35, 40, 60), "shoes": (20, 20, 20)},
     {"shirt": (210, 50, 40), "sleeve": (240, 110, 60), "trousers": (90, 110, 40), "shoes": (240, 240, 235)},
 )
-#: Render margin around the distortion-free region that the output image needs, pixels.
-RENDER_MARGIN_PX = 4
-#: H.264/MPEG-4 quality is the writer's; this is only the znear/zfar of the renderer.
-ZNEAR_M, ZFAR_M = 0.2, 20.0
 
 # ------------------------------------------------------------------------------------ scans
 SCAN_POINTS = 60000
@@ -67,9 +61,6 @@ MARKER_OFFSET_SD_M = 0.001
 #: Random anny body sliders per subject (count, |value| bound).
 SUBJECT_SLIDERS = 12
 SUBJECT_SLIDER_RANGE = 0.5
-#: Studio lights for the CPU Lambert shading: (direction the light travels, intensity), ambient.
-LIGHTS = (((0.4, -0.6, -1.0), 0.55), ((-0.5, 0.7, -0.6), 0.3))
-AMBIENT_LIGHT = 0.45
 
 # ------------------------------------------------------------------------------------ motion
 #: IK iterations per sample and synthesis passes (IK -> measure -> correct).
@@ -125,8 +116,6 @@ REPEL_GAIN_MAX = 4.0
 #: Over-relaxation of the gap corrections (the IK follows a moved target only partly).
 REFINE_GAIN = 1.3
 LIMB_NEAR_M = 0.03
-#: The inverse lens map is solved every WARP_GRID_PX pixels and interpolated.
-WARP_GRID_PX = 4
 #: Then, where a limb is still inside, the contact gives way: its weight is scaled by
 #: GIVE_WAY_FACTOR there, up to GIVE_WAY_ROUNDS times.
 GIVE_WAY_ROUNDS = 0

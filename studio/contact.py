@@ -8,8 +8,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from geometry import VertexNormals, face_centroids, interpenetration_per_frame, nearest_surface
 from studio import constants as C
-from studio.motion import VertexNormals, pair_distances
+from studio.motion import pair_distances
 
 
 @dataclass(frozen=True)
@@ -57,8 +58,6 @@ def annotate(verts0: np.ndarray, verts1: np.ndarray, faces: np.ndarray, face_reg
     prefers them); incidental: region ids whose mutual touches an annotator would skip when
     there are others (feet). Returns a :class:`ContactTruth`.
     """
-    import igl
-
     F = len(verts0)
     normals = VertexNormals(faces, verts0.shape[1])
     min_dist = np.full(F, np.inf)
@@ -78,9 +77,8 @@ def annotate(verts0: np.ndarray, verts1: np.ndarray, faces: np.ndarray, face_reg
         score = score * np.where((fr >= hint[0]) & (fr <= hint[1]), 1.0, 0.5)
     fr_id = int(start + np.argmax(score))
     V0, V1 = verts0[fr_id], verts1[fr_id]
-    cen = V0[faces].mean(1)
-    sq, partner, _ = igl.point_mesh_squared_distance(cen, V1, faces)
-    d1 = np.sqrt(sq)
+    cen = face_centroids(V0, faces)
+    d1, partner, _ = nearest_surface(cen, V1, faces)
     cand = np.flatnonzero(d1 < C.SIGNATURE_DIST_M)
     if incidental is not None and len(cand):
         # feet brushing while standing close are not what an annotator marks
@@ -104,61 +102,12 @@ def annotate(verts0: np.ndarray, verts1: np.ndarray, faces: np.ndarray, face_reg
                         d1[pick])
 
 
-def inside_points(V0: np.ndarray, V1: np.ndarray, faces: np.ndarray) -> list[tuple]:
-    """The vertices of each of two meshes (same topology ``faces``) that are inside the other
-    (libigl's fast winding number > 0.5), with their exact distance to the other's surface.
-
-    V0, V1: (V, 3) metres. Returns, per body, (vertex ids (n,), distances (n,) metres, the
-    nearest face of the other body (n,))."""
-    import igl
-
-    V = [np.asarray(V0, float), np.asarray(V1, float)]
-    out = []
-    for a in range(2):
-        w = igl.fast_winding_number(V[1 - a], faces, V[a])
-        ins = np.flatnonzero(w > 0.5)
-        if len(ins):
-            d2, fi, _ = igl.point_mesh_squared_distance(V[a][ins], V[1 - a], faces)
-            out.append((ins, np.sqrt(d2), np.asarray(fi)))
-        else:
-            out.append((ins, np.zeros(0), np.zeros(0, np.int64)))
-    return out
-
-
-def deepest_inside(inside: list[tuple]) -> tuple[float, int, int]:
-    """(depth metres (0 if none), body (0/1) of the deepest vertex or -1, its vertex id or -1)
-    from :func:`inside_points`."""
-    best = (0.0, -1, -1)
-    for a, (ins, d, _) in enumerate(inside):
-        if len(ins):
-            k = int(np.argmax(d))
-            if d[k] > best[0]:
-                best = (float(d[k]), a, int(ins[k]))
-    return best
-
-
-def interpenetration(V0: np.ndarray, V1: np.ndarray, faces: np.ndarray) -> tuple[float, int, int]:
-    """The deepest true interpenetration of two meshes (same topology ``faces``): over the
-    vertices of each body that are inside the other (libigl's fast winding number > 0.5), the
-    largest distance to the other's surface (exact point-to-mesh). Independent of the synthesis'
-    own approximate measure (``motion.pair_distances``).
-
-    V0, V1: (V, 3) metres. Returns (depth metres (0 if none), body (0/1) of the deepest vertex
-    or -1, its vertex id or -1)."""
-    return deepest_inside(inside_points(V0, V1, faces))
-
-
-def interpenetration_per_frame(V0: np.ndarray, V1: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(F,) deepest true interpenetration (metres) of two bodies' vertices (F, V, 3) per frame."""
-    return np.array([interpenetration(V0[f], V1[f], faces)[0] for f in range(len(V0))])
-
-
 @dataclass(frozen=True)
 class MotionCheck:
     """What a synthesized motion achieved. depth: (F,) deepest true interpenetration per video
-    frame, metres (:func:`interpenetration`); gaps: {contact name: (H,) signed distance from the
-    effector region to the other body at each video frame where the contact is fully held
-    (weight > 0.98), metres; negative = pressed in}."""
+    frame, metres (:func:`geometry.interpenetration`); gaps: {contact name: (H,) signed
+    distance from the effector region to the other body at each video frame where the contact
+    is fully held (weight > 0.98), metres; negative = pressed in}."""
 
     depth: np.ndarray
     gaps: dict

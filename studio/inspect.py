@@ -2,7 +2,7 @@
 true bodies go through each other, as a picture.
 
 Reads a sequence's ground truth (``<session>/gt/<group>/<action>.npz``), finds the frame with
-the deepest true interpenetration (``studio.contact.interpenetration``; or takes ``--frame``),
+the deepest true interpenetration (``geometry.interpenetration``; or takes ``--frame``),
 prints the body parts involved (the dominant bone of the deepest vertices of each body and of
 the surface they are in) and writes a close-up of the four sides of the deepest point
 (default ``<npz stem>_f<frame>_inspect.png`` beside the npz). The tool for working on a
@@ -17,10 +17,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
-#: close-up cameras: distance (m) from the inspected point, image size (px)
-CLOSE_M = 0.7
-SIZE_PX = 900
 
 
 @dataclass(frozen=True)
@@ -38,7 +34,7 @@ class Inspection:
 
 def parts_inside(inside: list[tuple], faces: np.ndarray, bone_names: list[str],
                  dominant: np.ndarray, top: int = 6, min_m: float = 0.002) -> list:
-    """The body parts that are inside each other, from :func:`studio.contact.inside_points`:
+    """The body parts that are inside each other, from :func:`geometry.inside_points`:
     over the inside vertices deeper than ``min_m``, (body, its part, the part of the other whose
     surface is nearest, depth m), the deepest per pair of parts, ``top`` deepest overall."""
     pairs: Counter = Counter()
@@ -49,25 +45,13 @@ def parts_inside(inside: list[tuple], faces: np.ndarray, bone_names: list[str],
     return [(*k, v) for k, v in pairs.most_common(top)]
 
 
-def close_up_cameras(point: np.ndarray, dist: float = CLOSE_M, size: int = SIZE_PX) -> list:
-    """Four cameras around ``point`` (3,), a little above it, looking at it."""
-    from calib.camera import look_at
-
-    cams = []
-    for k, az in enumerate((20.0, 110.0, 200.0, 290.0)):
-        a = np.deg2rad(az)
-        c = point + dist * np.array([np.cos(a), np.sin(a), 0.5])
-        cams.append(look_at(f"close{k}", c, point, (size, size), (size / 2, size / 2), size, size))
-    return cams
-
-
 def inspect(gt_npz: str | Path, frame: int | None = None, out: str | Path | None = None,
             model_name: str = "anny") -> Inspection:
     from body import load_model
+    from drawing.render import PersonMesh
+    from drawing.sheet import close_up, write_png
     from formats.errors import InputError
-    from studio.contact import deepest_inside, inside_points, interpenetration_per_frame
-    from studio.render import PersonMesh, Renderer
-    from studio.sheet import contact_sheet, write_png
+    from geometry import deepest_inside, inside_points, interpenetration_per_frame
 
     path = Path(gt_npz)
     if not path.is_file():
@@ -92,14 +76,11 @@ def inspect(gt_npz: str | Path, frame: int | None = None, out: str | Path | None
     point = V[body][vid] if body >= 0 else 0.5 * (V[0].mean(0) + V[1].mean(0))
     dominant = np.asarray(model.weights.argmax(axis=1)).ravel()
     parts = parts_inside(inside, faces, list(model.joint_names), dominant)
-    cams = close_up_cameras(point)
     colors = [np.tile(np.array([[230, 80, 50]], np.uint8), (len(V[0]), 1)),
               np.tile(np.array([[50, 100, 230]], np.uint8), (len(V[1]), 1))]
-    with Renderer(cams) as r:
-        imgs = r.render([PersonMesh(V[k], faces, colors[k]) for k in range(2)])
     title = f"{path.stem} frame {frame}: {1000 * depth:.1f} mm (person 0 red, 1 blue)"
     png = Path(out) if out else path.with_name(f"{path.stem.replace(' ', '_')}_f{frame}_inspect.png")
-    write_png(png, contact_sheet(imgs, cams, title, point[None], scale=0.5))
+    write_png(png, close_up([PersonMesh(V[k], faces, colors[k]) for k in range(2)], point, title))
     return Inspection(frame, depth, point, parts, png)
 
 

@@ -22,9 +22,9 @@ from scipy.ndimage import gaussian_filter1d
 from scipy.spatial import cKDTree
 
 from body import forward
+from geometry import VertexNormals, vertex_normals
 from studio import constants as C
 from studio.kin import Dof, Goal, Person, solve_ik
-from studio.render import vertex_normals
 
 
 @dataclass(frozen=True)
@@ -314,25 +314,6 @@ def pair_distances(V0: np.ndarray, V1: np.ndarray, faces: np.ndarray, normals: V
         out[a][qa] = d
         cps[a][qa] = cp
     return out, cps
-
-
-class VertexNormals:
-    """Area-weighted unit vertex normals of a fixed triangle topology, fast (a sparse
-    vertex-face incidence product). ``VertexNormals(faces, V)(vertices (V, 3)) -> (V, 3)``."""
-
-    def __init__(self, faces: np.ndarray, num_vertices: int):
-        import scipy.sparse as sp
-
-        T = len(faces)
-        self.faces = np.asarray(faces)
-        self.inc = sp.csr_matrix((np.ones(3 * T), (self.faces.T.ravel(), np.tile(np.arange(T), 3))),
-                                 shape=(num_vertices, T))
-
-    def __call__(self, V: np.ndarray) -> np.ndarray:
-        tri = V[self.faces]
-        fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        n = self.inc @ fn
-        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from geometry import face_areas, face_normals
 from studio import constants as C
 
 
@@ -29,14 +30,6 @@ class ScanOptions:
     density_contrast: float = C.SCAN_DENSITY_CONTRAST
 
 
-def face_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit normals (T, 3) and areas (T,) of the triangles ``faces`` (T, 3) over ``vertices``."""
-    tri = vertices[faces]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    a = np.linalg.norm(n, axis=1)
-    return n / np.maximum(a, 1e-15)[:, None], a / 2
-
-
 def sample_scan(vertices: np.ndarray, faces: np.ndarray, hole_centres: np.ndarray,
                 rng: np.random.Generator, opts: ScanOptions = ScanOptions()
                 ) -> tuple[np.ndarray, np.ndarray]:
@@ -47,7 +40,7 @@ def sample_scan(vertices: np.ndarray, faces: np.ndarray, hole_centres: np.ndarra
     (armpits). Returns points (N, 3) and unit normals (N, 3) of the true surface at the sampled
     points (the noise is along them), N < opts.n_points.
     """
-    fn, area = face_normals(vertices, faces)
+    fn, area = face_normals(vertices, faces), face_areas(vertices, faces)
     # Uneven density: the scanner's cameras face the person from 4 horizontal directions at a
     # random heading; surfaces facing them are sampled more densely, plus a smooth random field.
     heading = rng.uniform(0, 2 * np.pi)

@@ -5,7 +5,7 @@ annotation, the ground truth and a contact sheet; finally the recipe.
 Ground truth (``<out>/gt/``, never read by the pipeline):
 
 - ``gt/session.json``: seed, plan, per-sequence facts (who wears the markers, contact frames,
-  the deepest true interpenetration by ``studio.contact.interpenetration``), the studio's
+  the deepest true interpenetration by ``geometry.interpenetration``), the studio's
   source hash;
 - ``gt/subjects/<id>.npz``: ``betas (S,)``, ``phenotypes (6,)``, ``local_changes (L,)``,
   the scan's pose (``scan_R (3, 3)``, ``scan_T (3,)``, pose 0) and ``scan_vertices (V, 3)``;
@@ -44,6 +44,8 @@ from body.markers import (
 )
 from body.regions import region_map
 from calib.io import write_chi3d_cameras
+from drawing.render import PersonMesh, Renderer
+from drawing.sheet import contact_sheet, write_png
 from formats.c3d import Markers, write_c3d
 from formats.chi3d import write_joints3d_25
 from formats.video import write_mp4
@@ -54,18 +56,16 @@ from studio.kin import UP, yaw
 from studio.mocap import observe_markers
 from studio.motion import Track, make_timeline, synthesize
 from studio.posture import anatomy
-from studio.render import PersonMesh, Renderer
 from studio.rig import make_rig
 from studio.scan import sample_scan, write_ply
 from studio.scenarios import SCENES, Cast
-from studio.sheet import contact_sheet, write_png
 from studio.subjects import Subject, make_subjects
 
 STUDIO_DIR = Path(__file__).resolve().parent
 
 
 #: The packages whose code decides what the studio writes (it imports only these).
-SOURCE_PACKAGES = ("studio", "body", "calib", "formats")
+SOURCE_PACKAGES = ("studio", "body", "calib", "formats", "geometry", "drawing")
 
 
 def source_hash() -> str:

@@ -24,7 +24,7 @@ def scene():
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
     from body import forward, load_model
     from body.joints import keypoints
-    from studio.render import PersonMesh, Renderer
+    from drawing.render import PersonMesh, Renderer
 
     m = load_model("anny")
     yaw = np.radians(25)

@@ -1,9 +1,9 @@
 """``python -m studio.inspect``: the deepest true interpenetration of a sequence's ground truth,
 the body parts involved and the close-up picture.
 
-In a module of its own: ``studio.inspect`` opens its own :class:`studio.render.Renderer`, and
+In a module of its own: ``studio.inspect`` opens its own :class:`drawing.render.Renderer`, and
 pyrender's EGL teardown terminates the process's EGL display, which breaks any other renderer
-still open (such as the module-scoped one of ``test_studio_units.py``)."""
+still open (such as the module-scoped one of ``test_drawing.py``)."""
 from __future__ import annotations
 
 import numpy as np

@@ -162,11 +162,11 @@ def test_contact_annotation_touches_in_the_truth(session):
 
 def test_no_true_interpenetration(session):
     """libigl's winding number: no vertex of one body deeper than 5 mm inside the other."""
-    from studio.contact import interpenetration
+    from geometry import interpenetration
 
     faces = _faces(session)
     for sid, g in session["gt"].items():
-        worst = max(interpenetration(g["vertices"][0, f], g["vertices"][1, f], faces)[0]
+        worst = max(interpenetration(g["vertices"][0, f], g["vertices"][1, f], faces).depth
                     for f in range(0, len(g["frames"]), 2))
         assert worst < 5e-3, (sid, worst)
         info = session["meta"]["sequences"][sid]
@@ -191,9 +191,9 @@ def test_true_joints_project_onto_the_rendered_people(session):
     depth says nobody stands in front (person id render of the true meshes)."""
     from calib import project
     from calib.io import read_chi3d_camera
+    from drawing import constants as C
+    from drawing.render import PersonMesh, Renderer
     from formats.video import VideoReader
-    from studio import constants as C
-    from studio.render import PersonMesh, Renderer
 
     faces = _faces(session)
     r = session["recipe"]

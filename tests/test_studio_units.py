@@ -1,5 +1,6 @@
 """Unit tests of the studio's parts (no session generated): plan and recipes, camera rig,
-renderer vs projection, inverse kinematics, scans, marker noise and gaps, contact runs."""
+inverse kinematics, scans, marker noise and gaps, contact runs (the renderer's tests are in
+``tests/test_drawing.py``)."""
 from __future__ import annotations
 
 import numpy as np
@@ -70,7 +71,7 @@ def test_ensure_generated_refuses_foreign_or_stale_recipes(tmp_path):
     assert not any(tmp_path.glob(".*tmp*"))
 
 
-# ------------------------------------------------------------------------------ cameras / render
+# ------------------------------------------------------------------------------ cameras
 def test_rig_surrounds_the_capture_volume():
     from calib import project
     from studio import constants as C
@@ -97,65 +98,6 @@ def test_rig_surrounds_the_capture_volume():
         az.append(np.arctan2(cam.T[1], cam.T[0]))
     gaps = np.diff(np.sort(np.mod(az, 2 * np.pi)))
     assert gaps.min() > np.deg2rad(60)  # spread all around
-
-
-@pytest.fixture(scope="module")
-def renderer():
-    from studio.render import Renderer
-    from studio.rig import make_rig
-
-    cams = make_rig(np.random.default_rng(1))
-    with Renderer(cams) as r:
-        yield r
-
-
-def test_renderer_draws_points_where_calib_projects_them(renderer):
-    """A small sphere rendered through the lens warp is centred on its projection (pyrender's
-    intrinsics, the OpenGL pose and the distortion remap against calib.project)."""
-    import trimesh
-
-    from calib import project
-    from studio.render import PersonMesh
-
-    rng = np.random.default_rng(2)
-    err = []
-    for _ in range(4):
-        c = np.array([*rng.uniform(-0.8, 0.8, 2), rng.uniform(0.3, 1.8)])
-        s = trimesh.creation.icosphere(subdivisions=3, radius=0.03)
-        mesh = PersonMesh(s.vertices + c, s.faces, np.full((len(s.vertices), 3), 200, np.uint8))
-        ids = renderer.render_ids([mesh])
-        for cam, m in zip(renderer.cams, ids, strict=True):
-            ys, xs = np.nonzero(m == 0)
-            assert len(xs) > 20
-            uv = project(cam, c)
-            # the silhouette of a sphere is centred on the projected centre up to perspective
-            err.append((xs.mean() - uv[0], ys.mean() - uv[1]))
-    err = np.array(err)
-    assert np.abs(err.mean(0)).max() < 0.15, err.mean(0)  # no systematic shift
-    assert np.hypot(*err.T).max() < 0.6, err
-
-
-def test_render_shows_people_on_floor_and_background(renderer):
-    import trimesh
-
-    from studio import constants as C
-    from studio.render import PersonMesh
-
-    box = trimesh.creation.box((0.4, 0.3, 1.6))
-    box.apply_translation([0, 0, 0.8])
-    col = np.tile(np.array(C.CLOTHING[0]["shirt"], np.uint8), (len(box.vertices), 1))
-    rgb = renderer.render([PersonMesh(box.vertices, box.faces, col)])[0]
-    ids = renderer.render_ids([PersonMesh(box.vertices, box.faces, col)])[0]
-    assert rgb.shape == (900, 900, 3) and rgb.dtype == np.uint8
-    bg = np.array(C.BACKGROUND_RGB)
-    floor = np.array(C.FLOOR_RGB)
-    out = rgb[ids < 0].astype(int)
-    is_bg = np.abs(out - bg).max(1) <= 2
-    is_floor = np.abs(out - floor).max(1) <= 2
-    assert is_bg.mean() > 0.1 and is_floor.mean() > 0.3
-    assert (is_bg | is_floor).mean() > 0.98
-    person = rgb[ids == 0].astype(int)
-    assert np.median(person[:, 2]) > np.median(person[:, 0]) + 40  # blue clothing
 
 
 # ------------------------------------------------------------------------------ kinematics

@@ -1,4 +1,9 @@
-"""Offscreen rendering of the two people in the four calibrated views (pyrender, EGL).
+"""Offscreen rendering of people (triangle meshes) in calibrated views (pyrender, EGL).
+
+One renderer at a time per process: closing a :class:`Renderer` terminates the process's EGL
+display (pyrender's teardown), which breaks any other renderer still open. Headless machines
+need ``PYOPENGL_PLATFORM=egl`` (set by default when the renderer is created, before pyrender
+is imported).
 
 pyrender draws an ideal pinhole image; the lens distortion of each ``calib.Camera`` is applied
 afterwards by resampling (``cv2.remap``) a slightly larger pinhole canvas with the exact
@@ -8,8 +13,9 @@ inverse map: output pixel ``uv`` (distorted) shows what the pinhole camera sees 
 
 Scene: a plain background, a floor quad at ``z = 0`` and one mesh per person with per-vertex
 colours (clothing), Lambert-shaded on the CPU under fixed studio lights and drawn unlit
-(``RenderFlags.FLAT``: Mesa's software rasteriser is 2-3x faster without pyrender's PBR shader). :meth:`Renderer.render_ids` draws the same scene as person ids (-1 for
-floor and background) for tests and masks.
+(``RenderFlags.FLAT``: Mesa's software rasteriser is 2-3x faster without pyrender's PBR
+shader). :meth:`Renderer.render_ids` draws the same scene as person ids (-1 for floor and
+background) for tests and masks. Colours, lights and the floor are ``drawing.constants``.
 """
 from __future__ import annotations
 
@@ -19,7 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib.camera import Camera, undistort_pixels
-from studio import constants as C
+from drawing import constants as C
+from geometry import vertex_normals
 
 
 @dataclass(frozen=True)
@@ -30,16 +37,6 @@ class PersonMesh:
     vertices: np.ndarray
     faces: np.ndarray
     colors: np.ndarray
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V, 3) area-weighted unit vertex normals of a triangle mesh (V, 3) / (T, 3)."""
-    tri = vertices[faces]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    idx = np.asarray(faces).ravel()
-    n = np.stack([np.bincount(idx, weights=np.repeat(fn[:, k], 3), minlength=len(vertices))
-                  for k in range(3)], 1)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
 
 def shading(normals: np.ndarray) -> np.ndarray:

@@ -1,0 +1,155 @@
+"""drawing/: the offscreen renderer against calib's projection (one renderer per module: see
+drawing.render), contact sheets, and the residual plot's log axis and worst-frame marks."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+
+# ------------------------------------------------------------------------------ render
+@pytest.fixture(scope="module")
+def renderer():
+    from drawing.render import Renderer
+    from studio.rig import make_rig
+
+    cams = make_rig(np.random.default_rng(1))
+    with Renderer(cams) as r:
+        yield r
+
+
+def test_renderer_draws_points_where_calib_projects_them(renderer):
+    """A small sphere rendered through the lens warp is centred on its projection (pyrender's
+    intrinsics, the OpenGL pose and the distortion remap against calib.project)."""
+    import trimesh
+
+    from calib import project
+    from drawing.render import PersonMesh
+
+    rng = np.random.default_rng(2)
+    err = []
+    for _ in range(4):
+        c = np.array([*rng.uniform(-0.8, 0.8, 2), rng.uniform(0.3, 1.8)])
+        s = trimesh.creation.icosphere(subdivisions=3, radius=0.03)
+        mesh = PersonMesh(s.vertices + c, s.faces, np.full((len(s.vertices), 3), 200, np.uint8))
+        ids = renderer.render_ids([mesh])
+        for cam, m in zip(renderer.cams, ids, strict=True):
+            ys, xs = np.nonzero(m == 0)
+            assert len(xs) > 20
+            uv = project(cam, c)
+            # the silhouette of a sphere is centred on the projected centre up to perspective
+            err.append((xs.mean() - uv[0], ys.mean() - uv[1]))
+    err = np.array(err)
+    assert np.abs(err.mean(0)).max() < 0.15, err.mean(0)  # no systematic shift
+    assert np.hypot(*err.T).max() < 0.6, err
+
+
+def test_render_shows_people_on_floor_and_background(renderer):
+    import trimesh
+
+    from drawing import constants as C
+    from drawing.render import PersonMesh
+
+    box = trimesh.creation.box((0.4, 0.3, 1.6))
+    box.apply_translation([0, 0, 0.8])
+    col = np.tile(np.array([40, 90, 200], np.uint8), (len(box.vertices), 1))
+    rgb = renderer.render([PersonMesh(box.vertices, box.faces, col)])[0]
+    ids = renderer.render_ids([PersonMesh(box.vertices, box.faces, col)])[0]
+    assert rgb.shape == (900, 900, 3) and rgb.dtype == np.uint8
+    bg = np.array(C.BACKGROUND_RGB)
+    floor = np.array(C.FLOOR_RGB)
+    out = rgb[ids < 0].astype(int)
+    is_bg = np.abs(out - bg).max(1) <= 2
+    is_floor = np.abs(out - floor).max(1) <= 2
+    assert is_bg.mean() > 0.1 and is_floor.mean() > 0.3
+    assert (is_bg | is_floor).mean() > 0.98
+    person = rgb[ids == 0].astype(int)
+    assert np.median(person[:, 2]) > np.median(person[:, 0]) + 40  # blue clothing
+
+
+
+# ------------------------------------------------------------------------------ sheets
+def test_contact_sheet_tiles_views_and_marks_points(tmp_path):
+    import cv2
+
+    from calib import project
+    from drawing.sheet import close_up_cameras, contact_sheet, write_png
+
+    point = np.array([0.3, -0.2, 1.1])
+    cams = close_up_cameras(point, dist=0.5, size=200)
+    for cam in cams:  # every close-up looks at the point
+        np.testing.assert_allclose(project(cam, point), [100, 100], atol=1e-6)
+    imgs = [np.full((200, 200, 3), 255, np.uint8) for _ in cams]
+    sheet = contact_sheet(imgs, cams, "t", point[None], scale=0.5)
+    assert sheet.shape == (200, 200, 3)
+    # the ring around the point is drawn at the middle of each 100 x 100 tile, yellow
+    for r0 in (0, 100):
+        for c0 in (0, 100):
+            tile = sheet[r0:r0 + 100, c0:c0 + 100].astype(int)
+            ring = (tile[..., 2] < 150) & (tile[..., 0] > 200)
+            ys, xs = np.nonzero(ring)
+            assert len(xs) > 10 and abs(xs.mean() - 50) < 2 and abs(ys.mean() - 50) < 2
+    p = write_png(tmp_path / "a" / "sheet.png", sheet)
+    back = cv2.imread(str(p))[..., ::-1]
+    np.testing.assert_array_equal(back, sheet)
+
+
+# ------------------------------------------------------------------------------ plots
+def test_residual_plot_log_axis_marks_the_worst_frames(tmp_path):
+    import cv2
+
+    from drawing import constants as C
+    from drawing.plots import residual_plot
+
+    rng = np.random.default_rng(0)
+    F, M = 300, 30
+    res = rng.lognormal(np.log(2.0), 0.4, (F, M))
+    res[rng.random((F, M)) < 0.1] = np.nan  # gaps
+    res[7] = np.nan  # a frame with no marker seen
+    res[9] = 0.0  # exact zeros sit on the floor of the log axis
+    res[60, 3], res[61, 4] = 600.0, 550.0  # one spike over two frames: one mark
+    res[200, 0] = 300.0
+    frames = 10 + 2 * np.arange(F)  # video frame numbers of the rows (a stride of 2)
+    fig = residual_plot(tmp_path / "out" / "residuals.png", res, fps=50.0, title="s01 grab",
+                        frames=frames, worst=3)
+    ax = fig.axes[0]
+    assert ax.get_yscale() == "log"
+    lo, hi = ax.get_ylim()
+    assert 0 < lo < 1.0 and hi > 600  # the 2 mm bulk and the outliers both readable
+    labels = [t.get_text() for t in ax.texts]
+    assert labels[:2] == [f"f{frames[60]}: 600 mm", f"f{frames[200]}: 300 mm"]
+    assert len(labels) == 3 and not any(lab.startswith(f"f{frames[61]}:") for lab in labels)
+    # marks at the worst frames' times, on the max curve
+    marks = next(line for line in ax.lines if line.get_label().startswith("worst"))
+    np.testing.assert_allclose(marks.get_xdata()[:2], [60 / 50.0, 200 / 50.0])
+    np.testing.assert_allclose(marks.get_ydata()[:2], [600.0, 300.0])
+    floor = min(np.nanmin(line.get_ydata()) for line in ax.lines)
+    assert floor == C.RESIDUAL_FLOOR_MM
+    img = cv2.imread(str(tmp_path / "out" / "residuals.png"))
+    w, h = C.PLOT_SIZE_IN
+    assert img.shape[:2] == (round(h * C.PLOT_DPI), round(w * C.PLOT_DPI))
+    with pytest.raises(ValueError, match=r"res_mm: expected \(F, M\), got \(300,\)"):
+        residual_plot(tmp_path / "x.png", res[:, 0], 50.0, "x")
+    with pytest.raises(ValueError, match=r"frames: expected \(300,\)"):
+        residual_plot(tmp_path / "x.png", res, 50.0, "x", frames=frames[:5])
+
+
+def test_worst_frames_one_per_spike():
+    from drawing.plots import worst_frames
+
+    v = np.array([1.0, 9.0, 8.5, np.nan, 2.0, 7.0, 1.0, 8.0])
+    assert worst_frames(v, 3, separation=2).tolist() == [1, 7, 5]
+    assert worst_frames(v, 9, separation=1).tolist() == [1, 2, 7, 5, 4, 0, 6]
+    assert worst_frames(np.full(4, np.nan), 2, 1).tolist() == []
+
+
+def test_drawing_imports_only_allowed_packages():
+    from tests.conftest import REPO
+    from tests.test_layering import imported_modules
+
+    project = {"stages", "body", "calib", "formats", "fitting", "studio", "recipes", "detect",
+               "bench", "pipeline", "drawing", "artifacts", "geometry"}
+    allowed = {"body", "calib", "formats", "geometry", "drawing"}
+    files = sorted((REPO / "drawing").glob("*.py"))
+    assert len(files) >= 4
+    bad = {f.name: sorted((imported_modules(f) & project) - allowed) for f in files}
+    assert {k: v for k, v in bad.items() if v} == {}
