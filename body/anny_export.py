@@ -51,9 +51,8 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-DEFAULT_MODEL_PATH = REPO / "assets" / "build" / "anny_model.npz"
-DEFAULT_CACHE_DIR = REPO / "assets" / "cache" / "anny"
+from body.anny import coefficients
+from body.anny_paths import cache_dir, model_path
 
 # Local-change sliders left out of the shape space: face details that no marker or keypoint
 # sees (they would only add dimensions), and the genital bulge.
@@ -71,11 +70,6 @@ EXPRESSION_SLIDERS = (
     "r-cheek-trans-up", "mouth-trans-forward",
 )  # fmt: skip
 ANNY_LOCAL_CHANGES = "default"  # anny's preset: every slider but the nipple ones
-
-
-def model_path() -> Path:
-    """Where the exported model lives: ``$ANNY_MODEL_PATH`` or ``assets/build/anny_model.npz``."""
-    return Path(os.environ.get("ANNY_MODEL_PATH", str(DEFAULT_MODEL_PATH)))
 
 
 def source_stamp() -> str:
@@ -114,8 +108,6 @@ def body_slider_labels(all_labels: list[str]) -> list[str]:
 def sample_coeffs(z: dict, n: int, rng: np.random.Generator) -> np.ndarray:
     """Sample c under the PCA distribution: phenotypes U[0,1] (age U[0.4, 1]), body sliders
     U[-1,1]. -> (n, K)."""
-    from body.anny import coefficients
-
     labels = [str(s) for s in z["pheno_labels"]]
     phen = rng.uniform(0.0, 1.0, size=(n, len(labels)))
     # adults (the people a mocap lab records): age in [0.4, 1] (anny: 1/3 child, 2/3 young, 1 old),
@@ -129,7 +121,7 @@ def export(out: Path, keep_cache: bool = False) -> None:
     import torch
 
     t0 = time.time()
-    cache = Path(os.environ.get("ANNY_CACHE_DIR", str(DEFAULT_CACHE_DIR)))
+    cache = cache_dir()
     os.environ["ANNY_CACHE_DIR"] = str(cache)
     import anny.paths
 
@@ -230,7 +222,7 @@ def export(out: Path, keep_cache: bool = False) -> None:
     coco /= coco.sum(1, keepdims=True)
 
     # 10 face sliders (positive halves, rest-pose displacements) serve as the expression
-    # directions of the SMPL-X-schema file built from Anny (body/smplfamily.py)
+    # directions of the SMPL-X-schema file built from Anny (body/smplx_from_anny.py)
     expr_rows = [n_pheno + 2 * all_sliders.index(s) for s in EXPRESSION_SLIDERS]
     z["expr_dirs"] = np64(m.blendshapes)[expr_rows]
     z["expr_labels"] = np.array(EXPRESSION_SLIDERS)

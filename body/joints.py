@@ -3,7 +3,7 @@
 A regressor acts on the posed vertices stacked with the posed joints:
 ``keypoints = regress(R, vertices, joints)``: vertices (F, V, 3), joints (F, J, 3) ->
 (F, K, 3), same frame and units (``forward`` gives both). Layouts: ``kp65``, ``h36m17``,
-``joints3d_25`` (names in ``body.skeletons``).
+``joints3d_25`` (names in ``formats.skeletons``).
 
 Why joints and not vertices only: a joint centre as a fixed combination of skin vertices
 cannot follow Anny's skeleton across shapes (measured: the knee's and spine's rest joints are
@@ -19,7 +19,7 @@ How each point is defined on a model (``points_spec``):
 - ``("top", bone)``: the mean of the topmost vertices of the bone's skin (head top, z-up);
 - ``("mean", names)``: the mean of other points.
 
-CHI3D's 8 extra joints3d_25 points (``body.skeletons``) are read as Human3.6M's toe base (the
+CHI3D's 8 extra joints3d_25 points (``formats.skeletons``) are read as Human3.6M's toe base (the
 ball of the foot: mean of the big- and little-toe joints), toe end (big-toe tip), thumb (thumb
 tip) and wrist end (middle-finger knuckle).
 """
@@ -29,7 +29,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from body.model import BodyModel
-from body.skeletons import LAYOUTS
+from formats.skeletons import LAYOUTS
 
 TIP_FRACTION = 0.08  # share of a bone's vertices averaged for a tip
 TOP_DEPTH_M = 0.01  # vertices within this of the top count for "top"

@@ -92,14 +92,6 @@ def rest_state(model: BodyModel, betas) -> RestState:
     return RestState(vertices=verts, joints=joints, bind_rot=A, offsets=diff)
 
 
-def kinematic_levels(parents: np.ndarray) -> list[np.ndarray]:
-    """Joints grouped by depth (root excluded): each level's parents are in earlier levels."""
-    depth = np.zeros(len(parents), dtype=int)
-    for j in range(1, len(parents)):
-        depth[j] = depth[parents[j]] + 1
-    return [np.flatnonzero(depth == d) for d in range(1, depth.max() + 1)]
-
-
 def forward_kinematics(model: BodyModel, rest: RestState, body_pose, global_orient, transl):
     """Posed joint frames. body_pose: (F, J, 3) axis-angle; global_orient: (F, 3, 3);
     transl: (F, 3). Returns (G (F, J, 3, 3) world rotations, t (F, J, 3) joints, D local rots)."""

@@ -1,4 +1,7 @@
-"""BodyModel: the arrays and kinematic tree of a body model (data only), and ``load_model``.
+"""BodyModel: the arrays and kinematic tree of a body model (data only), and ``check_arrays``.
+
+No loader here (``body.loaders.load_model`` is the registry) and no math (``body.lbs``): this
+module imports no other module of ``body/``, so every loader and ``body.lbs`` can depend on it.
 
 A BodyModel is a frozen dataclass of read-only arrays; the solved variables (betas, poses,
 global orientation, translation) never live on it (STYLE.md). The math is in ``body.lbs``.
@@ -85,8 +88,6 @@ class BodyModel:
         object.__setattr__(self, "extras", MappingProxyType(ex))
         if not self.fit_joints:
             object.__setattr__(self, "fit_joints", tuple(range(len(self.joint_names))))
-        from body.lbs import kinematic_levels
-
         object.__setattr__(self, "_levels", tuple(kinematic_levels(np.asarray(self.parents))))
 
     @property
@@ -110,6 +111,14 @@ class BodyModel:
         return self.joint_names.index(name)
 
 
+def kinematic_levels(parents: np.ndarray) -> list[np.ndarray]:
+    """Joints grouped by depth (root excluded): each level's parents are in earlier levels."""
+    depth = np.zeros(len(parents), dtype=int)
+    for j in range(1, len(parents)):
+        depth[j] = depth[parents[j]] + 1
+    return [np.flatnonzero(depth == d) for d in range(1, depth.max() + 1)]
+
+
 def check_arrays(z: Mapping[str, np.ndarray], spec: Mapping[str, str], file: str | Path) -> None:
     """Check that every key of ``spec`` is in ``z`` with the given shape spec (letters must agree
     across keys, digits are exact; "" = scalar). Raises InputError naming the file and key."""
@@ -130,22 +139,3 @@ def check_arrays(z: Mapping[str, np.ndarray], spec: Mapping[str, str], file: str
                 raise InputError(file, key, f"expected shape ({dims}) with {letter}={seen.get(letter, letter)}, got {a.shape}")
         if a.dtype.kind in "fc" and a.size and not np.all(np.isfinite(a)):
             raise InputError(file, key, "non-finite values")
-
-
-def load_model(kind: str = "anny", path: str | Path | None = None, **kwargs) -> BodyModel:
-    """Load a body model.
-
-    kind: "anny" (the exported Anny file; path default ``$ANNY_MODEL_PATH`` or
-    assets/build/anny_model.npz) or "smpl" / "smplh" / "smplx" / "smpl-family" (a model file in
-    the smplx package's schema, .npz or .pkl; path default ``$SMPLX_MODEL_PATH``).
-    Raises InputError naming the file and key on a bad file."""
-    kind = kind.lower()
-    if kind == "anny":
-        from body.anny import load_anny
-
-        return load_anny(path)
-    if kind in ("smpl", "smplh", "smplx", "smpl-family", "smplfamily"):
-        from body.smplfamily import load_smpl_family
-
-        return load_smpl_family(path, kind=None if kind.startswith("smpl-") or kind == "smplfamily" else kind, **kwargs)
-    raise ValueError(f"unknown body model kind {kind!r} (anny, smpl, smplh, smplx)")

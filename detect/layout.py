@@ -1,11 +1,11 @@
 """The KP65 layout as the detect package uses it: index blocks, the mediapipe pose map and the
-bones drawn in masks and overlays. Names and maps come from ``body.skeletons`` (their owner).
+bones drawn in masks and overlays. Names and maps come from ``formats.skeletons`` (their owner).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from body import skeletons as S
+from formats import skeletons as S
 
 NAMES = S.KP65
 IDX = {n: i for i, n in enumerate(NAMES)}

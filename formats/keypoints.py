@@ -1,5 +1,5 @@
 """The common result of the precomputed-detection readers (OpenPose, COCO): every person found
-in each frame, mapped onto the pipeline's KP65 layout (``body.skeletons.KP65``)."""
+in each frame, mapped onto the pipeline's KP65 layout (``formats.skeletons.KP65``)."""
 from __future__ import annotations
 
 import json

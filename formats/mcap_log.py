@@ -6,7 +6,8 @@
   ``null``.
 - A 3D scene channel ``/scene`` in Foxglove's well-known ``foxglove.SceneUpdate`` schema
   (protobuf; schema and serialization from ``foxglove-sdk``): points as spheres, bones as line
-  lists, cameras as frustums, all in frame ``world`` (metres, z-up).
+  lists, camera frustums (given as world points: this module knows no camera model), all in
+  frame ``world`` (metres, z-up).
 
 Time: frame ``j`` is logged at ``start_ns + round(j / fps * 1e9)`` nanoseconds.
 Read back with :func:`read_log` (JSON decoded with ``json``, protobuf with
@@ -173,14 +174,17 @@ class SequenceLog:
     # ------------------------------------------------------------------------------ scene
     def log_scene(self, frame: int, points: Mapping[str, np.ndarray] | None = None,
                   bones: Mapping[str, tuple[np.ndarray, Sequence[tuple[int, int]]]] | None = None,
-                  cameras: Sequence = (), colors: Mapping[str, tuple] | None = None,
+                  frustums: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None,
+                  colors: Mapping[str, tuple] | None = None,
                   radius: float = 0.012, topic: str = "/scene") -> None:
         """One ``foxglove.SceneUpdate`` for ``frame``.
 
         points: {entity: (N, 3) world metres} drawn as spheres (NaN rows skipped);
         bones: {entity: ((J, 3) joints, [(a, b), ...] edges)} drawn as a line list (edges with
-        a NaN end skipped); cameras: calib Camera objects drawn as frustums (entity
-        ``camera/<name>``); colors: {entity: (r, g, b, a)} in [0, 1].
+        a NaN end skipped); frustums: {camera name: (centre (3,), corners (4, 3))} world points
+        (the camera centre and where the rays through the 4 image corners reach a chosen depth,
+        e.g. from ``calib.camera.rays_from_pixels``) drawn as viewing pyramids (entity
+        ``camera/<name>``, :func:`frustum_lines`); colors: {entity: (r, g, b, a)} in [0, 1].
         """
         from foxglove import messages as fm
 
@@ -219,30 +223,32 @@ class SequenceLog:
                 scale_invariant=False, points=pts, color=color(name, i + 1))
             entities.append(fm.SceneEntity(timestamp=stamp, frame_id=WORLD_FRAME, id=name,
                                            lines=[line]))
-        for cam in cameras:
+        for name, (centre, corners) in (frustums or {}).items():
             entities.append(fm.SceneEntity(timestamp=stamp, frame_id=WORLD_FRAME,
-                                           id=f"camera/{cam.name}", lines=[fm.LinePrimitive(
+                                           id=f"camera/{name}", lines=[fm.LinePrimitive(
                                                type=fm.LinePrimitiveLineType.LineList,
                                                pose=fm.Pose(position=fm.Vector3(x=0, y=0, z=0),
                                                             orientation=ident),
                                                thickness=0.01, scale_invariant=False,
-                                               points=[p3(v) for v in frustum_lines(cam)],
+                                               points=[p3(v) for v in frustum_lines(centre, corners, name)],
                                                color=fm.Color(r=0.8, g=0.8, b=0.8, a=1))]))
         self._write(topic, frame, fm.SceneUpdate(entities=entities).encode())
 
 
-def frustum_lines(cam, depth: float = 0.3) -> np.ndarray:
-    """(16, 3) world points, pairs forming the 8 edges of a camera's viewing pyramid
-    (``depth`` metres deep): centre to the 4 image corners, and the corners' rectangle."""
-    from calib.camera import rays_from_pixels
-
-    w, h = cam.width - 1, cam.height - 1
-    d = rays_from_pixels(cam, np.array([[0, 0], [w, 0], [w, h], [0, h]], dtype=float))
-    d = np.where(np.isfinite(d), d, np.array([0, 0, 1.0]))
-    corners = (d / d[:, 2:3] * depth) @ cam.R + cam.T  # camera frame -> world
+def frustum_lines(centre, corners, name: str = "frustum") -> np.ndarray:
+    """(16, 3) world points, pairs forming the 8 edges of a viewing pyramid: the centre (3,) to
+    each of the 4 corners (4, 3), and the corners' rectangle (corner i to corner i + 1).
+    Raises ValueError naming ``name`` on wrong shapes or non-finite points."""
+    c = np.asarray(centre, dtype=np.float64)
+    q = np.asarray(corners, dtype=np.float64)
+    if c.shape != (3,) or q.shape != (4, 3):
+        raise ValueError(f"frustum {name!r}: expected centre (3,) and corners (4, 3), "
+                         f"got {c.shape} and {q.shape}")
+    if not (np.all(np.isfinite(c)) and np.all(np.isfinite(q))):
+        raise ValueError(f"frustum {name!r}: non-finite centre or corners")
     seg = []
     for i in range(4):
-        seg += [cam.T, corners[i], corners[i], corners[(i + 1) % 4]]
+        seg += [c, q[i], q[i], q[(i + 1) % 4]]
     return np.asarray(seg)
 
 

@@ -6,7 +6,7 @@ coordinates in full-image pixels (OpenPose's default ``--keypoint_scale 0``), co
 a keypoint not found. Named ``<video>_<12-digit frame>_keypoints.json``: the frame index is the
 last group of digits in the name.
 
-Mapping to KP65 (``body.skeletons``): the BODY_25 keypoints with an exact KP65 equivalent
+Mapping to KP65 (``formats.skeletons``): the BODY_25 keypoints with an exact KP65 equivalent
 (all but ``Neck`` and ``MidHip``, which are not KP65 points); the hands in the same 21-point
 order. Hands or face absent from a person -> confidence 0.
 """
@@ -17,7 +17,6 @@ from pathlib import Path
 
 import numpy as np
 
-from body.skeletons import INDEX_IN_KP65, LEFT_HAND, OPENPOSE_BODY25, RIGHT_HAND
 from formats.errors import InputError
 from formats.keypoints import (
     N_KP65,
@@ -27,6 +26,7 @@ from formats.keypoints import (
     load_json,
     stack_people,
 )
+from formats.skeletons import INDEX_IN_KP65, LEFT_HAND, OPENPOSE_BODY25, RIGHT_HAND
 
 _BODY_SRC = [i for i, k in enumerate(INDEX_IN_KP65["openpose_body25"]) if k >= 0]
 _BODY_DST = [INDEX_IN_KP65["openpose_body25"][i] for i in _BODY_SRC]

@@ -21,9 +21,9 @@ def model():
 def anny_model():
     """anny itself, rebuilt from the compact-model file the exporter keeps in ANNY_CACHE_DIR."""
     torch = pytest.importorskip("torch")
-    from body import anny_export
+    from body import anny_export, anny_paths
 
-    os.environ.setdefault("ANNY_CACHE_DIR", str(anny_export.DEFAULT_CACHE_DIR))
+    os.environ.setdefault("ANNY_CACHE_DIR", str(anny_paths.DEFAULT_CACHE_DIR))
     import anny.paths
 
     anny.paths.set_anny_cache_path(os.environ["ANNY_CACHE_DIR"])
@@ -118,10 +118,10 @@ def test_shape_space_exact_and_linear(model):
 
 
 def test_export_stamp_and_bad_file(tmp_path, model):
-    from body import anny_export
+    from body import anny_export, anny_paths
     from formats.errors import InputError
 
-    assert not anny_export.is_stale(anny_export.model_path())
+    assert not anny_export.is_stale(anny_paths.model_path())
     p = tmp_path / "anny_model.npz"
     np.savez(p, stamp=np.array("old"))
     assert anny_export.is_stale(p) and anny_export.is_stale(tmp_path / "missing.npz")

@@ -9,7 +9,6 @@ from scipy.spatial.transform import Rotation
 
 from body import forward, load_model, rest_state
 from body import markers as mk
-from body import skeletons as sk
 from body.joints import keypoints, regressor
 from body.rotations import (
     rodrigues,
@@ -18,6 +17,7 @@ from body.rotations import (
     special_procrustes,
     wrap_rotvec,
 )
+from formats import skeletons as sk
 from formats.errors import InputError
 
 

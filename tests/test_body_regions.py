@@ -100,7 +100,7 @@ def test_official_loader(tmp_path):
 
 @pytest.mark.slow
 def test_smplx_rig_map():
-    from body.smplfamily import smplx_from_anny_path
+    from body.smplx_from_anny import smplx_from_anny_path
 
     m = load_model("smplx", smplx_from_anny_path())
     r = rg.region_map(m)

@@ -12,15 +12,14 @@ import scipy.sparse as sp
 from body import forward, load_model
 from body.rotations import rodrigues
 from body.smplfamily import (
-    ANNY_TO_SMPLX,
     SMPLX_JOINTS,
     SMPLX_PARENTS,
     load_smpl_family,
     read_model_file,
     smplx_betas,
-    smplx_from_anny_path,
     smplx_pose,
 )
+from body.smplx_from_anny import ANNY_TO_SMPLX, smplx_from_anny_path
 from formats.errors import InputError
 
 
@@ -197,6 +196,20 @@ def test_smpl_and_smplh_files(model, smplx_path, tmp_path):
         load_smpl_family(tmp_path / "SMPLH_NEUTRAL.npz", kind="smplx")
 
 
+def test_load_model_dispatches_by_kind(tiny, tmp_path):
+    """body.loaders.load_model: an exact kind must match the file, 'smpl-family' takes the
+    file's own, an unknown kind is refused by name."""
+    p = tmp_path / "SMPLX_NEUTRAL.npz"
+    np.savez(p, **tiny)
+    assert load_model("SMPLX", p).name == "smplx"
+    assert load_model("smpl-family", p).name == "smplx"
+    with pytest.raises(InputError, match="smplx model, not smplh") as e:
+        load_model("smplh", p)
+    assert e.value.field == "kintree_table" and str(p) in str(e.value)
+    with pytest.raises(ValueError, match="unknown body model kind 'ghum'"):
+        load_model("ghum", p)
+
+
 @pytest.mark.parametrize("edit,key", [
     (lambda z: z.pop("weights"), "weights"),
     (lambda z: z.__setitem__("J_regressor", z["J_regressor"][:, :50]), "J_regressor"),
@@ -253,7 +266,7 @@ def test_slot_lbs_with_pose_correctives(model):
 @pytest.mark.slow
 def test_smplx_joint_sets(model):
     from body.joints import keypoints, regressor
-    from body.skeletons import H36M17
+    from formats.skeletons import H36M17
 
     out = forward(model, np.zeros(20), np.zeros((1, 55, 3)), np.eye(3)[None], np.zeros((1, 3)))
     h36 = keypoints(model, out, "joints3d_25")[0]

@@ -4,10 +4,10 @@ import json
 import numpy as np
 import pytest
 
-from body.skeletons import KP65, OPENPOSE_BODY25
 from formats.coco import read_coco
 from formats.errors import InputError
 from formats.openpose import read_openpose, read_openpose_frame, write_openpose_frame
+from formats.skeletons import KP65, OPENPOSE_BODY25
 
 OP_TO_NAME = {"Nose": "nose", "RShoulder": "r_shoulder", "RElbow": "r_elbow", "RWrist": "r_wrist",
               "LShoulder": "l_shoulder", "LElbow": "l_elbow", "LWrist": "l_wrist", "RHip": "r_hip",

@@ -10,6 +10,16 @@ from formats.errors import InputError
 from formats.mcap_log import SequenceLog, frustum_lines, read_log
 
 
+def camera_frustum(cam, depth):
+    """What a caller passes to ``log_scene(frustums=...)``: the camera centre and the points
+    ``depth`` m deep on the rays through the 4 image corners (calib knows the lens)."""
+    from calib.camera import rays_from_pixels
+
+    w, h = cam.width - 1, cam.height - 1
+    d = rays_from_pixels(cam, np.array([[0, 0], [w, 0], [w, h], [0, h]], dtype=float))
+    return cam.T, (d / d[:, 2:3] * depth) @ cam.R + cam.T  # camera frame -> world
+
+
 def test_write_and_read_back_every_stream(tmp_path):
     rng = np.random.default_rng(0)
     cams = [random_camera(rng, name=f"c{i}") for i in range(2)]
@@ -26,7 +36,7 @@ def test_write_and_read_back_every_stream(tmp_path):
             log.log_params(j, 0, {"transl": joints[j, 0], "betas": np.arange(3.0)})
             log.log_metrics(j, {"mpjpe_mm": 10.0 + j, "bad": np.nan})
             log.log_scene(j, points={"markers": xyz[j]}, bones={"skeleton": (joints[j], [(0, 1), (1, 2)])},
-                          cameras=cams if j == 0 else ())
+                          frustums={c.name: camera_frustum(c, 0.3) for c in cams} if j == 0 else None)
     out = read_log(path)
     assert set(out) == {"/markers", "/keypoints/50591643", "/fit/0", "/metrics", "/scene"}
     times = [t for t, _ in out["/markers"]]
@@ -62,18 +72,29 @@ def test_write_and_read_back_every_stream(tmp_path):
     assert len({e.id for e in scenes[3].entities if e.id == "skeleton"}) == 1
     assert len(next(e for e in scenes[3].entities if e.id == "skeleton").lines[0].points) == 2
     cam_ents = [e for e in scenes[0].entities if e.id.startswith("camera/")]
-    assert len(cam_ents) == 2 and len(cam_ents[0].lines[0].points) == 16
+    assert sorted(e.id for e in cam_ents) == ["camera/c0", "camera/c1"]
+    pts = np.array([[q.x, q.y, q.z] for q in cam_ents[0].lines[0].points])
+    assert np.allclose(pts, frustum_lines(*camera_frustum(cams[int(cam_ents[0].id[-1])], 0.3)))
     assert scenes[1].entities[0].timestamp.nanos == (1_000 + 20_000_000) % 1_000_000_000
 
 
-def test_frustum_points_project_to_image_corners():
+def test_frustum_lines_are_the_pyramid_edges():
     from calib import project
 
     cam = random_camera(np.random.default_rng(1))
-    seg = frustum_lines(cam, depth=0.5)
-    assert np.allclose(seg[0], cam.T)
-    corners = project(cam, seg[[1, 5, 9, 13]])
-    assert np.allclose(corners, [[0, 0], [899, 0], [899, 899], [0, 899]], atol=1e-6)
+    centre, corners = camera_frustum(cam, 0.5)
+    seg = frustum_lines(centre, corners)
+    assert seg.shape == (16, 3)
+    assert np.allclose(seg[0::4], cam.T)  # centre to each corner
+    assert np.allclose(seg[1::4], corners)
+    assert np.allclose(seg[2::4], corners) and np.allclose(seg[3::4], np.roll(corners, -1, 0))
+    assert np.allclose(project(cam, seg[[1, 5, 9, 13]]), [[0, 0], [899, 0], [899, 899], [0, 899]], atol=1e-6)
+    with pytest.raises(ValueError, match="'c7'.*corners \\(4, 3\\)"):
+        frustum_lines(centre, corners[:3], "c7")
+    bad = corners.copy()
+    bad[2, 0] = np.nan
+    with pytest.raises(ValueError, match="'c7': non-finite"):
+        frustum_lines(centre, bad, "c7")
 
 
 def test_validation_and_bad_files(tmp_path):
