@@ -1,8 +1,7 @@
 """Synthetic data for the fitting bench cases (helper, not a case).
 
 A subject drawn like the studio's (anny phenotypes and a few body sliders -> exact betas), the
-built-in Plug-in Gait marker set when ``body.markers`` provides it (else 39 markers spread
-over the body by farthest-point sampling), each marker slid a few millimetres from its
+built-in Plug-in Gait marker set, each marker slid a few millimetres from its
 template as a lab places them, a smooth motion of the fitted body joints, and markers as an
 optical system records them (posed surface point + offset along the posed face normal,
 1 mm noise, occlusion gaps).
@@ -12,13 +11,13 @@ from __future__ import annotations
 import numpy as np
 
 from body.lbs import forward, rest_state
-from body.markers import face_normals
 from body.rotations import rodrigues
 from fitting import shape, skinned
+from fitting.marker_graph import template_placement
+from geometry import face_normals
 
 MARKER_NOISE_SD_M = 0.001 / 3 ** 0.5  # ~1 mm 3D RMS
 SLIDE_SD_M, OFFSET_SD_M = 0.004, 0.001
-PIG_OFFSET_M = 0.0095
 
 
 def subject_betas(model, rng) -> np.ndarray:
@@ -34,21 +33,8 @@ def subject_betas(model, rng) -> np.ndarray:
 
 
 def template(model) -> tuple[shape.Placement, str]:
-    try:
-        from stages.marker_fit import template_placement
-
-        return template_placement(model, "plug-in-gait"), "plug-in-gait"
-    except (ImportError, AttributeError):  # no built-in marker set: spread 39 markers
-        rest = rest_state(model, np.zeros(1))
-        fc = rest.vertices[0][np.asarray(model.faces)].mean(1)
-        ch = [int(np.argmax(fc[:, 2]))]
-        d = np.linalg.norm(fc - fc[ch[0]], axis=1)
-        for _ in range(38):
-            i = int(np.argmax(d))
-            ch.append(i)
-            d = np.minimum(d, np.linalg.norm(fc - fc[i], axis=1))
-        return shape.Placement(tuple(f"M{i:02d}" for i in range(39)), np.array(ch),
-                               np.full((39, 3), 1 / 3), np.full(39, PIG_OFFSET_M)), "farthest-39"
+    """The built-in Plug-in Gait template placement on ``model`` and its name."""
+    return template_placement(model, "plug-in-gait"), "plug-in-gait"
 
 
 def slide(model, pl: shape.Placement, rng) -> shape.Placement:
@@ -89,8 +75,7 @@ def true_markers(model, vertices: np.ndarray, pl: shape.Placement) -> np.ndarray
     """(F, M, 3): posed surface point + offset along the posed face normal."""
     faces = np.asarray(model.faces)
     tri = vertices[:, faces[pl.face]]  # (F, M, 3, 3)
-    nrm = np.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0])
-    nrm /= np.linalg.norm(nrm, axis=2, keepdims=True)
+    nrm = face_normals(vertices, faces[pl.face])
     return np.einsum("mk,fmkd->fmd", pl.bary, tri) + pl.offset[None, :, None] * nrm
 
 

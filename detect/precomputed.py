@@ -46,6 +46,24 @@ class PrecomputedDetector:
         object.__setattr__(self, "frames", tuple(int(f) for f in self.frames))
         object.__setattr__(self, "_row", {f: i for i, f in enumerate(self.frames)})
 
+    @classmethod
+    def from_frames(cls, per_camera: list) -> "PrecomputedDetector":
+        """The detector of one sequence from each camera's detections (C
+        :class:`formats.keypoints.KeypointFrames`, recipe camera order, as read by
+        ``formats.openpose.read_openpose`` / ``formats.coco.read_coco``): every camera's
+        candidates on the union of the frames the files cover (a frame missing from one camera
+        has no candidates there; cameras with fewer people are padded with confidence 0)."""
+        if not per_camera:
+            raise ValueError("PrecomputedDetector.from_frames: no camera")
+        frames = np.unique(np.concatenate([np.asarray(k.frames, dtype=np.int64)
+                                           for k in per_camera]))
+        n = max([k.kp.shape[1] for k in per_camera] + [1])
+        kp = np.zeros((len(per_camera), len(frames), n, layout.N, 3), np.float32)
+        for c, k in enumerate(per_camera):
+            rows = np.searchsorted(frames, np.asarray(k.frames, dtype=np.int64))
+            kp[c, rows, :k.kp.shape[1]] = k.kp
+        return cls(kp, tuple(int(f) for f in frames))
+
     def build(self) -> "PrecomputedDetector":
         return self
 

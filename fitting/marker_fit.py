@@ -12,43 +12,99 @@ bounded force), gaps masked (``vis = 0``), ``L_theta`` = Gaussian + joint limits
 rigid (Kabsch) alignment of the rest-pose markers and runs a graduated robust scale. Rotation
 vectors are re-wrapped to angles <= pi after every frame.
 
-Pure functions over arrays; the stage adapter is ``stages/marker_fit.py``.
+Pure functions over arrays and typed artifacts (no file I/O): :func:`fit_markers` is the whole
+sequence (resampling onto the video frames, graph, prior, hands, the valid mask); the stage
+adapter ``stages/marker_fit.py`` reads the files and saves the result.
 """
 from __future__ import annotations
 
+import time
+import warnings
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
+from artifacts import REASON_CODE, BodyFit, ShapeFit
+from body.joints import regressor
+from body.lbs import rest_state
 from body.rotations import rodrigues, rotmat_to_rotvec
-from fitting import lm, terms
-from fitting.marker_graph import MarkerGraph
+from calib import camera_vector
+from fitting import compiled, lm, mocap, priors, skinned, terms
+from fitting.marker_graph import (
+    GraphSpec,
+    MarkerGraph,
+    Placement,
+    body_joints,
+    marker_coeffs,
+    marker_support,
+    placement_of,
+)
 from fitting.priors import PosePrior
 from fitting.skinned import FitSkeleton, slot_positions_np
+from formats.errors import InputError
+from formats.skeletons import LEFT_HAND, RIGHT_HAND
 
 DEFAULT_WEIGHTS = {"L_3d": 1.0, "L_2d": 1e-6, "L_theta": 2e-7, "L_s": 1e-6}
 GNC_FACTORS = (20.0, 5.0, 1.0)  # first frame: robust scale sigma times these, in turn
+COMPILE_MODES = ("auto", "compiled", "interpreted")
+MIN_MARKERS = 3  # a frame with fewer visible markers does not fix the pose (held, not valid)
+HAND_KP65 = slice(LEFT_HAND.start, RIGHT_HAND.stop)  # KP65: left hand 21, right hand 21
+OUTLIER_WEIGHT = 0.1  # a marker-frame whose robust weight is below counts as an outlier
 
 
 @dataclass(frozen=True)
 class MarkerFitOptions:
-    """weights : per paper term (fitting/terms.py TERMS); sigma_marker_m : Geman-McClure scale
-    of a marker's 3D error, metres; sigma_keypoint_px : the same for a 2D keypoint, pixels;
-    max_iters / first_iters : LM iterations per frame / for the first frame."""
+    """The marker fit's options (also the recipe's ``stages.marker_fit`` section).
+
+    weights : per paper term (L_3d, L_2d, L_theta, L_s), missing ones at their default;
+    sigma_marker_mm : Geman-McClure scale of a marker's 3D error, millimetres;
+    sigma_keypoint_px : the same for a 2D hand keypoint, pixels; max_iters / first_iters : LM
+    iterations per frame / for the first frame; use_hands : fit person 0's hand keypoints when
+    given; min_hand_conf : hand keypoints below this confidence are ignored; max_frames : fit
+    only the first N frames (quick runs); compile : how the residual function runs
+    (``fitting.compiled.CompileOptions.mode``)."""
 
     weights: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_WEIGHTS))
-    sigma_marker_m: float = 0.02
+    sigma_marker_mm: float = 20.0
     sigma_keypoint_px: float = 15.0
     max_iters: int = 10
     first_iters: int = 60
+    use_hands: bool = True
+    min_hand_conf: float = 0.3
+    max_frames: int | None = None
+    compile: Literal["auto", "compiled", "interpreted"] = "auto"
 
     def __post_init__(self):
-        unknown = set(self.weights) - set(terms.TERMS)
-        if unknown:
-            raise ValueError(f"weights: unknown terms {sorted(unknown)} (known: {terms.TERMS})")
+        problems = []  # every bad field, in one message
+        for name, v in self.weights.items():
+            if name not in DEFAULT_WEIGHTS:
+                problems.append(f"weights.{name}: unknown term (known: "
+                                f"{', '.join(DEFAULT_WEIGHTS)})")
+            elif not float(v) >= 0:
+                problems.append(f"weights.{name}: must be >= 0, got {v}")
+        for name in ("sigma_marker_mm", "sigma_keypoint_px"):
+            if not getattr(self, name) > 0:
+                problems.append(f"{name}: must be > 0, got {getattr(self, name)}")
+        for name in ("max_iters", "first_iters"):
+            if getattr(self, name) < 1:
+                problems.append(f"{name}: must be >= 1, got {getattr(self, name)}")
+        if not 0 <= self.min_hand_conf <= 1:
+            problems.append(f"min_hand_conf: must be in [0, 1], got {self.min_hand_conf}")
+        if self.max_frames is not None and self.max_frames < 1:
+            problems.append(f"max_frames: must be >= 1, got {self.max_frames}")
+        if self.compile not in COMPILE_MODES:
+            problems.append(f"compile: must be one of {', '.join(COMPILE_MODES)}, "
+                            f"got {self.compile!r}")
+        if problems:
+            raise ValueError("; ".join(problems))
         w = dict(DEFAULT_WEIGHTS)
-        w.update(self.weights)
+        w.update({k: float(v) for k, v in self.weights.items()})
         object.__setattr__(self, "weights", w)
+
+    @property
+    def sigma_marker_m(self) -> float:
+        return self.sigma_marker_mm / 1000
 
 
 @dataclass
@@ -209,3 +265,140 @@ def unpack(skel: FitSkeleton, num_joints: int, X: np.ndarray):
     pose = np.zeros((F, num_joints, 3))
     pose[:, skel.joints[1:]] = X[:, 6:].reshape(F, -1, 3)
     return pose, rodrigues(X[:, :3]), X[:, 3:6].copy()
+
+
+# ---------------------------------------------------------------------------- one sequence
+
+
+def _hand_observations(model, rest, skel, keypoints, frames, cams, opts: MarkerFitOptions):
+    """Person 0's hand keypoints at the fit's frames: (Hk (K, Q, 4), uv (F, C, K, 2),
+    conf (F, C, K)), or None when there are none (or ``use_hands`` is off). Keypoints are
+    matched to the fit's video frames by index and to the cameras by id."""
+    if keypoints is None or not opts.use_hands:
+        return None
+    hand = np.asarray(keypoints.hands(0), float)  # (C, Fk, K, 3), person 0 = the marker wearer
+    hand = hand[[keypoints.camera(c.name) for c in cams]]
+    conf = hand[..., 2]
+    conf = np.where(conf >= opts.min_hand_conf, conf, 0.0)
+    kf = np.asarray(keypoints.frames, dtype=int)
+    pos = np.clip(np.searchsorted(kf, frames), 0, max(len(kf) - 1, 0))
+    hit = (kf[pos] == frames) if len(kf) else np.zeros(len(frames), bool)
+    F, C, K = len(frames), hand.shape[0], hand.shape[2]
+    uv = np.zeros((F, C, K, 2))
+    cf = np.zeros((F, C, K))
+    uv[hit] = np.transpose(hand[:, pos[hit], :, :2], (1, 0, 2, 3))
+    cf[hit] = np.transpose(conf[:, pos[hit]], (1, 0, 2))
+    if not np.any(cf > 0):
+        return None
+    Hk = skinned.regressed_coeffs(model, rest, skel, regressor(model, "kp65")[HAND_KP65])
+    return Hk, uv, cf
+
+
+def fit_markers(model, shape: ShapeFit, template: Placement, markers, clock: mocap.VideoClock,
+                frames: np.ndarray, cams=(), keypoints=None,
+                opts: MarkerFitOptions = MarkerFitOptions(), progress=None, log=None,
+                source: str = "markers") -> tuple[BodyFit, dict]:
+    """The marker-wearing subject's motion over a sequence's video frames.
+
+    model : BodyModel; shape : the subject's :class:`artifacts.ShapeFit` (betas and marker
+    placement); template : the marker set's template placement (fixes the compiled graph's
+    supports, so one graph serves every subject); markers : ``formats.c3d.Markers`` of the
+    subject (names of ``shape``; gaps NaN); clock : how mocap samples map to video frames;
+    frames : (F,) video frame indices to fit (``opts.max_frames`` keeps the first N);
+    cams : ``calib.Camera`` per view, in the order of the keypoints' cameras they name (only
+    needed with keypoints); keypoints : ``artifacts.Keypoints2D`` or None (person 0's hand
+    keypoints drive the fingers when ``opts.use_hands``); progress : iterable wrapper for the
+    per-frame loop; log : ``log(str)``; source : the capture's file, named in input errors.
+
+    Frames before the first one with ``MIN_MARKERS`` visible markers are held at the first
+    solution (``held_before_first_marker``), later frames with fewer are held by the prior and
+    the previous frame (``too_few_markers``); neither is valid. Returns the
+    :class:`artifacts.BodyFit` and a report dict (residuals in mm, speed, what was used).
+    """
+    pl = placement_of(shape)
+    if template.names != pl.names:
+        diff = sorted(set(template.names) ^ set(pl.names)) or "order"
+        raise InputError(source, "markers", f"the shape_fit placement and the marker set "
+                         f"differ ({diff})")
+    if tuple(markers.names) != pl.names:
+        try:
+            markers = markers.select(pl.names)
+        except KeyError as e:
+            raise InputError(source, "markers", str(e)) from None
+    frames = np.asarray(frames, dtype=np.int64)
+    if opts.max_frames:
+        frames = frames[: opts.max_frames]
+    F = len(frames)
+    obs, vis = mocap.video_observations(markers, frames, clock)
+    n_vis = vis.sum(1)
+    if not np.any(n_vis >= MIN_MARKERS):
+        raise InputError(source, "markers", f"no video frame has {MIN_MARKERS} or more markers")
+    first = int(np.argmax(n_vis >= MIN_MARKERS))
+    few = np.flatnonzero(n_vis[first:] < MIN_MARKERS) + first
+    if len(few) and log:
+        log(f"frames with < {MIN_MARKERS} markers from frame {int(frames[few[0]])}: pose held "
+            "from the prior and the previous frame (not valid)")
+
+    betas = np.asarray(shape.betas, float)
+    rest = rest_state(model, betas)
+    skel_full = skinned.fit_skeleton(model, model.fit_joints)
+    hands = _hand_observations(model, rest, skel_full, keypoints, frames, list(cams), opts)
+    skel = skel_full if hands is not None else skinned.fit_skeleton(model, body_joints(model))
+    u, _ = skinned.reduced_offsets(model, rest, skel)
+    Hm = marker_coeffs(model, rest, skel, pl)
+    spec = GraphSpec(skel.topology, marker_support(model, skel, template),
+                     skinned.support_of(hands[0]) if hands else (), len(cams) if hands else 0,
+                     cams[0].model if hands else "h36m")
+    t0 = time.perf_counter()
+    graph = MarkerGraph(spec, compiled.CompileOptions(mode=opts.compile), log=log)
+    t_build = time.perf_counter() - t0
+    prior = priors.default_prior(skel.names[1:])
+    solver = FrameSolver(graph, skel, u, Hm, prior, opts, Hk=hands[0] if hands else None,
+                         cams=np.stack([camera_vector(c) for c in cams]) if hands else None)
+    uv = conf = None
+    if hands:
+        _, uv, conf = hands
+    sl = slice(first, F)
+    t0, c0 = time.perf_counter(), time.thread_time()
+    fit = fit_sequence(solver, obs[sl], vis[sl].astype(float),
+                       None if uv is None else uv[sl], None if conf is None else conf[sl],
+                       progress=progress)
+    t_fit, c_fit = time.perf_counter() - t0, time.thread_time() - c0
+    X = np.zeros((F, skel.n))
+    X[sl] = fit.x
+    X[:first] = fit.x[0]  # frames before the markers appear: held at the first solution
+    res = np.full((F, len(pl.names)), np.nan)
+    wgt = np.full_like(res, np.nan)
+    res[sl], wgt[sl] = fit.marker_residual_m, fit.robust_weight
+    reason = np.zeros(F, np.int8)
+    reason[:first] = REASON_CODE["held_before_first_marker"]
+    reason[few] = REASON_CODE["too_few_markers"]
+    body_pose, R, T = unpack(skel, model.num_joints, X)
+    out = BodyFit(body_pose=body_pose, global_orient=R, transl=T, betas=betas, frames=frames,
+                  valid=reason == 0, invalid_reason=reason, marker_names=np.array(pl.names),
+                  marker_residual_m=res, marker_weight=wgt, visible=vis)
+    mm = res * 1000
+    with warnings.catch_warnings():  # a marker never seen: NaN statistics, no warning
+        warnings.simplefilter("ignore", RuntimeWarning)
+        per = {n: {"median": float(np.nanmedian(mm[:, i])),
+                   "p90": float(np.nanpercentile(mm[:, i], 90)),
+                   "visible": float(vis[:, i].mean())} for i, n in enumerate(pl.names)}
+    reasons = out.reasons()
+    report = {
+        "frames": F, "first_fitted_frame": first,
+        "frames_valid": reasons.pop("fitted"), "frames_not_valid": reasons,
+        "markers": len(pl.names),
+        "markers_missing_from_c3d": [n for i, n in enumerate(pl.names) if not vis[:, i].any()],
+        "residual_mm": {"median": float(np.nanmedian(mm)), "p90": float(np.nanpercentile(mm, 90)),
+                        "max": float(np.nanmax(mm))},
+        "outlier_marker_frames": int(np.nansum(wgt < OUTLIER_WEIGHT)),
+        "per_marker": per,
+        "hands": bool(hands), "fitted_joints": list(skel.names),
+        "prior": prior.source, "weights": dict(opts.weights),
+        "compiled": graph.fun.compiled, "build_s": round(t_build, 3),
+        "fit_s": round(t_fit, 3), "fit_cpu_s": c_fit,
+        "fps": round((F - first) / max(t_fit, 1e-9), 1),
+        "mean_iterations": float(np.mean(fit.iterations)),
+        "skin_weight_outside_support": float(graph.dropped_weight),
+    }
+    return out, report

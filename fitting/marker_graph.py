@@ -13,6 +13,11 @@ Parameter vector ``p`` (:meth:`MarkerGraph.params` packs it):
     obs (M, 3), vis (M,)            observed markers (metres, world) and visibility 0/1
     uv (C, K, 2), conf (C, K)       detected keypoints (pixels) and confidence (0 = missing)
 Residual ``r = [L_3d (3M), L_2d (2CK)]`` (fitting/terms.py), unweighted.
+
+Markers on the body (:class:`Placement`: face, barycentric coordinates, offset along the
+rest-pose face normal) and what the graph needs of them (slot coefficients, supports) live
+here too, so the marker fit and the shape fit share them without importing each other.
+A marker skins like the blend of its face's vertices (weights interpolated with ``bary``).
 """
 from __future__ import annotations
 
@@ -20,10 +25,107 @@ from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
+import scipy.sparse as sp
 
+from artifacts import ShapeFit
+from body import markers as body_markers
+from body.lbs import rest_state
+from body.model import BodyModel
 from calib import project_cs
 from calib.constants import CAM_VECTOR_SIZE
 from fitting import compiled, skinned, terms
+from geometry import face_normals
+
+# constants
+SUPPORT_RADIUS_M = 0.06  # a marker's graph support: joints skinning the surface this close
+
+
+# ---------------------------------------------------------------------------- markers
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Markers on the surface: names (M,), face (M,) int, bary (M, 3), offset (M,) metres."""
+
+    names: tuple[str, ...]
+    face: np.ndarray
+    bary: np.ndarray
+    offset: np.ndarray
+
+
+
+def marker_rest_points(rest_vertices: np.ndarray, faces: np.ndarray, pl: Placement) -> np.ndarray:
+    """(M, 3) rest positions: surface point + offset * rest face normal, metres."""
+    tri = rest_vertices[faces[pl.face]]  # (M, 3, 3)
+    surf = np.einsum("mk,mkd->md", pl.bary, tri)
+    return surf + pl.offset[:, None] * face_normals(rest_vertices, faces[pl.face])
+
+
+def marker_weights(model: BodyModel, pl: Placement) -> sp.csr_matrix:
+    """(M, J) skinning weights of the markers (their face's vertex weights blended by bary)."""
+    M = len(pl.face)
+    vids = model.faces[pl.face]  # (M, 3)
+    B = sp.csr_matrix((pl.bary.reshape(-1), (np.repeat(np.arange(M), 3), vids.reshape(-1))),
+                      shape=(M, model.num_vertices))
+    return (B @ model.weights).tocsr()
+
+
+def marker_coeffs(model: BodyModel, rest, skel: skinned.FitSkeleton, pl: Placement) -> np.ndarray:
+    """Slot coefficients Hm (M, Q, 4) of a placement (fitting/skinned.py)."""
+    pts = marker_rest_points(rest.vertices[0], model.faces, pl)
+    return skinned.vertex_coeffs(model, rest, skel, marker_weights(model, pl), pts)
+
+
+
+def body_joints(model: BodyModel) -> np.ndarray:
+    """The fit joints without fingers (the scan and markers see no finger pose)."""
+    fingers = ("finger", "metacarpal", "thumb", "index", "middle", "ring", "pinky")
+    return np.array([j for j in model.fit_joints
+                     if not any(f in model.joint_names[j].lower() for f in fingers)])
+
+
+
+def marker_support(model: BodyModel, skel: skinned.FitSkeleton, template: Placement,
+                   radius: float = SUPPORT_RADIUS_M) -> tuple[tuple[int, ...], ...]:
+    """Graph support of each marker: the fitted joints skinning the mean-shape surface within
+    ``radius`` of its template position (covers placement refinement and every subject, so
+    one compiled graph serves all; fitting/skinned.py neighbourhood_support)."""
+    rest0 = rest_state(model, np.zeros(1))
+    pts = marker_rest_points(rest0.vertices[0], np.asarray(model.faces), template)
+    return skinned.neighbourhood_support(model, rest0, skel, pts, radius)
+
+
+def template_placement(model: BodyModel, markerset) -> Placement:
+    """The template placement of a marker set on ``model``: ``"plug-in-gait"`` (the built-in
+    set, ``body.markers.plug_in_gait``) or a ``body.markers.MarkerSet`` (read from its JSON
+    file by the caller)."""
+    if isinstance(markerset, body_markers.MarkerSet):
+        ms = markerset
+    elif markerset == "plug-in-gait":
+        ms = body_markers.plug_in_gait(model)
+    else:
+        raise ValueError(f"markerset: expected 'plug-in-gait' or a MarkerSet read from its "
+                         f".json file, got {markerset!r}")
+    return Placement(tuple(ms.names), np.asarray(ms.faces, np.int64), np.asarray(ms.bary, float),
+                     np.asarray(ms.offsets, float))
+
+
+def placement_of(shape: ShapeFit) -> Placement:
+    """The marker placement a :class:`artifacts.ShapeFit` carries."""
+    return Placement(shape.names, np.asarray(shape.marker_face, np.int64),
+                     np.asarray(shape.marker_bary, float), np.asarray(shape.marker_offset, float))
+
+
+def to_shape_fit(betas, pl: Placement, shape_source: str, placement_source: str) -> ShapeFit:
+    """A :class:`artifacts.ShapeFit` of ``betas`` and a placement (sources as ShapeFit says)."""
+    return ShapeFit(betas=np.asarray(betas, float), marker_names=np.array(pl.names),
+                    marker_face=np.asarray(pl.face, np.int64),
+                    marker_bary=np.asarray(pl.bary, float),
+                    marker_offset=np.asarray(pl.offset, float), shape_source=shape_source,
+                    placement_source=placement_source)
+
+
+# ---------------------------------------------------------------------------- graph
 
 
 @dataclass(frozen=True)

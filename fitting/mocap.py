@@ -9,6 +9,8 @@ filled by a guess would be fitted as if it were data).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 
@@ -51,3 +53,35 @@ def resample(times_src: np.ndarray, xyz: np.ndarray, times_dst: np.ndarray,
     interp = (1.0 - a)[:, None, None] * np.nan_to_num(x0) + a[:, None, None] * np.nan_to_num(x1)
     obs = np.where(vis[..., None], interp, 0.0)
     return obs, vis
+
+
+@dataclass(frozen=True)
+class VideoClock:
+    """How a capture's samples map onto video frames: video frame ``f`` is at mocap time
+    ``f / fps - sync_offset_s``. rate_hz : the capture's sampling rate when it overrides the
+    C3D's own (recipe ``sequence.mocap.rate_hz``), else None."""
+
+    fps: float
+    sync_offset_s: float = 0.0
+    rate_hz: float | None = None
+
+    def __post_init__(self):
+        if not self.fps > 0:
+            raise ValueError(f"fps: must be > 0, got {self.fps}")
+        if self.rate_hz is not None and not self.rate_hz > 0:
+            raise ValueError(f"rate_hz: must be > 0, got {self.rate_hz}")
+
+
+def video_observations(markers, frames: np.ndarray, clock: VideoClock
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """A capture's markers at video frames.
+
+    markers : ``formats.c3d.Markers`` (``xyz (Fs, M, 3)`` metres, NaN gaps, ``rate_hz``,
+    ``first_frame``); frames : (F,) video frame indices. Returns ``(obs (F, M, 3), visible
+    (F, M) bool)`` (:func:`resample`; obs 0 where not visible)."""
+    frames = np.asarray(frames, dtype=int)
+    rate = clock.rate_hz or markers.rate_hz
+    times_src = (markers.first_frame + np.arange(len(markers.xyz))) / rate
+    times = frame_times(int(frames.max()) + 1 if len(frames) else 0, clock.fps,
+                        clock.sync_offset_s)[frames]
+    return resample(times_src, markers.xyz, times)

@@ -12,8 +12,13 @@
    (the compiled marker graph, as in marker_fit) and (b) each marker's rest position, a linear
    least-squares problem once the poses are fixed, regularised toward the template placement,
    then re-projected on the surface as (face, barycentric, offset along the normal).
-3. ``fit_markers_shape``: no scan: betas are fitted to the markers of those frames too (a third
+3. no scan (``fit_betas``): betas are fitted to the markers of those frames too (a third
    alternation step, forward-difference Gauss-Newton on betas with poses and placement fixed).
+
+:func:`fit_shape` is the whole subject (scan fit, else marker-based shape, else the mean;
+then the placement on the captures), returning an ``artifacts.ShapeFit`` and a report;
+:func:`shape_from_scan` and :func:`fit_placement` are its two steps. No file I/O: the stage
+adapter ``stages/shape_fit.py`` reads the scan and the captures.
 
 Placement: ``face (M,)`` model face index, ``bary (M, 3)`` barycentric coordinates,
 ``offset (M,)`` metres along the rest-pose face normal (outwards). A marker skins like the
@@ -22,15 +27,27 @@ blend of its face's vertices (weights interpolated with ``bary``).
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Literal
 
 import numpy as np
-import scipy.sparse as sp
 
 from body.lbs import forward, rest_state
-from body.markers import face_normals
 from body.model import BodyModel
 from body.rotations import rodrigues
-from fitting import marker_fit, robust, skinned
+from fitting import compiled, marker_fit, priors, robust, skinned
+from fitting.marker_graph import (
+    GraphSpec,
+    MarkerGraph,
+    Placement,
+    body_joints,
+    marker_coeffs,
+    marker_rest_points,
+    marker_support,
+    marker_weights,
+    placement_of,
+    to_shape_fit,
+)
+from geometry import face_areas, face_normals
 
 # constants
 FD_STEP = 1e-6
@@ -38,44 +55,7 @@ COARSE_BETAS = 10  # scan fit: betas fitted in the first third of the iterations
 SIZE_GRID = (-3.0, -2.0, -1.0, 0.0, 1.0, 2.0, 3.0)  # marker-based shape: start grid (betas 0, 1)
 
 
-@dataclass(frozen=True)
-class Placement:
-    """Markers on the surface: names (M,), face (M,) int, bary (M, 3), offset (M,) metres."""
-
-    names: tuple[str, ...]
-    face: np.ndarray
-    bary: np.ndarray
-    offset: np.ndarray
-
-
 # ---------------------------------------------------------------------------- surface helpers
-
-
-def _face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    tri = vertices[faces]
-    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-
-
-def marker_rest_points(rest_vertices: np.ndarray, faces: np.ndarray, pl: Placement) -> np.ndarray:
-    """(M, 3) rest positions: surface point + offset * rest face normal, metres."""
-    tri = rest_vertices[faces[pl.face]]  # (M, 3, 3)
-    surf = np.einsum("mk,mkd->md", pl.bary, tri)
-    return surf + pl.offset[:, None] * face_normals(rest_vertices, faces[pl.face])
-
-
-def marker_weights(model: BodyModel, pl: Placement) -> sp.csr_matrix:
-    """(M, J) skinning weights of the markers (their face's vertex weights blended by bary)."""
-    M = len(pl.face)
-    vids = model.faces[pl.face]  # (M, 3)
-    B = sp.csr_matrix((pl.bary.reshape(-1), (np.repeat(np.arange(M), 3), vids.reshape(-1))),
-                      shape=(M, model.num_vertices))
-    return (B @ model.weights).tocsr()
-
-
-def marker_coeffs(model: BodyModel, rest, skel: skinned.FitSkeleton, pl: Placement) -> np.ndarray:
-    """Slot coefficients Hm (M, Q, 4) of a placement (fitting/skinned.py)."""
-    pts = marker_rest_points(rest.vertices[0], model.faces, pl)
-    return skinned.vertex_coeffs(model, rest, skel, marker_weights(model, pl), pts)
 
 
 def project_to_surface(rest_vertices: np.ndarray, faces: np.ndarray, points: np.ndarray):
@@ -134,13 +114,6 @@ class ScanFit:
     joints: np.ndarray
     scan_to_model_mm: np.ndarray
     iterations: int
-
-
-def body_joints(model: BodyModel) -> np.ndarray:
-    """The fit joints without fingers (the scan and markers see no finger pose)."""
-    fingers = ("finger", "metacarpal", "thumb", "index", "middle", "ring", "pinky")
-    return np.array([j for j in model.fit_joints
-                     if not any(f in model.joint_names[j].lower() for f in fingers)])
 
 
 def _posed_vertices(model, skel, betas, x, rest=None):
@@ -317,7 +290,7 @@ def fit_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | None,
         cn = face_normals(v, faces[cf])
         # model vertices sampled by surface area (fingers and face are densely meshed)
         area = np.zeros(len(v))
-        np.add.at(area, faces.reshape(-1), np.repeat(_face_areas(v, faces) / 3, 3))
+        np.add.at(area, faces.reshape(-1), np.repeat(face_areas(v, faces) / 3, 3))
         vsel = rng.choice(len(v), min(opts.n_vertices, len(v)), replace=False, p=area / area.sum())
         qd, qi = tree.query(v[vsel])
         vn = igl.per_vertex_normals(v, faces)[vsel]
@@ -572,11 +545,141 @@ def spread_frames(vis: np.ndarray, obs: np.ndarray, k: int) -> np.ndarray:
     return np.sort(cand[chosen])
 
 
-def marker_support(model: BodyModel, skel: skinned.FitSkeleton, template: Placement,
-                   radius: float = 0.06) -> tuple[tuple[int, ...], ...]:
-    """Graph support of each marker: the fitted joints skinning the mean-shape surface within
-    ``radius`` of its template position (covers placement refinement and every subject, so
-    one compiled graph serves all; fitting/skinned.py neighbourhood_support)."""
-    rest0 = rest_state(model, np.zeros(1))
-    pts = marker_rest_points(rest0.vertices[0], np.asarray(model.faces), template)
-    return skinned.neighbourhood_support(model, rest0, skel, pts, radius)
+# ---------------------------------------------------------------------------- one subject
+
+
+@dataclass(frozen=True)
+class ShapeFitOptions:
+    """The shape fit's options (also the recipe's ``stages.shape_fit`` section).
+
+    num_betas : shape coefficients fitted to a scan; marker_num_betas : without a scan;
+    scan_iters, scan_points : scan fit iterations and scan points per iteration; frames :
+    well-spread capture frames used to place the markers; rounds : placement alternations;
+    slide_sd_mm / offset_sd_mm : how far a marker may move from the template (prior spread,
+    millimetres); compile : how the residual function runs; seed : sampling of scan points."""
+
+    num_betas: int = 404  # all of anny's (ScanFitOptions)
+    marker_num_betas: int = 20
+    scan_iters: int = 40
+    scan_points: int = 4000
+    frames: int = 8
+    rounds: int = 4
+    slide_sd_mm: float = 20.0
+    offset_sd_mm: float = 5.0
+    compile: Literal["auto", "compiled", "interpreted"] = "auto"
+    seed: int = 0
+
+    def __post_init__(self):
+        problems = []  # every bad field, in one message
+        for name in ("num_betas", "marker_num_betas", "scan_iters", "scan_points", "frames",
+                     "rounds"):
+            if getattr(self, name) < 1:
+                problems.append(f"{name}: must be >= 1, got {getattr(self, name)}")
+        for name in ("slide_sd_mm", "offset_sd_mm"):
+            if not getattr(self, name) > 0:
+                problems.append(f"{name}: must be > 0, got {getattr(self, name)}")
+        if self.compile not in marker_fit.COMPILE_MODES:
+            problems.append(f"compile: must be one of {', '.join(marker_fit.COMPILE_MODES)}, "
+                            f"got {self.compile!r}")
+        if problems:
+            raise ValueError("; ".join(problems))
+
+    def scan(self) -> ScanFitOptions:
+        return ScanFitOptions(num_betas=self.num_betas, iters=self.scan_iters,
+                              n_points=self.scan_points)
+
+    def placement(self) -> PlacementOptions:
+        return PlacementOptions(rounds=self.rounds, slide_sd_m=self.slide_sd_mm / 1000,
+                                offset_sd_m=self.offset_sd_mm / 1000,
+                                num_betas=self.marker_num_betas)
+
+
+def _mm_stats(d: np.ndarray) -> dict[str, float]:
+    return {"median": float(np.median(d)), "p90": float(np.percentile(d, 90)),
+            "mean": float(np.mean(d))}
+
+
+def shape_from_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | None,
+                    opts: ShapeFitOptions, rng: np.random.Generator, log=None
+                    ) -> tuple[np.ndarray, dict]:
+    """Betas (S,) fitted to a scan (:func:`fit_scan`) and a report (scan distances in mm)."""
+    if log:
+        log(f"fitting {opts.num_betas} shape coefficients to {len(points)} scan points")
+    sf = fit_scan(model, points, normals, rng, opts.scan(), log=log)
+    return sf.betas, {"shape_source": "scan", "scan_points": int(len(points)),
+                      "scan_to_model_mm": _mm_stats(sf.scan_to_model_mm),
+                      "scan_iterations": sf.iterations}
+
+
+def fit_placement(model: BodyModel, shape, captures, opts: ShapeFitOptions, log=None):
+    """MoSh++ stage I on a subject's captures: ``shape``'s placement (the template) refined,
+    and, when ``shape.shape_source == "markers"``, its betas fitted too.
+
+    shape : :class:`artifacts.ShapeFit` to start from; captures : sequence of (F_i, M, 3)
+    marker arrays (metres, NaN gaps, the placement's marker order). Returns
+    ``(ShapeFit with placement_source "refined", report)`` (residuals and moves in mm)."""
+    template = placement_of(shape)
+    obs_all = np.concatenate([np.asarray(c, float) for c in captures])
+    vis = np.all(np.isfinite(obs_all), axis=2)
+    idx = spread_frames(vis, obs_all, opts.frames)
+    obs = obs_all[idx]
+    skel = skinned.fit_skeleton(model, body_joints(model))
+    graph = MarkerGraph(GraphSpec(skel.topology, marker_support(model, skel, template)),
+                        compiled.CompileOptions(mode=opts.compile), log=log)
+    prior = priors.default_prior(skel.names[1:])
+
+    def make_solver(_rest, skel_, u, Hm):
+        return marker_fit.FrameSolver(graph, skel_, u, Hm, prior, marker_fit.MarkerFitOptions())
+
+    pf = refine_placement(model, shape.betas, template, obs, vis[idx].astype(float),
+                          make_solver, opts.placement(),
+                          fit_betas=str(shape.shape_source) == "markers", log=log)
+    per = np.nanmedian(pf.residual_mm, axis=0)
+    rest0 = rest_state(model, pf.betas)
+    faces = np.asarray(model.faces)
+    moved = np.linalg.norm(marker_rest_points(rest0.vertices[0], faces, pf.placement)
+                           - marker_rest_points(rest0.vertices[0], faces, template), axis=1) * 1000
+    report = {
+        "placement_frames": [int(i) for i in idx],
+        "placement_residual_mm": {"median": float(np.nanmedian(pf.residual_mm)),
+                                  "p90": float(np.nanpercentile(pf.residual_mm, 90)),
+                                  "per_marker_median": {n: float(v) for n, v in
+                                                        zip(template.names, per, strict=True)}},
+        "placement_moved_mm": {"median": float(np.median(moved)), "max": float(np.max(moved))},
+    }
+    return to_shape_fit(pf.betas, pf.placement, str(shape.shape_source), "refined"), report
+
+
+def fit_shape(model: BodyModel, template: Placement, scan, captures, opts: ShapeFitOptions,
+              rng: np.random.Generator, log=None):
+    """A subject's shape and marker placement.
+
+    template : the marker set's template placement; scan : ``(points (N, 3), normals (N, 3) or
+    None)`` metres, or None; captures : sequence of (F_i, M, 3) marker arrays of the
+    sequences the subject wears markers in (template order, NaN gaps), possibly empty.
+    The shape comes from the scan, else from the markers (MoSh++ stage I, less accurate),
+    else it is the mean shape; the placement is refined on the captures when there are any.
+    Returns ``(artifacts.ShapeFit, report)``.
+    """
+    report: dict = {"body_model": model.name, "num_markers": len(template.names)}
+    captures = [c for c in captures if len(c)]
+    if scan is not None:
+        betas, rep = shape_from_scan(model, scan[0], scan[1], opts, rng, log)
+        report.update(rep)
+    elif captures:
+        report["shape_source"] = "markers"
+        report["note"] = ("no scan: the shape is fitted to the markers of a few well-spread "
+                          "frames (MoSh++ stage I), less accurate than a scan fit")
+        betas = np.zeros(opts.marker_num_betas)
+    else:
+        report["shape_source"] = "mean"
+        report["note"] = "no scan and no marker capture: mean shape"
+        betas = np.zeros(opts.num_betas)
+    out = to_shape_fit(betas, template, report["shape_source"], "template")
+    if captures:
+        out, rep = fit_placement(model, out, captures, opts, log)
+        report.update(rep)
+    else:
+        report["placement"] = "template (no capture to refine it)"
+    report["num_betas"] = int(len(out.betas))
+    return out, report

@@ -1,31 +1,21 @@
 """Stage ``keypoints`` (per sequence): 2D body and hand keypoints of both people in every view.
 
-The marker wearer (person 0) is detected in a tight crop around its projected markers (C3D
-resampled to the video frames, projected with each camera), its hands in crops around the
-projected wrist and knuckle markers. The partner (person 1) is found over the image with the
-wearer painted out, then per keypoint type by the paper's rule (drop candidates near the
-wearer's keypoint, keep the most confident); between frames its box is tracked
-(:mod:`detect.people` explains the choices). With precomputed detections (the recipe's
-``keypoints`` folders) the same rules pick the two people among the file's candidates.
+The thin adapter around :func:`detect.sequence.detect_keypoints` (the algorithm is described
+there): it reads the raw files (calibration through ``calib.io``, the C3D through
+``formats.c3d``, the videos' lengths and rates through ``formats.video``, precomputed
+detections through ``formats.openpose`` / ``formats.coco``), resamples the wearer's markers
+onto the selected video frames (``fitting.mocap``), calls the domain function, and writes:
 
-Writes:
-
-- ``keypoints.npz``: ``kp (C, F, 2, 65, 3)`` float32 (x, y full-image pixels, confidence;
-  0 = missing; KP65 layout; person 0 = marker wearer), ``boxes (C, F, 2, 4)`` body crop boxes,
-  ``hand_boxes (C, F, 2, 2, 4)``, ``frames (F,)`` video frame indices, ``wearer_retry (C, F)``,
-  ``partner_mode (C, F)`` (0 not found, 1 tracked, 2 whole image), ``cross_view_outlier
-  (C, F, 2, 65)`` (observations dropped by the cross-view check, detect/multiview.py: they
-  disagree with what two other views agree on, or are the partner's, unconfirmed, in a view
-  where the wearer was not found, or what remains of the partner there matches the wearer's
-  markers) and
-  ``conf_raw (C, F, 2, 65)`` (the detector's confidences before it);
+- ``keypoints.npz``: :class:`artifacts.keypoints.Keypoints2D` (layout in
+  docs/ARCHITECTURE.md, "Keypoints artifact");
 - ``keypoints.mcap``: the keypoints and boxes per camera and frame (Foxglove-viewable);
 - ``overlay_<camera>.png``: one sample frame per view with both people drawn;
 - ``report.json``: detector, frames, detection rates per person and joint group, timings
   (``fps_per_core``).
 
-Frames run in parallel worker processes (``workers``), each with its own detector; ``stride``
-keeps every n-th video frame (the detector dominates the pipeline's run time).
+The videos of a sequence must have the same length and the recipe's frame rate
+(:func:`stages.common.check_videos`); ``stride`` keeps every n-th video frame (the detector
+dominates the pipeline's run time).
 """
 from __future__ import annotations
 
@@ -36,7 +26,9 @@ from typing import Literal
 
 import numpy as np
 
+from artifacts.keypoints import Keypoints2D
 from detect import constants as DK
+from detect.sequence import SequenceOptions
 from formats.errors import InputError
 from pipeline.spec import Stage, StageContext
 
@@ -83,8 +75,22 @@ class Options:
             raise ValueError(f"stride: must be >= 1, got {self.stride}")
         if self.start < 0 or (self.stop is not None and self.stop <= self.start):
             raise ValueError(f"start/stop: need 0 <= start < stop, got {self.start}, {self.stop}")
-        if self.workers < 0 or self.chunk < 1:
-            raise ValueError(f"workers >= 0 and chunk >= 1, got {self.workers}, {self.chunk}")
+        if self.workers < 0:
+            raise ValueError(f"workers: must be >= 0 (0: one per core), got {self.workers}")
+        for name in ("pose_min_conf", "hand_min_conf"):
+            v = getattr(self, name)
+            if not 0.0 <= v <= 1.0:
+                raise ValueError(f"{name}: must be in [0, 1], got {v}")
+        if self.overlay_frame is not None and self.overlay_frame < 0:
+            raise ValueError(f"overlay_frame: must be >= 0, got {self.overlay_frame}")
+        self.sequence_options()  # chunk, body_margin, near_frac, cross_view_px
+
+    def sequence_options(self) -> SequenceOptions:
+        """The domain options (workers 0 resolved to the number of cores)."""
+        return SequenceOptions(hands=self.hands, track=self.track, mask_wearer=self.mask_wearer,
+                               body_margin=self.body_margin, near_frac=self.near_frac,
+                               cross_view=self.cross_view, cross_view_px=self.cross_view_px,
+                               workers=self.workers or (os.cpu_count() or 1), chunk=self.chunk)
 
 
 def _precomputed_files(seq, cam: str) -> list[Path]:
@@ -123,172 +129,115 @@ def markers_on_frames(times_s: np.ndarray, xyz: np.ndarray, frames: np.ndarray, 
     return np.where(vis[..., None], obs, np.nan)
 
 
-def video_frame_count(paths: list[Path]) -> int:
-    """Frames in the shortest of the videos (InputError naming a bad file)."""
-    from formats.video import video_info
+def read_precomputed(raw: dict[str, Path], cam_names: list[str], fmt: str | None,
+                     recipe_path, unit: str):
+    """The :class:`detect.precomputed.PrecomputedDetector` of the sequence's OpenPose (a folder
+    of per-frame JSON files per camera) or COCO (one JSON file per camera) detections, read
+    from the raw inputs ``keypoints:<camera>:<n>``."""
+    from detect.precomputed import PrecomputedDetector
+    from formats.coco import read_coco
+    from formats.openpose import read_openpose
 
-    return min(video_info(p).n_frames for p in paths)
-
-
-def people_options(o: Options):
-    from detect.people import PeopleOptions
-
-    return PeopleOptions(body_margin=o.body_margin, near_frac=o.near_frac, track=o.track,
-                         mask_wearer=o.mask_wearer, hands=o.hands)
-
-
-def summary(kp: np.ndarray, cpu_s: float, wall_s: float, n_frames: int) -> dict:
-    """Detection rates per person and joint group, and speed. kp (C, F, 2, 65, 3)."""
-    from detect.metrics import GROUPS
-
-    out: dict = {"frames": int(n_frames), "cpu_s": round(cpu_s, 3), "wall_s": round(wall_s, 3),
-                 "fps_per_core": round(n_frames / cpu_s, 4) if cpu_s > 0 else None,
-                 "fps_wall": round(n_frames / wall_s, 4) if wall_s > 0 else None,
-                 "detected": {}}
-    for p, who in enumerate(("wearer", "partner")):
-        for g, idx in GROUPS.items():
-            c = kp[:, :, p][..., idx, 2]
-            out["detected"][f"{who}.{g}"] = round(float((c >= DK.MIN_CONF).mean()), 4) if c.size else None
-    return out
-
-
-def write_overlays(out, source, res, cams: list[str], frame: int) -> list[str]:
-    """overlay_<camera>.png of one video frame (the nearest detected one)."""
-    import cv2
-
-    from detect.overlay import draw_overlay
-
-    i = int(np.argmin(np.abs(res.frames - frame)))
-    reader = source.open()
-    names = []
-    try:
-        for c, cam in enumerate(cams):
-            img = reader.read(c, int(res.frames[i]))
-            ov = draw_overlay(img, res.kp[c, i], res.boxes[c, i], res.hand_boxes[c, i],
-                              label=f"{cam} frame {int(res.frames[i])}")
-            name = f"overlay_{cam}.png"
-            cv2.imwrite(str(out.path(name)), ov[..., ::-1])
-            names.append(name)
-    finally:
-        reader.close()
-    return names
+    fmt = fmt or "openpose"
+    per_cam = []
+    for cam in cam_names:
+        files = [p for k, p in sorted(raw.items()) if k.startswith(f"keypoints:{cam}:")]
+        if not files:
+            raise InputError(recipe_path, f"sequences.{unit}.keypoints.{cam}",
+                             "no keypoint files for this camera")
+        if fmt == "openpose":
+            per_cam.append(read_openpose(files))
+        else:
+            if len(files) != 1:
+                raise InputError(files[0].parent, "keypoints", f"COCO: expected one JSON file "
+                                 f"for camera {cam}, got {len(files)}")
+            per_cam.append(read_coco(files[0]))
+    return PrecomputedDetector.from_frames(per_cam)
 
 
 @dataclass(frozen=True)
 class Computed:
-    """What :func:`compute` returns: the detections (:class:`detect.run.SequenceKeypoints`,
-    cross-view outliers already at confidence 0), the frame source (for overlays), the camera
-    ids, the report's facts, the detector's confidences before the cross-view check
-    ``conf_raw (C, F, 2, 65)`` and the ``outlier (C, F, 2, 65)`` mask."""
+    """What :func:`compute` returns: the :class:`Keypoints2D`, the report, and the frame source
+    (:class:`detect.run.VideoSource`, for the overlays)."""
 
-    res: object
-    source: object
-    cam_names: list
+    keypoints: Keypoints2D
     report: dict
-    conf_raw: np.ndarray
-    outlier: np.ndarray
+    source: object
 
 
-def compute(recipe, unit: str, raw: dict[str, Path], o: Options, progress=lambda it, **_: it,
-            log=lambda _msg: None) -> Computed:
-    """The stage without the artifact store: read the raw inputs (``raw_inputs`` paths),
-    detect both people in every view of every selected frame. Used by :func:`run` and by the
-    bench (bench/cases/keypoints.py)."""
+def compute(view, raw: dict[str, Path], o: Options, *, unit: str = "", recipe_path="<recipe>",
+            progress=lambda it, **_: it, log=lambda _msg: None) -> Computed:
+    """The stage without the artifact store (used by :func:`run` and the bench): read the raw
+    inputs (``raw_inputs`` paths), check the videos, resample the markers, run
+    :func:`detect.sequence.detect_keypoints`. ``view`` : the stage's recipe view
+    (``ctx.recipe``, or ``stages.view_for(recipe, "keypoints", unit)``); ``unit`` and
+    ``recipe_path`` name the recipe field in errors."""
     from calib.io import read_chi3d_camera
-    from detect import layout
-    from detect.hints import wearer_hints
     from detect.mediapipe_detector import MediapipeOptions
-    from detect.run import VideoSource, detect_sequence
+    from detect.run import VideoSource
+    from detect.sequence import detect_keypoints
     from formats.c3d import read_c3d
+    from formats.video import video_info
+    from stages.common import video_errors
 
-    seq = recipe.sequence(unit)
-    cam_names = list(recipe.cameras)
+    seq = view.sequence
+    cam_names = list(view.cameras)
     cams = [read_chi3d_camera(raw[f"calibration:{c}"], name=c) for c in cam_names]
     videos = [raw[f"video:{c}"] for c in cam_names]
-    n_video = video_frame_count(videos)
+    problems = video_errors(videos, seq.fps)
+    if problems:
+        raise problems[0]
+    n_video = video_info(videos[0]).n_frames
     frames = frame_indices(n_video, o)
     if len(frames) == 0:
         raise InputError(videos[0], "frames", f"no frame in [{o.start}, {o.stop}) of {n_video}")
 
     markers = read_c3d(raw["c3d"])
-    times = markers.times_s if seq.mocap.rate_hz is None else \
-        (markers.first_frame + np.arange(len(markers.xyz))) / seq.mocap.rate_hz
+    rate = seq.mocap.rate_hz
+    times = markers.times_s if rate is None else (markers.first_frame + np.arange(len(markers.xyz))) / rate
     xyz = markers_on_frames(times, markers.xyz, frames, seq.fps, seq.mocap.sync_offset_s)
-    seen = np.isfinite(xyz[..., 0]).any(axis=1)
-    if not seen.any():
+    if not np.isfinite(xyz[..., 0]).any():
         raise InputError(raw["c3d"], "markers", "no marker observed at any video frame "
                          "(check mocap.sync_offset_s and fps)")
-    hints = wearer_hints(cams, xyz, list(markers.names), o.body_margin)
 
     kind = o.detector
     if kind == "auto":
-        kind = "precomputed" if seq.keypoints else "mediapipe"
+        kind = "precomputed" if seq.has_keypoints else "mediapipe"
     if kind == "precomputed":
-        if not seq.keypoints:
-            raise InputError(recipe.source, f"sequences.{unit}.keypoints",
+        if not seq.has_keypoints:
+            raise InputError(recipe_path, f"sequences.{unit}.keypoints",
                              "detector 'precomputed' but the sequence names no keypoint files")
-        factory = load_precomputed(recipe, unit, raw, seq, cam_names)
+        factory = read_precomputed(raw, cam_names, seq.keypoints_format, recipe_path, unit)
     else:
         factory = MediapipeOptions(pose_min_conf=o.pose_min_conf, hand_min_conf=o.hand_min_conf)
-    workers = o.workers or (os.cpu_count() or 1)
     source = VideoSource(tuple(str(v) for v in videos))
-    log(f"keypoints: {len(frames)} frames x {len(cams)} views, detector {kind}, "
-        f"{workers} worker(s)")
-    res = detect_sequence(source, factory, hints, frames, people_options(o), workers=workers,
-                          chunk=o.chunk, progress=progress)
-    conf_raw = res.kp[..., 2].copy()
-    outlier = np.zeros(conf_raw.shape, bool)
-    if o.cross_view and len(cams) >= 3:
-        from detect.multiview import CrossViewOptions, cross_view_check
-
-        xv = cross_view_check(cams, res.kp, CrossViewOptions(max_error_px=o.cross_view_px))
-        # Where the wearer was not found in a view, nothing there told the two people apart
-        # (the wearer check failed: the people overlap in that view), so the partner's
-        # keypoints in that view are kept only where other views confirm them.
-        alone = (conf_raw[:, :, 0, layout.BODY] >= DK.MIN_CONF).sum(axis=-1) < 3  # (C, F)
-        unconfirmed = alone[..., None] & ~xv.confirmed[:, :, 1] & (conf_raw[:, :, 1] >= DK.MIN_CONF)
-        outlier = xv.outlier.copy()
-        outlier[:, :, 1] |= unconfirmed
-        res.kp[..., 2][outlier] = 0.0
-        # What is left of a candidate that mixed both people may be the wearer's part of it.
-        from detect.people import partner_looks_like_wearer
-
-        mixed = partner_looks_like_wearer(res.kp[:, :, 1], hints, people_options(o))
-        drop = mixed[..., None] & (res.kp[:, :, 1, :, 2] > 0)
-        outlier[:, :, 1] |= drop
-        res.kp[:, :, 1, :, 2][drop] = 0.0
+    log(f"keypoints: detector {kind}")
+    kp, facts = detect_keypoints(cams, source, xyz, list(markers.names), frames, factory,
+                                 o.sequence_options(), progress=progress, log=log)
     report = {"detector": kind, "cameras": cam_names, "video_frames": n_video,
-              "stride": o.stride, "workers": workers, "markers": len(markers.names),
-              "frames_with_markers": int(seen.sum()),
-              "wearer_retries": int(res.wearer_retry.sum()),
-              "partner_mode_counts": {m: int((res.partner_mode == i).sum())
-                                      for i, m in enumerate(("missing", "tracked", "whole_image"))},
-              "detector_calls": {k: (round(v, 3) if isinstance(v, float) else int(v))
-                                 for k, v in res.meter.items()},
-              "cross_view_outliers": {who: int(outlier[:, :, p].sum())
-                                      for p, who in enumerate(("wearer", "partner"))},
-              **summary(res.kp, res.cpu_s, res.wall_s, len(frames))}
-    return Computed(res, source, cam_names, report, conf_raw, outlier)
+              "stride": o.stride, **facts}
+    return Computed(kp, report, source)
 
 
-def run(ctx: StageContext) -> None:
-    o: Options = ctx.params or Options()
-    seq = ctx.recipe.sequence(ctx.unit)
-    c = compute(ctx.recipe, ctx.unit, ctx.raw, o, progress=ctx.progress, log=ctx.log)
-    res = c.res
-    ctx.out.save_arrays("keypoints", kp=res.kp, boxes=res.boxes.astype(np.float32),
-                        hand_boxes=res.hand_boxes.astype(np.float32), frames=res.frames,
-                        wearer_retry=res.wearer_retry, partner_mode=res.partner_mode,
-                        conf_raw=c.conf_raw.astype(np.float32), cross_view_outlier=c.outlier)
-    frames = res.frames
-    sample = int(frames[len(frames) // 2]) if o.overlay_frame is None else o.overlay_frame
-    report = dict(c.report)
-    report["overlays"] = write_overlays(ctx.out, c.source, res, c.cam_names, sample)
-    report["mcap"] = (write_mcap(ctx.out.path("keypoints.mcap"), res, c.cam_names, seq.fps)
-                      if o.mcap else None)
-    ctx.out.save_json("report", report)
-    ctx.log(f"keypoints: {report['fps_per_core']} frames/s per core (all {len(c.cam_names)} "
-            f"views), partner tracked in {report['partner_mode_counts']['tracked']} view-frames")
+def write_overlays(out, source, kp: Keypoints2D, frame: int) -> list[str]:
+    """overlay_<camera>.png of one video frame (the nearest detected one)."""
+    from detect.overlay import draw_overlay
+    from drawing.sheet import write_png
+
+    i = int(np.argmin(np.abs(kp.frames - frame)))
+    fr = int(kp.frames[i])
+    reader = source.open()
+    names = []
+    try:
+        for c, cam in enumerate(kp.camera_ids):
+            ov = draw_overlay(reader.read(c, fr), kp.kp[c, i], kp.boxes[c, i], kp.hand_boxes[c, i],
+                              label=f"{cam} frame {fr}")
+            name = f"overlay_{cam}.png"
+            write_png(out.path(name), ov)
+            names.append(name)
+    finally:
+        reader.close()
+    return names
 
 
 BOXES_SCHEMA = {
@@ -305,55 +254,41 @@ def _box_or_none(b) -> list | None:
     return np.round(np.asarray(b, float), 1).tolist() if np.all(np.isfinite(b)) else None
 
 
-def write_mcap(path: Path, res, cam_names: list[str], fps: float) -> str:
+def write_mcap(path: Path, kp: Keypoints2D, fps: float) -> str:
     """keypoints.mcap (formats.mcap_log): ``/keypoints/<camera>`` (both people, KP65) and
     ``/boxes/<camera>`` (their body and hand crop boxes) per detected frame."""
     from formats.mcap_log import SequenceLog
 
     with SequenceLog(path, fps=fps) as log:
-        for i, fr in enumerate(res.frames):
-            for c, cam in enumerate(cam_names):
-                log.log_keypoints(int(fr), cam, res.kp[c, i])
+        for i, fr in enumerate(kp.frames):
+            for c, cam in enumerate(kp.camera_ids):
+                log.log_keypoints(int(fr), cam, kp.kp[c, i])
                 log.add_json_channel(f"/boxes/{cam}", BOXES_SCHEMA)
                 log.log_json(f"/boxes/{cam}", int(fr), {
                     "frame": int(fr), "camera": cam,
-                    "body": [_box_or_none(b) for b in res.boxes[c, i]],
-                    "hands": [[_box_or_none(b) for b in hb] for hb in res.hand_boxes[c, i]]})
+                    "body": [_box_or_none(b) for b in kp.boxes[c, i]],
+                    "hands": [[_box_or_none(b) for b in hb] for hb in kp.hand_boxes[c, i]]})
     return path.name
 
 
-def load_precomputed(recipe, unit: str, raw: dict[str, Path], seq, cam_names: list[str]):
-    """A PrecomputedDetector from the sequence's OpenPose (a folder of per-frame JSON files per
-    camera) or COCO (one JSON file per camera) detections: every camera's candidates on the
-    union of the frames the files cover (a frame missing from one camera has no candidates
-    there)."""
-    from detect.precomputed import PrecomputedDetector
-    from formats.coco import read_coco
-    from formats.openpose import read_openpose
-
-    fmt = seq.keypoints_format or "openpose"
-    per_cam = []
-    for cam in cam_names:
-        files = [p for k, p in sorted(raw.items()) if k.startswith(f"keypoints:{cam}:")]
-        if not files:
-            raise InputError(recipe.source, f"sequences.{unit}.keypoints.{cam}",
-                             "no keypoint files for this camera")
-        if fmt == "openpose":
-            per_cam.append(read_openpose(files))
-        else:
-            if len(files) != 1:
-                raise InputError(files[0].parent, "keypoints", f"COCO: expected one JSON file "
-                                 f"for camera {cam}, got {len(files)}")
-            per_cam.append(read_coco(files[0]))
-    frames = np.unique(np.concatenate([k.frames for k in per_cam]))
-    n = max([k.kp.shape[1] for k in per_cam] + [1])
-    kp = np.zeros((len(cam_names), len(frames), n, 65, 3), np.float32)
-    for c, k in enumerate(per_cam):
-        rows = np.searchsorted(frames, k.frames)
-        kp[c, rows, :k.kp.shape[1]] = k.kp
-    return PrecomputedDetector(kp, tuple(int(f) for f in frames))
+def run(ctx: StageContext) -> None:
+    o: Options = ctx.params or Options()
+    c = compute(ctx.recipe, ctx.raw, o, unit=ctx.unit, recipe_path=ctx.recipe_path or "<recipe>",
+                progress=ctx.progress, log=ctx.log)
+    kp = c.keypoints
+    kp.save(ctx.out)
+    sample = int(kp.frames[len(kp.frames) // 2]) if o.overlay_frame is None else o.overlay_frame
+    report = dict(c.report)
+    report["overlays"] = write_overlays(ctx.out, c.source, kp, sample)
+    report["mcap"] = (write_mcap(ctx.out.path("keypoints.mcap"), kp, ctx.recipe.sequence.fps)
+                      if o.mcap else None)
+    ctx.out.save_json("report", report)
+    ctx.log(f"keypoints: {report['fps_per_core']} frames/s per core (all {len(kp.cameras)} "
+            f"views), partner tracked in {report['partner_mode_counts']['tracked']} view-frames")
 
 
 STAGE = Stage(name="keypoints", func=run, per="sequence", upstream=(), params=Options,
               raw_inputs=raw_inputs, version="1",
+              reads=("cameras", "sequence.fps", "sequence.mocap", "sequence.has_keypoints",
+                     "sequence.keypoints_format"),
               doc="2D body and hand keypoints of both people in every view")

@@ -32,6 +32,20 @@ def small_session_path() -> Path:
     return REPO / "assets" / "cache" / "test_session" / source_hash()
 
 
+def _live_tmp(name: str) -> bool:
+    """``.tmp-<pid>-<hex>`` of a process still running (another pytest building it now)."""
+    parts = name.split("-")
+    if not name.startswith(".tmp-") or len(parts) < 3 or not parts[1].isdigit():
+        return False
+    try:
+        os.kill(int(parts[1]), 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 def build_small_session() -> Path:
     """Generate the small session into the cache if it is not there; returns the recipe path."""
     from studio import plan as PL
@@ -43,10 +57,11 @@ def build_small_session() -> Path:
         return recipe
     root = final.parent
     root.mkdir(parents=True, exist_ok=True)
-    for old in root.iterdir():  # sessions of older studio versions
-        if old.name != final.name:
-            shutil.rmtree(old, ignore_errors=True)
-    tmp = root / f".tmp-{uuid.uuid4().hex[:8]}"
+    for old in root.iterdir():  # sessions of older studio versions, and dead builders' leftovers
+        if old.name == final.name or _live_tmp(old.name):
+            continue
+        shutil.rmtree(old, ignore_errors=True)
+    tmp = root / f".tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     try:
         plan = PL.make_plan(SMALL_SESSION["seed"], SMALL_SESSION["frames"], SMALL_SESSION["scenarios"])
         generate(tmp, plan)

@@ -33,7 +33,9 @@ def make(tmp_path: Path) -> Path:
     return tmp_path
 
 
-def test_harness_records_failures_merges_and_renders(tmp_path):
+def test_harness_records_failures_merges_and_renders(tmp_path, monkeypatch):
+    monkeypatch.setattr(bench, "code_version", lambda repo=None: "code-one")
+    monkeypatch.setattr(bench, "commit_label", lambda repo=None: "abc123")
     d = make(tmp_path)
     assert [p.stem for p in bench.discover(d / "cases")] == ["a_ok", "b_bad", "c_later"]
     assert bench.main([], bench_dir=d) == 1  # one case failed
@@ -42,8 +44,10 @@ def test_harness_records_failures_merges_and_renders(tmp_path):
     assert res["b_bad.error"] == "RuntimeError: boom in case"
     assert (d / "work" / "a_ok" / "touched").exists()
     md = (d / "RESULTS.md").read_text()
-    assert "| `ok.speed_s` | 0.5 | <= 1 | pass |" in md
-    assert "| `ok.acc_mm` | 3 | >= 10 | FAIL |" in md
+    assert "| `ok.speed_s` | 0.5 | <= 1 | pass | abc123 |" in md
+    assert "| `ok.acc_mm` | 3 | >= 10 | FAIL | abc123 |" in md
+    meas = json.loads((d / "measured.json").read_text())
+    assert meas["ok.speed_s"]["commit"] == "abc123" and meas["ok.speed_s"]["code"] == "code-one"
     assert "- `b_bad`: RuntimeError: boom in case" in md
     for word in ("- cpu: ", "- cores: ", "- python: ", "- numpy: ", "- date: ",
                  "- command: `python -m bench`"):
@@ -55,7 +59,8 @@ def test_harness_records_failures_merges_and_renders(tmp_path):
     res = json.loads((d / "results.json").read_text())
     assert "b_bad.error" not in res and res["bad.fixed"] == 1.0 and res["ok.speed_s"] == 0.5
     md = (d / "RESULTS.md").read_text()
-    assert "| `ok.speed_s` | 0.5 (earlier run) | <= 1 | pass |" in md  # goals of cases not run
+    assert "| `ok.speed_s` | 0.5 (earlier run) | <= 1 | pass | abc123 |" in md  # same code
+
     assert "command: `python -m bench b_bad`" in md
     assert bench.main(["nope"], bench_dir=d) == 2
 
@@ -69,3 +74,40 @@ def test_bad_return_values_are_failures(tmp_path):
     assert bench.main([], bench_dir=tmp_path) == 1
     res = json.loads((tmp_path / "results.json").read_text())
     assert set(res) == {"x.error", "y.error", "z.error"}
+
+
+def test_a_figure_from_older_code_gets_no_verdict(tmp_path, monkeypatch):
+    d = make(tmp_path)
+    monkeypatch.setattr(bench, "commit_label", lambda repo=None: "old111")
+    monkeypatch.setattr(bench, "code_version", lambda repo=None: "code-old")
+    bench.main(["a_ok"], bench_dir=d)
+    monkeypatch.setattr(bench, "commit_label", lambda repo=None: "new222")
+    monkeypatch.setattr(bench, "code_version", lambda repo=None: "code-new")
+    assert bench.main(["c_later"], bench_dir=d) == 0
+    md = (d / "RESULTS.md").read_text()
+    row = next(line for line in md.splitlines() if line.startswith("| `ok.speed_s`"))
+    assert "pass" not in row and "FAIL" not in row
+    assert "not re-measured on this code" in row and "old111 (older code)" in row
+    assert "| `later.n` | 7 |  |  | new222 |" in md
+    # re-rendering against the old code gives the verdict back
+    monkeypatch.setattr(bench, "code_version", lambda repo=None: "code-old")
+    assert bench.main(["--table"], bench_dir=d) == 0
+    row = next(line for line in (d / "RESULTS.md").read_text().splitlines()
+               if line.startswith("| `ok.speed_s`"))
+    assert "| pass | old111 |" in row
+
+
+def test_code_version_follows_source_files_not_results(tmp_path):
+    import subprocess
+
+    repo = tmp_path / "r"
+    (repo / "bench").mkdir(parents=True)
+    (repo / "a.py").write_text("x = 1\n")
+    (repo / "bench" / "results.json").write_text("{}")
+    subprocess.run(["git", "init", "-q"], cwd=repo, check=True)
+    v1 = bench.code_version(repo)
+    (repo / "bench" / "results.json").write_text('{"k": 1}')
+    (repo / "notes.md").write_text("prose")
+    assert bench.code_version(repo) == v1
+    (repo / "a.py").write_text("x = 2\n")
+    assert bench.code_version(repo) != v1

@@ -1,5 +1,6 @@
-"""The keypoints stage: frame selection, marker timing, and whole runs through the engine on a
-small rendered two-person session (mediapipe) and on precomputed OpenPose files."""
+"""The keypoints stage: frame selection, marker timing, the videos' lengths and rates, and whole
+runs through the engine on a small rendered two-person session (mediapipe) and on precomputed
+OpenPose files."""
 import json
 import os
 from pathlib import Path
@@ -24,6 +25,41 @@ def test_frame_indices():
         Options(stride=0)
     with pytest.raises(ValueError):
         Options(start=5, stop=5)
+    with pytest.raises(ValueError, match=r"chunk: must be >= 1, got 0"):
+        Options(chunk=0)
+    with pytest.raises(ValueError, match=r"pose_min_conf: must be in \[0, 1\], got 1.5"):
+        Options(pose_min_conf=1.5)
+    with pytest.raises(ValueError, match=r"cross_view_px: must be > 0 pixels"):
+        Options(cross_view_px=-1.0)
+    assert Options(workers=0).sequence_options().workers == (os.cpu_count() or 1)
+    assert Options(workers=3, hands=False).sequence_options().people().hands is False
+
+
+def _tiny_video(path: Path, n: int, fps: float) -> Path:
+    from formats.video import write_mp4
+
+    frames = [np.full((32, 48, 3), 40 * i, np.uint8) for i in range(n)]
+    write_mp4(path, frames, fps)
+    return path
+
+
+def test_check_videos_names_a_short_video_and_a_wrong_rate(tmp_path):
+    """One video shorter than the others and one at another rate than the recipe's: one
+    message each, naming that video and both numbers; good videos: no message."""
+    from stages.common import check_videos, video_errors
+
+    good = [_tiny_video(tmp_path / f"cam{i}" / "Test 1.mp4", 6, FPS) for i in range(3)]
+    assert check_videos(good, FPS) == []
+    short = _tiny_video(tmp_path / "cam3" / "Test 1.mp4", 4, FPS)
+    slow = _tiny_video(tmp_path / "cam4" / "Test 1.mp4", 6, 25.0)
+    msgs = check_videos(good + [short, slow], FPS)
+    assert len(msgs) == 2, msgs
+    assert msgs[0].startswith(f"{short}: frames: 4 frames, but {good[0]}") and "has 6" in msgs[0]
+    assert msgs[1].startswith(f"{slow}: fps: the video runs at 25 fps, the recipe says 50")
+    errs = video_errors(good + [short, slow], FPS)
+    assert [(e.file, e.field) for e in errs] == [(str(short), "frames"), (str(slow), "fps")]
+    missing = tmp_path / "cam9" / "Test 1.mp4"
+    assert check_videos(good + [missing], FPS) == [f"{missing}: <file>: missing"]
 
 
 def test_markers_on_frames_follow_the_recipe_sync_convention():
@@ -54,9 +90,9 @@ def _write_session(root: Path) -> dict:
     from body.joints import keypoints
     from body.markers import marker_positions, plug_in_gait
     from calib.io import write_chi3d_camera
+    from drawing.render import PersonMesh, Renderer
     from formats.c3d import Markers, write_c3d
     from formats.video import write_mp4
-    from studio.render import PersonMesh, Renderer
     from studio.rig import make_rig
     from studio.subjects import make_subjects
 
@@ -160,6 +196,10 @@ def test_stage_mediapipe_end_to_end(session, tmp_path):
     b = z["boxes"][:, :, 0]
     inside = (uv[:, :, 0, :23] >= b[:, :, None, :2]) & (uv[:, :, 0, :23] <= b[:, :, None, 2:])
     assert inside.all(axis=-1).mean() > 0.95
+    from artifacts.keypoints import Keypoints2D
+
+    k2 = Keypoints2D.load(art)  # the stage's file passes the artifact's checks
+    assert k2.camera_ids == [cam.name for cam in truth["cams"]]
     rep = json.loads((art / "report.json").read_text())
     assert rep["detector"] == "mediapipe" and rep["frames"] == N_FRAMES
     assert rep["fps_per_core"] > 0 and rep["detected"]["wearer.body"] > 0.8
@@ -218,26 +258,116 @@ def test_stage_precomputed_openpose(session, tmp_path):
             d = np.linalg.norm(kp[:, f, p, :, :2] - uv[:, f, p], axis=-1)[ok]
             assert d.max() < 6.0
     assert not kp[:, 2, :, :, 2].any()  # frame 2 has no files
+    from artifacts.keypoints import Keypoints2D
+
+    k2 = Keypoints2D.load(art)
+    assert k2.camera_ids == [cam.name for cam in truth["cams"]]
+    np.testing.assert_array_equal(k2.kp, kp)
+
+
+def test_detect_keypoints_is_pure_and_drops_what_other_views_disagree_with(session):
+    """The domain function on in-memory inputs (cameras, markers at the video frames, a
+    precomputed detector, an ArraySource that is never read): both people found; a view whose
+    partner is shifted by 80 px is caught by the cross-view check (confidence 0 there,
+    conf_raw keeps the detector's), and without the check it stays."""
+    from detect.precomputed import PrecomputedDetector
+    from detect.run import ArraySource
+    from detect.sequence import SequenceOptions, detect_keypoints
+    from formats.c3d import read_c3d
+    from formats.keypoints import KeypointFrames
+
+    root, truth = session
+    cams = truth["cams"]
+    frames = np.arange(N_FRAMES)
+    m = read_c3d(root / "s01" / "mocap" / "Test 1.c3d")
+    xyz = markers_on_frames(m.times_s, m.xyz, frames, FPS, OFFSET)
+    uv = _truth_uv(truth, frames)  # (C, F, 2, 65, 2)
+    per_cam = []
+    for c in range(len(cams)):
+        people = np.zeros((N_FRAMES, 2, layout.N, 3), np.float32)
+        people[..., :2] = uv[c]
+        people[..., 2] = 0.9
+        if c == 1:
+            people[:, 1, :, 0] += 80.0  # the partner shifted in one view
+        per_cam.append(KeypointFrames(people[:, ::-1].copy(), frames))  # partner listed first
+    det = PrecomputedDetector.from_frames(per_cam)
+    source = ArraySource(np.zeros((len(cams), 0, 1, 1, 3), np.uint8), ())
+    out, rep = detect_keypoints(cams, source, xyz, list(m.names), frames, det, SequenceOptions())
+    assert out.kp.shape == (len(cams), N_FRAMES, 2, layout.N, 3)
+    assert out.camera_ids == [c.name for c in cams] and out.frames.tolist() == frames.tolist()
+    ok = out.kp[..., 2] > 0
+    good = np.ones(len(cams), bool)
+    good[1] = False
+    for p in (0, 1):
+        d = np.linalg.norm(out.kp[good][:, :, p, :, :2] - uv[good][:, :, p], axis=-1)
+        assert ok[good][:, :, p, :23].mean() > 0.9 and d[ok[good][:, :, p]].max() < 1.0
+    body = slice(0, 17)
+    moved = out.cross_view_outlier[1, :, 1, body]
+    assert moved.mean() > 0.9, moved.mean()
+    assert not out.kp[1, :, 1, body, 2][moved].any() and (out.conf_raw[1, :, 1, body][moved] > 0).all()
+    assert not out.cross_view_outlier[good].any()
+    assert rep["cross_view_outliers"]["partner"] == int(out.cross_view_outlier[:, :, 1].sum())
+    assert rep["frames"] == N_FRAMES and rep["markers"] == len(m.names)
+    out2, _ = detect_keypoints(cams, source, xyz, list(m.names), frames, det,
+                               SequenceOptions(cross_view=False))
+    assert not out2.cross_view_outlier.any()
+    np.testing.assert_array_equal(out2.kp[..., 2], out.conf_raw)
+    with pytest.raises(ValueError, match="no marker observed"):
+        detect_keypoints(cams, source, np.full_like(xyz, np.nan), list(m.names), frames, det)
+
+
+def _compute(path: Path, o: Options):
+    from recipes import load_recipe
+    from stages import view_for
+    from stages.keypoints import compute, raw_inputs
+
+    rec = load_recipe(path)
+    sid = "s01/Test 1"
+    return compute(view_for(rec, "keypoints", sid), raw_inputs(rec, sid), o, unit=sid,
+                   recipe_path=path)
 
 
 def test_bad_inputs_name_the_file(session, tmp_path):
     """Markers that never overlap the video (wrong sync) and a precomputed detector without
     files are input errors naming the file and field, before any detection runs."""
     from formats.errors import InputError
-    from recipes import load_recipe
-    from stages.keypoints import compute, raw_inputs
 
     root, truth = session
     recipe = json.loads(json.dumps(truth["recipe"]))
     recipe["sequences"]["s01/Test 1"]["mocap"]["sync_offset_s"] = 100.0
     path = root / "recipe_badsync.yaml"
     path.write_text(yaml.safe_dump(recipe, sort_keys=False))
-    rec = load_recipe(path)
     with pytest.raises(InputError, match=r"Test 1\.c3d: markers: no marker observed"):
-        compute(rec, "s01/Test 1", raw_inputs(rec, "s01/Test 1"), Options())
-    rec = load_recipe(root / "recipe.yaml")
-    with pytest.raises(InputError, match=r"sequences\.s01/Test 1\.keypoints"):
-        compute(rec, "s01/Test 1", raw_inputs(rec, "s01/Test 1"), Options(detector="precomputed"))
+        _compute(path, Options())
+    with pytest.raises(InputError, match=r"recipe\.yaml: sequences\.s01/Test 1\.keypoints: "
+                                         r"detector 'precomputed'"):
+        _compute(root / "recipe.yaml", Options(detector="precomputed"))
+
+
+def test_a_short_video_or_a_wrong_rate_stops_the_stage(session, tmp_path):
+    """One view's video a frame shorter than the others (the stage used to cut the sequence
+    silently), or at another rate than the recipe's fps: an InputError naming that video and
+    both numbers, before any detection runs."""
+    from formats.errors import InputError
+    from formats.video import VideoReader, write_mp4
+
+    root, truth = session
+    cam = truth["cams"][2].name
+    orig = root / truth["recipe"]["sequences"]["s01/Test 1"]["videos"][cam]
+    with VideoReader(orig) as v:
+        imgs = [v[i] for i in range(N_FRAMES)]
+    for name, n, fps, pattern in (
+            ("short", N_FRAMES - 1, FPS, rf"frames: {N_FRAMES - 1} frames, but .* has {N_FRAMES}"),
+            ("slow", N_FRAMES, FPS / 2, rf"fps: the video runs at {FPS / 2:g} fps, the recipe "
+                                         rf"says {FPS:g}")):
+        video = write_mp4(tmp_path / name / cam / "Test 1.mp4", imgs[:n], fps)
+        recipe = json.loads(json.dumps(truth["recipe"]))
+        recipe["sequences"]["s01/Test 1"]["videos"][cam] = str(video)
+        path = root / f"recipe_{name}.yaml"
+        path.write_text(yaml.safe_dump(recipe, sort_keys=False))
+        with pytest.raises(InputError, match=pattern) as e:
+            _compute(path, Options(detector="mediapipe"))
+        assert e.value.file == str(video)
 
 
 @pytest.mark.slow
@@ -250,21 +380,24 @@ def test_stage_on_the_studio_small_session(small_session):
     from calib.io import read_chi3d_camera
     from detect.metrics import identity_swaps, keypoint_errors
     from recipes import load_recipe
+    from stages import view_for
     from stages.keypoints import compute, raw_inputs
 
     rec = load_recipe(small_session)
     sid = next(s for s in rec.sequences if "Handshake" in s)
     seq = rec.sequences[sid]
-    c = compute(rec, sid, raw_inputs(rec, sid), Options(stride=8, workers=2))
-    fr = c.res.frames
+    c = compute(view_for(rec, "keypoints", sid), raw_inputs(rec, sid),
+                Options(stride=8, workers=2), unit=sid, recipe_path=small_session)
+    kp = c.keypoints
+    fr = kp.frames
     group, action = sid.split("/")
     gt = np.load(Path(small_session).parent / "gt" / group / f"{action}.npz")
     reg = regressor(load_model("anny"), "kp65")
     kp3 = np.stack([regress(reg, gt["vertices"][p][fr].astype(float), gt["joints"][p][fr])
                     for p in (0, 1)], axis=1)
     uv = np.stack([project(read_chi3d_camera(seq.calibration[cam]), kp3) for cam in rec.cameras])
-    err = keypoint_errors(c.res.kp, uv)
-    assert not identity_swaps(c.res.kp, uv).any()
+    err = keypoint_errors(kp.kp, uv)
+    assert not identity_swaps(kp.kp, uv).any()
     for p in (0, 1):
         body = err[:, :, p, :17]
         assert np.isfinite(body).mean() > 0.6, (p, np.isfinite(body).mean())

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from formats.errors import InputError
-from stages.shape_fit import load_scan
+from formats.scan import read_scan as load_scan
 
 
 def _write_ply(path, pts, normals=None):
@@ -99,35 +99,50 @@ def test_shape_fit_stage_with_scan_and_captures(tmp_path, anny):
     import json
     from types import SimpleNamespace
 
-    from test_marker_fit_stage import FakeWriter, _session
+    from test_marker_fit_stage import FakeWriter, _session, view
 
+    import stages.shape_fit as stage
+    from artifacts import ShapeFit
     from body.lbs import rest_state
     from stages.shape_fit import Options, run
     from studio.scan import sample_scan
 
     rng = np.random.default_rng(8)
-    recipe, raw, art, _, truth = _session(tmp_path, anny, rng, F=30, swap=False)
-    betas = art.arrays("shape")["betas"]
+    s = _session(tmp_path, anny, rng, F=30, swap=False)
+    betas = s.shape.betas
     v = rest_state(anny, betas).vertices[0]
     pts, nrm = sample_scan(v - [0, 0, v[:, 2].min()], np.asarray(anny.faces), np.zeros((0, 3)),
                            rng)
     scan = _write_ply(tmp_path / "s1.ply", pts, nrm)
-    recipe.subjects["s1"].markerset = "plug-in-gait"
     out = FakeWriter(tmp_path / "shape_out")
-    ctx = SimpleNamespace(stage="shape_fit", unit="s1", recipe=recipe,
+    raw = {"body_model": s.raw["body_model"], "scan": scan, "c3d:g/take": s.raw["c3d"]}
+    ctx = SimpleNamespace(stage="shape_fit", unit="s1", recipe=view(stage, s.values),
                           params=Options(num_betas=30, scan_iters=10, frames=5, rounds=2),
-                          inputs={}, raw={"scan": scan, "c3d:g/take": raw["c3d"]}, out=out,
+                          inputs={}, raw=raw, out=out,
                           progress=lambda it, **k: it, log=lambda s: None)
     run(ctx)
     rep = json.loads((out.dir / "report.json").read_text())
-    sh = dict(np.load(out.dir / "shape.npz"))
+    sh = ShapeFit.load(out.dir)
     assert rep["shape_source"] == "scan" and rep["scan_to_model_mm"]["median"] < 6.0
+    assert rep["marker_sequences"] == ["g/take"]
     assert len(rep["placement_frames"]) == 5
     assert rep["placement_residual_mm"]["median"] < 5.0
-    assert sh["betas"].shape == (30,) and sh["marker_face"].shape == (39,)
-    ctx.raw = {"scan": tmp_path / "missing.ply"}
+    assert sh.betas.shape == (30,) and sh.marker_face.shape == (39,)
+    assert str(sh.shape_source) == "scan" and str(sh.placement_source) == "refined"
+    ctx.raw = {**raw, "scan": tmp_path / "missing.ply"}
     with pytest.raises(InputError, match=r"missing\.ply: scan: file not found"):
         run(ctx)
+
+
+def test_shape_fit_options_name_the_bad_field():
+    from stages.shape_fit import Options
+
+    with pytest.raises(ValueError, match=r"frames: must be >= 1, got 0"):
+        Options(frames=0)
+    with pytest.raises(ValueError, match=r"slide_sd_mm: must be > 0, got -1"):
+        Options(slide_sd_mm=-1)
+    with pytest.raises(ValueError, match=r"compile: must be one of auto, compiled, interpreted"):
+        Options(compile="fast")
 
 
 def test_vertex_jacobian_vs_finite_differences(anny):

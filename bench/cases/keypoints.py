@@ -6,8 +6,9 @@ Anny people in different clothing, four 900 x 900 views; its data in ``data/benc
 generated on demand by ``studio.ensure_generated`` and shared with other cases). For a quick
 look, ``BENCH_KEYPOINTS_RECIPE=<recipe.yaml>`` runs the case on another studio session.
 
-Every sequence is run through the stage's own code (``stages.keypoints.compute``: mediapipe,
-crops from the markers, the partner rule) on every ``STRIDE``-th video frame, with one worker
+Every sequence is run through the stage's own code (``stages.keypoints.compute``, the
+adapter around ``detect.sequence.detect_keypoints``: mediapipe, crops from the markers, the
+partner rule, the cross-view check) on every ``STRIDE``-th video frame, with one worker
 process per core. Truth: the studio's posed vertices and joints (``gt/<group>/<action>.npz``)
 through ``body.joints`` KP65 regressor, projected with the calibrated cameras.
 
@@ -64,6 +65,7 @@ def run(work: Path) -> dict[str, float]:
     from body.joints import regressor
     from detect.metrics import GROUPS, group_summary, identity_swaps, keypoint_errors, lr_flips
     from recipes import load_recipe
+    from stages import view_for
     from stages.keypoints import Options, compute, raw_inputs
 
     recipe_path = Path(os.environ.get("BENCH_KEYPOINTS_RECIPE", REPO / "recipes" / "bench.yaml"))
@@ -78,8 +80,9 @@ def run(work: Path) -> dict[str, float]:
     swap_views = 0
     flips = np.zeros(2, int)
     for sid, seq in recipe.sequences.items():
-        c = compute(recipe, sid, raw_inputs(recipe, sid), opts)
-        res = c.res
+        c = compute(view_for(recipe, "keypoints", sid), raw_inputs(recipe, sid), opts, unit=sid,
+                    recipe_path=recipe_path)
+        res = c.keypoints
         truth = _truth_uv(recipe, sid, seq, res.frames, reg)
         inside = (truth[..., 0] >= 0) & (truth[..., 0] < 900) & (truth[..., 1] >= 0) & (truth[..., 1] < 900)
         err = keypoint_errors(res.kp, truth, inside)
@@ -90,7 +93,7 @@ def run(work: Path) -> dict[str, float]:
         swaps += int(sw.any(axis=0).sum())
         swap_views += int(sw.sum())
         frames_total += len(res.frames)
-        cpu += res.cpu_s
+        cpu += c.report["cpu_s"]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             per_seq[sid] = {"frames": len(res.frames), "swapped_frames": int(sw.any(axis=0).sum()),

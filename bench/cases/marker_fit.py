@@ -16,7 +16,6 @@ Keys:
 """
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -37,9 +36,9 @@ def run(work: Path) -> dict[str, float]:  # noqa: ARG001 - nothing written to di
         return _run_studio(*studio)
 
     from body import load_model
-    from body.lbs import rest_state
-    from fitting import compiled, marker_fit, priors, shape, skinned
-    from fitting.marker_graph import GraphSpec, MarkerGraph
+    from body.lbs import forward, rest_state
+    from fitting import marker_fit, mocap, shape, skinned
+    from formats.c3d import Markers
 
     rng = np.random.default_rng(SEED)
     model = load_model("anny")
@@ -50,29 +49,24 @@ def run(work: Path) -> dict[str, float]:  # noqa: ARG001 - nothing written to di
     X = S.motion(skel, FRAMES, FPS, rng)
     rest = rest_state(model, betas)
     truth = S.posed(model, betas, skel, X, rest)
-    obs, vis = S.observe(S.true_markers(model, truth.vertices, pl), rng)
+    obs, _ = S.observe(S.true_markers(model, truth.vertices, pl), rng)
 
-    t0 = time.perf_counter()
-    graph = MarkerGraph(GraphSpec(skel.topology, shape.marker_support(model, skel, tpl)),
-                        compiled.CompileOptions(mode="compiled"))
-    t_build = time.perf_counter() - t0
-    u, _ = skinned.reduced_offsets(model, rest, skel)
-    Hm = shape.marker_coeffs(model, rest, skel, pl)
-    solver = marker_fit.FrameSolver(graph, skel, u, Hm, priors.default_prior(skel.names[1:]),
-                                    marker_fit.MarkerFitOptions())
-    t0, c0 = time.perf_counter(), time.thread_time()
-    fit = marker_fit.fit_sequence(solver, obs, vis.astype(float))
-    t_fit, c_fit = time.perf_counter() - t0, time.thread_time() - c0
-    est = S.posed(model, betas, skel, fit.x, rest)
+    # the capture sampled at the video frames (gaps NaN), the true shape and placement
+    capture = Markers(pl.names, obs, FPS)
+    fit, rep = marker_fit.fit_markers(model, shape.to_shape_fit(betas, pl, "given", "given"), tpl,
+                                      capture, mocap.VideoClock(FPS), np.arange(FRAMES),
+                                      opts=marker_fit.MarkerFitOptions(compile="compiled"))
+    est = forward(model, betas, fit.body_pose, fit.global_orient, fit.transl, rest=rest)
     jerr = np.linalg.norm(est.joints - truth.joints, axis=2)[:, skel.joints] * 1000
     verr = np.linalg.norm(est.vertices - truth.vertices, axis=2) * 1000
+    fitted = FRAMES - rep["first_fitted_frame"]
     return {
         "marker_fit.mpjpe_mm": float(jerr.mean()),
         "marker_fit.mpvpe_mm": float(verr.mean()),
-        "marker_fit.fps_per_core": float(FRAMES / c_fit),
-        "marker_fit.fps_wall": float(FRAMES / t_fit),
-        "marker_fit.residual_median_mm": float(np.nanmedian(fit.marker_residual_m) * 1000),
-        "marker_fit.compile_s": float(t_build),
+        "marker_fit.fps_per_core": float(fitted / rep["fit_cpu_s"]),
+        "marker_fit.fps_wall": float(fitted / rep["fit_s"]),
+        "marker_fit.residual_median_mm": float(rep["residual_mm"]["median"]),
+        "marker_fit.compile_s": float(rep["build_s"]),
     }
 
 
@@ -80,44 +74,35 @@ def _run_studio(recipe, gt: Path) -> dict[str, float]:
     """Every sequence of a generated studio session: the marker wearer's C3D resampled to the
     video frames, fitted with the subject's true shape and marker placement (gt), scored on
     the true joints (all 52 fit joints, fingers included: they are not observed without hand
-    keypoints) and vertices."""
+    keypoints) and vertices of the valid frames."""
     from body import load_model
-    from body.lbs import forward, rest_state
+    from body.lbs import forward
     from body.markers import load_json
-    from fitting import compiled, marker_fit, mocap, priors, shape, skinned
-    from fitting.marker_graph import GraphSpec, MarkerGraph
+    from fitting import marker_fit, mocap, shape, skinned
+    from fitting.marker_graph import template_placement
     from formats.c3d import read_c3d
-    from stages.marker_fit import template_placement
 
     model = load_model("anny")
     skel = skinned.fit_skeleton(model, shape.body_joints(model))
     tpl = template_placement(model, "plug-in-gait")
-    graph = MarkerGraph(GraphSpec(skel.topology, shape.marker_support(model, skel, tpl)),
-                        compiled.CompileOptions(mode="compiled"))
-    prior = priors.default_prior(skel.names[1:])
+    opts = marker_fit.MarkerFitOptions(compile="compiled")
     jerr, verr, frames, t_fit = [], [], 0, 0.0
     for sid, seq in recipe.sequences.items():
         g = dict(np.load(gt / sid.split("/")[0] / f"{sid.split('/')[1]}.npz"))
         betas = g["betas"][0]
-        ms = load_json(gt / "subjects" / f"{seq.markers_on}_markers.json")
-        pl = shape.Placement(tuple(ms.names), np.asarray(ms.faces), np.asarray(ms.bary),
-                             np.asarray(ms.offsets))
-        rest = rest_state(model, betas)
-        u, _ = skinned.reduced_offsets(model, rest, skel)
-        Hm = shape.marker_coeffs(model, rest, skel, pl)
-        mk = read_c3d(seq.c3d, markers=list(pl.names), allow_missing=True)
+        given = shape.to_shape_fit(betas, template_placement(
+            model, load_json(gt / "subjects" / f"{seq.markers_on}_markers.json")), "given", "given")
+        mk = read_c3d(seq.c3d, markers=list(given.names), allow_missing=True)
         F = len(g["frames"])
-        obs, vis = mocap.resample(mk.times_s, mk.xyz,
-                                  mocap.frame_times(F, seq.fps, seq.mocap.sync_offset_s))
-        solver = marker_fit.FrameSolver(graph, skel, u, Hm, prior, marker_fit.MarkerFitOptions())
-        c0 = time.thread_time()
-        fit = marker_fit.fit_sequence(solver, obs, vis.astype(float))
-        t_fit += time.thread_time() - c0
-        pose, R, T = marker_fit.unpack(skel, model.num_joints, fit.x)
-        est = forward(model, betas, pose, R, T, rest=rest)
-        jerr.append(np.linalg.norm(est.joints - g["joints"][0], axis=2)[:, skel.joints])
-        verr.append(np.linalg.norm(est.vertices - g["vertices"][0], axis=2))
-        frames += F
+        fit, rep = marker_fit.fit_markers(
+            model, given, tpl, mk, mocap.VideoClock(seq.fps, seq.mocap.sync_offset_s),
+            np.arange(F), opts=opts, source=str(seq.c3d))
+        t_fit += rep["fit_cpu_s"]
+        est = forward(model, betas, fit.body_pose, fit.global_orient, fit.transl)
+        ok = fit.valid
+        jerr.append(np.linalg.norm(est.joints - g["joints"][0], axis=2)[ok][:, skel.joints])
+        verr.append(np.linalg.norm(est.vertices - g["vertices"][0], axis=2)[ok])
+        frames += int(ok.sum())
     return {
         "marker_fit.mpjpe_mm": float(np.concatenate(jerr).mean() * 1000),
         "marker_fit.mpvpe_mm": float(np.concatenate(verr).mean() * 1000),

@@ -42,12 +42,12 @@ def run(work: Path) -> dict[str, float]:  # noqa: ARG001 - nothing written to di
 
     from body import load_model
     from body.lbs import rest_state
-    from fitting import compiled, marker_fit, priors, shape, skinned
-    from fitting.marker_graph import GraphSpec, MarkerGraph
+    from fitting import shape, skinned
     from studio.scan import sample_scan
 
     rng = np.random.default_rng(SEED)
     model = load_model("anny")
+    opts = shape.ShapeFitOptions(frames=PLACEMENT_FRAMES)
     betas = S.subject_betas(model, rng)
     skel = skinned.fit_skeleton(model, shape.body_joints(model))
     x = np.zeros(skel.n)  # the studio scans people in the neutral pose (pose 0)
@@ -60,38 +60,31 @@ def run(work: Path) -> dict[str, float]:  # noqa: ARG001 - nothing written to di
     armpits[:, 2] -= S.posed(model, betas, skel, x[None]).vertices[0][:, 2].min()
     pts, nrm = sample_scan(v, np.asarray(model.faces), armpits, rng)
     t0 = time.perf_counter()
-    sf = shape.fit_scan(model, pts, nrm, rng)
+    scan_betas, rep = shape.shape_from_scan(model, pts, nrm, opts, rng)
     t_scan = time.perf_counter() - t0
-    out = {"shape_fit.v2v_mm": _v2v(model, betas, sf.betas),
-           "shape_fit.scan_to_model_mm": float(np.median(sf.scan_to_model_mm)),
+    out = {"shape_fit.v2v_mm": _v2v(model, betas, scan_betas),
+           "shape_fit.scan_to_model_mm": rep["scan_to_model_mm"]["median"],
            "shape_fit.scan_fit_s": float(t_scan)}
 
     # marker placement (true shape known up to the scan fit) and the marker-based shape
     tpl, _ = S.template(model)
     pl = S.slide(model, tpl, rng)
     X = S.motion(skel, 200, 50.0, rng)
-    obs, vis = S.observe(S.true_markers(model, S.posed(model, betas, skel, X, rest).vertices, pl),
-                         rng)
-    idx = shape.spread_frames(vis, obs, PLACEMENT_FRAMES)
-    graph = MarkerGraph(GraphSpec(skel.topology, shape.marker_support(model, skel, tpl)),
-                        compiled.CompileOptions())
-    prior = priors.default_prior(skel.names[1:])
-
-    def make_solver(_rest, skel_, u, Hm):
-        return marker_fit.FrameSolver(graph, skel_, u, Hm, prior, marker_fit.MarkerFitOptions())
-
-    pf = shape.refine_placement(model, sf.betas, tpl, obs[idx], vis[idx].astype(float),
-                                make_solver)
+    obs, _ = S.observe(S.true_markers(model, S.posed(model, betas, skel, X, rest).vertices, pl),
+                       rng)
+    placed, _ = shape.fit_placement(model, shape.to_shape_fit(scan_betas, tpl, "scan", "template"),
+                                    [obs], opts)
     faces = np.asarray(model.faces)
     p_true = shape.marker_rest_points(rest.vertices[0], faces, pl)
-    p_fit = shape.marker_rest_points(rest.vertices[0], faces, pf.placement)
+    p_fit = shape.marker_rest_points(rest.vertices[0], faces, shape.placement_of(placed))
     p_tpl = shape.marker_rest_points(rest.vertices[0], faces, tpl)
     out["shape_fit.placement_mm"] = float(np.linalg.norm(p_fit - p_true, axis=1).mean() * 1000)
     out["shape_fit.placement_template_mm"] = float(
         np.linalg.norm(p_tpl - p_true, axis=1).mean() * 1000)
-    pm = shape.refine_placement(model, np.zeros(20), tpl, obs[idx], vis[idx].astype(float),
-                                make_solver, fit_betas=True)
-    out["shape_fit.v2v_markers_mm"] = _v2v(model, betas, pm.betas)
+    from_markers, _ = shape.fit_placement(
+        model, shape.to_shape_fit(np.zeros(opts.marker_num_betas), tpl, "markers", "template"),
+        [obs], opts)
+    out["shape_fit.v2v_markers_mm"] = _v2v(model, betas, from_markers.betas)
     return out
 
 
@@ -100,20 +93,21 @@ def _run_studio(recipe, gt: Path) -> dict[str, float]:
     the neutral pose."""
     from body import load_model
     from fitting import shape
-    from stages.shape_fit import load_scan
+    from formats.scan import read_scan
 
     model = load_model("anny")
     rng = np.random.default_rng(SEED)
+    opts = shape.ShapeFitOptions(frames=PLACEMENT_FRAMES)
     v2v, dist, secs = [], [], 0.0
     for sid, subj in recipe.subjects.items():
         if subj.scan is None:
             continue
-        pts, nrm = load_scan(subj.scan)
+        pts, nrm = read_scan(subj.scan)
         t0 = time.perf_counter()
-        sf = shape.fit_scan(model, pts, nrm, rng)
+        betas, rep = shape.shape_from_scan(model, pts, nrm, opts, rng)
         secs += time.perf_counter() - t0
-        v2v.append(_v2v(model, np.load(gt / "subjects" / f"{sid}.npz")["betas"], sf.betas))
-        dist.append(float(np.median(sf.scan_to_model_mm)))
+        v2v.append(_v2v(model, np.load(gt / "subjects" / f"{sid}.npz")["betas"], betas))
+        dist.append(rep["scan_to_model_mm"]["median"])
     return {"shape_fit.v2v_mm": float(np.mean(v2v)),
             "shape_fit.scan_to_model_mm": float(np.mean(dist)),
             "shape_fit.scan_fit_s": secs / max(len(v2v), 1),

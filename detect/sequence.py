@@ -1,0 +1,175 @@
+"""The keypoints stage's domain function: 2D body and hand keypoints of both people in every
+view of a sequence, from frames, cameras and the marker wearer's markers. No file I/O: the
+stage (``stages/keypoints.py``) reads the videos' lengths, the calibration, the C3D and any
+precomputed detections, and hands this module typed inputs.
+
+The marker wearer (person 0) is detected in a tight crop around its projected markers, its
+hands in crops around the projected wrist and knuckle markers (:mod:`detect.hints`). The
+partner (person 1) is found over the image with the wearer painted out, then per keypoint
+type by the paper's rule (:mod:`detect.people`); frames run in chunks in worker processes
+(:mod:`detect.run`). Then, with at least three views, the cross-view check
+(:mod:`detect.multiview`) drops observations that disagree with what two other views agree
+on, drops the partner's unconfirmed keypoints in views where the wearer was not found, and
+a final guard drops what is left of the partner in a view where it matches the wearer's
+markers (:func:`detect.people.partner_looks_like_wearer`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from artifacts.keypoints import Keypoints2D
+from detect import constants as K
+from detect import layout
+from detect.base import DetectorFactory
+from detect.people import PeopleOptions
+from detect.run import FrameSource
+
+#: Fewer confident body keypoints of the wearer than this in a view: the wearer counts as not
+#: found there (nothing told the two people apart; see :func:`cross_view_guard`).
+MIN_WEARER_BODY_KP = 3
+
+#: Names of :attr:`Keypoints2D.partner_mode` codes, in code order.
+PARTNER_MODES = ("missing", "tracked", "whole_image")
+
+
+@dataclass(frozen=True)
+class SequenceOptions:
+    """Knobs of :func:`detect_keypoints` (defaults in detect/constants.py).
+
+    hands : detect hand keypoints. track / mask_wearer : partner search (:mod:`detect.people`).
+    body_margin : wearer crop margin (fraction of the marker box's larger side).
+    near_frac : the paper's "close proximity", fraction of the wearer's box height.
+    cross_view / cross_view_px : the cross-view check and its RANSAC threshold (pixels).
+    workers : detector processes (>= 1; 1 runs in this process). chunk : frames per task
+        (each task starts its partner search afresh; results do not depend on ``workers``).
+    """
+
+    hands: bool = True
+    track: bool = True
+    mask_wearer: bool = True
+    body_margin: float = K.BODY_MARGIN
+    near_frac: float = K.NEAR_FRAC
+    cross_view: bool = True
+    cross_view_px: float = K.CROSS_VIEW_PX
+    workers: int = 1
+    chunk: int = 32
+
+    def __post_init__(self):
+        if self.workers < 1:
+            raise ValueError(f"workers: must be >= 1, got {self.workers}")
+        if self.chunk < 1:
+            raise ValueError(f"chunk: must be >= 1, got {self.chunk}")
+        if not self.body_margin >= 0:
+            raise ValueError(f"body_margin: must be >= 0, got {self.body_margin}")
+        if not self.near_frac > 0:
+            raise ValueError(f"near_frac: must be > 0, got {self.near_frac}")
+        if not self.cross_view_px > 0:
+            raise ValueError(f"cross_view_px: must be > 0 pixels, got {self.cross_view_px}")
+
+    def people(self) -> PeopleOptions:
+        """The per-view options of :func:`detect.people.find_people`."""
+        return PeopleOptions(body_margin=self.body_margin, near_frac=self.near_frac,
+                             track=self.track, mask_wearer=self.mask_wearer, hands=self.hands)
+
+
+def summary(kp: np.ndarray, cpu_s: float, wall_s: float, n_frames: int) -> dict:
+    """Detection rates per person and joint group, and speed. kp (C, F, 2, 65, 3)."""
+    from detect.metrics import GROUPS
+
+    out: dict = {"frames": int(n_frames), "cpu_s": round(cpu_s, 3), "wall_s": round(wall_s, 3),
+                 "fps_per_core": round(n_frames / cpu_s, 4) if cpu_s > 0 else None,
+                 "fps_wall": round(n_frames / wall_s, 4) if wall_s > 0 else None,
+                 "detected": {}}
+    for p, who in enumerate(("wearer", "partner")):
+        for g, idx in GROUPS.items():
+            c = kp[:, :, p][..., idx, 2]
+            out["detected"][f"{who}.{g}"] = round(float((c >= K.MIN_CONF).mean()), 4) if c.size else None
+    return out
+
+
+def cross_view_guard(cams, kp: np.ndarray, hints, opts: SequenceOptions) -> np.ndarray:
+    """(C, F, 2, 65) bool: observations of ``kp (C, F, 2, 65, 3)`` to drop (not modified).
+
+    1. :func:`detect.multiview.cross_view_check`: disagrees with what two other views agree on;
+    2. where the wearer was not found in a view (< MIN_WEARER_BODY_KP confident body
+       keypoints) nothing there told the two people apart (the people overlap in that view),
+       so the partner's keypoints in that view are kept only where other views confirm them;
+    3. what is left of a partner candidate that mixed both people may be the wearer's part of
+       it: a partner that passes the wearer's marker check in a view is dropped there.
+    """
+    from detect.multiview import CrossViewOptions, cross_view_check
+    from detect.people import partner_looks_like_wearer
+
+    conf = kp[..., 2]
+    xv = cross_view_check(cams, kp, CrossViewOptions(max_error_px=opts.cross_view_px))
+    alone = (conf[:, :, 0, layout.BODY] >= K.MIN_CONF).sum(axis=-1) < MIN_WEARER_BODY_KP
+    unconfirmed = alone[..., None] & ~xv.confirmed[:, :, 1] & (conf[:, :, 1] >= K.MIN_CONF)
+    outlier = xv.outlier.copy()
+    outlier[:, :, 1] |= unconfirmed
+    left = kp[:, :, 1].copy()
+    left[..., 2][outlier[:, :, 1]] = 0.0
+    mixed = partner_looks_like_wearer(left, hints, opts.people())
+    outlier[:, :, 1] |= mixed[..., None] & (left[..., 2] > 0)
+    return outlier
+
+
+def detect_keypoints(cams: list, source: FrameSource, marker_xyz: np.ndarray,
+                     marker_names: list[str], frames: np.ndarray, detector: DetectorFactory,
+                     opts: SequenceOptions = SequenceOptions(),
+                     progress: Callable[..., Any] = lambda it, **_: it,
+                     log: Callable[[str], None] = lambda _msg: None) -> tuple[Keypoints2D, dict]:
+    """Both people's keypoints in every view of every frame in ``frames``.
+
+    cams : C :class:`calib.Camera` (their ``name`` becomes ``Keypoints2D.cameras``), in the
+        order of ``source``'s views. source : where the pixels come from (opened by the
+        workers; not read when the detector needs no pixels). marker_xyz : (F, M, 3) metres,
+        world, the wearer's markers at the video frames ``frames (F,)``, NaN where not seen
+        (the stage resamples the C3D onto the video clock). marker_names : M labels
+        (Plug-in Gait names, any ``subject:`` prefix). detector : a picklable factory
+        (:class:`detect.mediapipe_detector.MediapipeOptions`,
+        :class:`detect.precomputed.PrecomputedDetector`).
+    Returns the :class:`Keypoints2D` (cross-view outliers at confidence 0; the detector's own
+    confidences in ``conf_raw``) and the report's facts (workers, markers, detector calls,
+    partner modes, outliers, detection rates, speed).
+    Raises ValueError when no marker is seen at any frame (the stage checks that first and
+    names the C3D)."""
+    from detect.hints import wearer_hints
+    from detect.run import detect_sequence
+
+    frames = np.asarray(frames, dtype=np.int64)
+    marker_xyz = np.asarray(marker_xyz, dtype=np.float64)
+    if marker_xyz.ndim != 3 or marker_xyz.shape[0] != len(frames) or marker_xyz.shape[2] != 3:
+        raise ValueError(f"detect_keypoints: marker_xyz {marker_xyz.shape} does not match "
+                         f"{len(frames)} frames")
+    seen = np.isfinite(marker_xyz[..., 0]).any(axis=1)
+    if not seen.any():
+        raise ValueError("detect_keypoints: no marker observed at any frame")
+    hints = wearer_hints(cams, marker_xyz, list(marker_names), opts.body_margin)
+    log(f"keypoints: {len(frames)} frames x {len(cams)} views, {opts.workers} worker(s)")
+    res = detect_sequence(source, detector, hints, frames, opts.people(), workers=opts.workers,
+                          chunk=opts.chunk, progress=progress)
+    kp = res.kp
+    conf_raw = kp[..., 2].copy()
+    outlier = np.zeros(conf_raw.shape, bool)
+    if opts.cross_view and len(cams) >= 3:
+        outlier = cross_view_guard(cams, kp, hints, opts)
+        kp[..., 2][outlier] = 0.0
+    out = Keypoints2D(kp=kp.astype(np.float32), boxes=res.boxes.astype(np.float32),
+                      hand_boxes=res.hand_boxes.astype(np.float32), frames=res.frames,
+                      wearer_retry=res.wearer_retry, partner_mode=res.partner_mode,
+                      cross_view_outlier=outlier, conf_raw=conf_raw.astype(np.float32),
+                      cameras=np.array([c.name for c in cams], dtype=str))
+    report = {"workers": opts.workers, "markers": len(marker_names),
+              "frames_with_markers": int(seen.sum()),
+              "wearer_retries": int(res.wearer_retry.sum()),
+              "partner_mode_counts": {m: int((res.partner_mode == i).sum())
+                                      for i, m in enumerate(PARTNER_MODES)},
+              "detector_calls": {k: (round(v, 3) if isinstance(v, float) else int(v))
+                                 for k, v in res.meter.items()},
+              "cross_view_outliers": {who: int(outlier[:, :, p].sum())
+                                      for p, who in enumerate(("wearer", "partner"))},
+              **summary(kp, res.cpu_s, res.wall_s, len(frames))}
+    return out, report

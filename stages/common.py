@@ -1,0 +1,98 @@
+"""Adapter helpers shared by the stage modules (stage modules never import each other).
+
+What a stage needs of the recipe beyond its declared view (``Stage.reads``) comes through
+``ctx.raw``, keyed by content: among them the body-model file, named here once.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+ANNY_DEFAULT = REPO / "assets" / "build" / "anny_model.npz"
+
+
+def body_model_file(recipe) -> Path:
+    """The file (or folder) the recipe's body model is loaded from: ``body_model.path``, else
+    ``$ANNY_MODEL_PATH`` / ``assets/build/anny_model.npz`` for Anny and ``$SMPLX_MODEL_PATH``
+    for the SMPL family. Raw input ``body_model`` of every stage that loads the model, so that
+    a rebuilt or replaced model file recomputes what was fitted with it."""
+    bm = recipe.body_model
+    if bm.path is not None:
+        return Path(bm.path)
+    if bm.kind == "anny":
+        return Path(os.environ.get("ANNY_MODEL_PATH", str(ANNY_DEFAULT)))
+    env = os.environ.get("SMPLX_MODEL_PATH")
+    if not env:
+        from formats.errors import InputError
+
+        raise InputError(getattr(recipe, "source", None) or "recipe", "body_model.path",
+                         f"body model {bm.kind!r} needs a path (or $SMPLX_MODEL_PATH)")
+    return Path(env)
+
+
+def load_body(ctx):
+    """The body model of the recipe (kind from the declared view ``body_model.kind``, file from
+    the raw input ``body_model``)."""
+    from body import load_model
+
+    return load_model(ctx.recipe.body_model.kind, ctx.raw["body_model"])
+
+
+FPS_TOLERANCE = 0.01  # relative: a container's rate is rounded (29.97 vs 30000/1001)
+
+
+def check_videos(paths: list[Path], fps: float) -> list[str]:
+    """One message per problem of a sequence's videos (the recipe's camera order): a video that
+    can't be read, one with fewer or more frames than the longest (the sequence would silently be
+    cut to the shortest), one whose own rate differs from the recipe's ``fps``. Each message
+    names the video and both numbers (:func:`video_errors` as text)."""
+    return [str(e) for e in video_errors(paths, fps)]
+
+
+def video_errors(paths: list[Path], fps: float) -> list:
+    """The problems of :func:`check_videos` as ``formats.errors.InputError`` (file = the video,
+    field ``frames`` / ``fps`` or the reader's), for a stage to raise the first one."""
+    from formats.errors import InputError
+    from formats.video import video_info
+
+    infos, out = {}, []
+    for p in paths:
+        try:
+            infos[Path(p)] = video_info(p)
+        except InputError as e:
+            out.append(e)
+        except OSError as e:
+            out.append(InputError(p, "<file>", str(e)))
+    if not infos:
+        return out
+    longest = max(i.n_frames for i in infos.values())
+    ref = next(p for p, i in infos.items() if i.n_frames == longest)
+    for p, i in infos.items():
+        if i.n_frames != longest:
+            out.append(InputError(p, "frames", f"{i.n_frames} frames, but {ref} of the same "
+                                  f"sequence has {longest} (all views must cover the same frames)"))
+        if abs(i.fps - fps) > FPS_TOLERANCE * fps:
+            out.append(InputError(p, "fps", f"the video runs at {i.fps:g} fps, the recipe says "
+                                  f"{fps:g} (sequences.<id>.fps)"))
+    return out
+
+
+def markerset_file(subject_spec) -> dict[str, Path]:
+    """Raw input ``markerset`` of a subject whose marker set is a ``.json`` file (``{}`` for a
+    built-in set, which the view gives by name)."""
+    ms = subject_spec.markerset
+    return {"markerset": Path(ms)} if ms.endswith(".json") else {}
+
+
+def marker_template(ctx, markerset: str, model):
+    """The template placement (``fitting.marker_graph.Placement``) of a subject's marker set on
+    ``model``: ``markerset`` is the view's value (a built-in name, or ``"file"`` for a
+    ``.json`` marker set read from the raw input ``markerset``)."""
+    from body.markers import load_json
+    from fitting.marker_graph import template_placement
+
+    if markerset == "file":
+        return template_placement(model, load_json(ctx.raw["markerset"],
+                                                   num_faces=len(model.faces)))
+    return template_placement(model, markerset)
