@@ -9,17 +9,24 @@ cases) with::
 Cases run in name order, each with its own work folder ``bench/work/<name>/`` (created, not
 wiped: a case decides what to reuse). A case that raises is recorded as failed
 (``"<name>.error"`` in the results) and the others still run. Results are merged into
-``bench/results.json`` (flat ``{key: value}``; keys of cases not run this time are kept) and
-``bench/RESULTS.md`` is rewritten: one table row per key (value, goal, pass/fail), then the
-machine (CPU model, cores, Python, numpy), the date and the command.
+``bench/results.json`` (flat ``{key: value}``; keys of cases not run this time are kept),
+``bench/measured.json`` records for every key the commit and the code it was measured on
+(``{key: {"commit", "code", "date"}}``; ``code`` is a hash of the project's source files, so
+a figure measured before a code change is known as such), and ``bench/RESULTS.md`` is
+rewritten: one table row per key (value, goal, verdict, commit), then the machine (CPU model,
+cores, Python, numpy), the date and the command. A row measured on other code than the one
+rendering the table says so in place of pass/FAIL: an old figure never passes a goal.
+``python -m bench --table`` re-renders the table against the code as it is now.
 """
 from __future__ import annotations
 
+import hashlib
 import importlib.util
 import json
 import math
 import os
 import platform
+import subprocess
 import sys
 import time
 import traceback
@@ -29,6 +36,10 @@ from pathlib import Path
 from types import ModuleType
 
 BENCH = Path(__file__).resolve().parent
+REPO = BENCH.parent
+# Files that are results, not code: measuring them must not change the code version.
+NOT_CODE = ("bench/results.json", "bench/measured.json", "bench/RESULTS.md")
+CODE_SUFFIXES = (".py", ".yaml", ".yml", ".toml", ".txt", ".sh", ".cfg", ".json")
 OPS = {"<=": lambda v, g: v <= g, "<": lambda v, g: v < g, ">=": lambda v, g: v >= g,
        ">": lambda v, g: v > g, "==": lambda v, g: v == g}
 
@@ -107,6 +118,41 @@ def machine_info() -> dict[str, str]:
             "date": datetime.now().isoformat(timespec="seconds")}
 
 
+def _git(*args: str, repo: Path = REPO) -> str:
+    try:
+        out = subprocess.run(["git", *args], cwd=repo, capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired):
+        return ""
+    return out.stdout.strip() if out.returncode == 0 else ""
+
+
+def code_files(repo: Path = REPO) -> list[str]:
+    """The project's source files as git sees them (tracked, and untracked ones it does not
+    ignore), without the bench's result files, prose and data."""
+    names = _git("ls-files", "-co", "--exclude-standard", repo=repo).splitlines()
+    return sorted(n for n in names if n.endswith(CODE_SUFFIXES) or n == "Makefile"
+                  if n not in NOT_CODE and not n.startswith(("bench/work/", "outputs/", "data/")))
+
+
+def code_version(repo: Path = REPO) -> str:
+    """A 12-hex hash of the contents of :func:`code_files` as they are on disk now (a dirty
+    tree is hashed as it is; committing it does not change the hash)."""
+    h = hashlib.sha256()
+    for n in code_files(repo):
+        p = repo / n
+        if p.is_file():
+            h.update(n.encode() + b"\0" + p.read_bytes() + b"\0")
+    return h.hexdigest()[:12]
+
+
+def commit_label(repo: Path = REPO) -> str:
+    """``<short HEAD>``, with ``+changes`` when source files differ from it."""
+    head = _git("rev-parse", "--short=10", "HEAD", repo=repo) or "no-git"
+    dirty = _git("status", "--porcelain", "--", ".", *[f":!{n}" for n in NOT_CODE],
+                 ":!*.md", ":!bench/work", repo=repo)
+    return head + ("+changes" if dirty else "")
+
+
 def verdict(value: float, goal: tuple[str, float] | None) -> str:
     if goal is None:
         return ""
@@ -144,19 +190,41 @@ def all_goals(paths: list[Path], ran: list[CaseResult]) -> dict[str, tuple[str, 
     return goals
 
 
+def merge_measured(measured_file: Path, cases: list[CaseResult], commit: str, code: str) -> dict:
+    """``{key: {"commit", "code", "date"}}`` updated with this run's keys."""
+    try:
+        old = json.loads(measured_file.read_text()) if measured_file.exists() else {}
+    except ValueError:
+        old = {}
+    date = datetime.now().isoformat(timespec="seconds")
+    for c in cases:
+        for k in c.values:
+            old[k] = {"commit": commit, "code": code, "date": date}
+    return dict(sorted(old.items()))
+
+
 def render_markdown(results: dict, goals: dict, ran: list[CaseResult], machine: dict,
-                    command: str) -> str:
+                    command: str, measured: dict | None = None, code: str | None = None) -> str:
+    """The table. ``measured``/``code``: where each key was measured and the code version
+    rendering now; a row whose code differs (or is unknown) gets no pass/FAIL verdict."""
     now = {k for c in ran for k in c.values}
+    measured = measured or {}
     lines = ["# Benchmark results", "",
-             f"Written by `{command}`. Regenerate with `make bench`.", "",
-             "| key | value | goal | pass/fail |", "|---|---|---|---|"]
+             f"Written by `{command}`. Regenerate with `make bench`. A verdict is given only to "
+             f"figures measured on the code of this table (code {code or '?'}); a figure from "
+             "older code says so instead.", "",
+             "| key | value | goal | pass/fail | measured at |", "|---|---|---|---|---|"]
     for k, v in results.items():
         if k.endswith(".error"):
             continue
         g = goals.get(k)
         goal_s = f"{g[0]} {g[1]:g}" if g else ""
         note = "" if k in now else " (earlier run)"
-        lines.append(f"| `{k}` | {v:.4g}{note} | {goal_s} | {verdict(v, g)} |")
+        m = measured.get(k) or {}
+        current = code is None or m.get("code") == code
+        ver = verdict(v, g) if current else ("not re-measured on this code" if g else "")
+        at = m.get("commit", "unknown") + ("" if current else " (older code)")
+        lines.append(f"| `{k}` | {v:.4g}{note} | {goal_s} | {ver} | {at} |")
     errs = {k: v for k, v in results.items() if k.endswith(".error")}
     if errs:
         lines += ["", "## Failed cases", ""]
@@ -174,6 +242,16 @@ def main(argv: list[str] | None = None, bench_dir: Path = BENCH) -> int:
     ``bench_dir/results.json`` and ``bench_dir/RESULTS.md``. Exit code 1 if a case failed."""
     argv = sys.argv[1:] if argv is None else argv
     paths = discover(bench_dir / "cases")
+    code = code_version()
+    if argv == ["--table"]:  # re-render the table against the code as it is now
+        results = json.loads((bench_dir / "results.json").read_text())
+        mf = bench_dir / "measured.json"
+        measured = json.loads(mf.read_text()) if mf.exists() else {}
+        md = render_markdown(results, all_goals(paths, []), [], machine_info(),
+                             "python -m bench --table", measured, code)
+        (bench_dir / "RESULTS.md").write_text(md)
+        print(f"[bench] wrote {bench_dir / 'RESULTS.md'} (code {code})", file=sys.stderr)
+        return 0
     if argv:
         unknown = set(argv) - {p.stem for p in paths}
         if unknown:
@@ -198,8 +276,11 @@ def main(argv: list[str] | None = None, bench_dir: Path = BENCH) -> int:
                                                    if g else ""), file=sys.stderr)
     results = merge(bench_dir / "results.json", ran)
     (bench_dir / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+    measured = merge_measured(bench_dir / "measured.json", ran, commit_label(), code)
+    (bench_dir / "measured.json").write_text(json.dumps(measured, indent=1) + "\n")
     command = "python -m bench" + "".join(f" {a}" for a in argv)
-    md = render_markdown(results, all_goals(paths, ran), ran, machine_info(), command)
+    md = render_markdown(results, all_goals(paths, ran), ran, machine_info(), command,
+                         measured, code)
     (bench_dir / "RESULTS.md").write_text(md)
     print(f"[bench] wrote {bench_dir / 'results.json'} and {bench_dir / 'RESULTS.md'}",
           file=sys.stderr)
