@@ -41,6 +41,8 @@ from typing import Literal
 import casadi as ca
 import numpy as np
 
+from pipeline.procs import pid_alive
+
 # constants
 DEFAULT_CACHE = Path(__file__).resolve().parents[1] / "assets" / "cache" / "casadi"
 CACHE_ENV = "CASADI_CACHE_DIR"  # overrides the cache folder when set
@@ -204,18 +206,6 @@ def _pid_of(text: str) -> int | None:
     return int(text) if text.isdigit() else None
 
 
-def _alive(pid: int) -> bool:
-    if pid == os.getpid():
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def clean_stale(folder: Path) -> list[Path]:
     """Remove what killed builds left in the cache ``folder``: ``.gen-<pid>-*`` work folders
     and ``.<lib>.so.<pid>.tmp`` files whose process no longer runs on this host (and
@@ -241,7 +231,7 @@ def clean_stale(folder: Path) -> list[Path]:
             if pid is None:
                 stale = now - p.stat().st_mtime > STALE_LEGACY_S
             else:
-                stale = not _alive(pid)
+                stale = pid != os.getpid() and not pid_alive(pid)
             if not stale:
                 continue
             if p.is_dir():

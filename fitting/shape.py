@@ -558,14 +558,15 @@ class ShapeFitOptions:
     slide_sd_mm / offset_sd_mm : how far a marker may move from the template (prior spread,
     millimetres); compile : how the residual function runs; seed : sampling of scan points."""
 
-    num_betas: int = 404  # all of anny's (ScanFitOptions)
-    marker_num_betas: int = 20
-    scan_iters: int = 40
-    scan_points: int = 4000
+    # defaults stated once, in the options of the functions they feed (metres there)
+    num_betas: int = ScanFitOptions.num_betas  # all of anny's
+    marker_num_betas: int = PlacementOptions.num_betas
+    scan_iters: int = ScanFitOptions.iters
+    scan_points: int = ScanFitOptions.n_points
     frames: int = 8
-    rounds: int = 4
-    slide_sd_mm: float = 20.0
-    offset_sd_mm: float = 5.0
+    rounds: int = PlacementOptions.rounds
+    slide_sd_mm: float = PlacementOptions.slide_sd_m * 1000
+    offset_sd_mm: float = PlacementOptions.offset_sd_m * 1000
     compile: Literal["auto", "compiled", "interpreted"] = "auto"
     seed: int = 0
 

@@ -33,7 +33,6 @@ rebuilt first. Manifests written before ``sha256`` existed are checked by size o
 from __future__ import annotations
 
 import fcntl
-import hashlib
 import json
 import os
 import secrets
@@ -45,10 +44,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
+from pipeline.hashing import sha256_file
+
 MANIFEST = "manifest.json"
 
 
-HASH_CHUNK = 1 << 20  # bytes read at a time when hashing a file
 
 
 class StoreError(ValueError):
@@ -64,13 +64,7 @@ class CorruptArtifactError(RuntimeError):
         super().__init__(f"{stage} [{unit}]: {dir / file}: corrupt artifact file ({problem})")
 
 
-def file_sha256(path: Path) -> str:
-    """Hex sha256 of a file's content."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(HASH_CHUNK):
-            h.update(chunk)
-    return h.hexdigest()
+file_sha256 = sha256_file  # one file hash for keys and manifests (pipeline.hashing)
 
 
 def _check_part(kind: str, name: str) -> None:
