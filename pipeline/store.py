@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import fcntl
 import json
+import math
 import os
 import secrets
 import shutil
@@ -83,6 +84,21 @@ def json_default(o: Any) -> Any:
     if isinstance(o, os.PathLike):
         return os.fspath(o)
     raise TypeError(f"{type(o).__name__} is not JSON serialisable")
+
+
+def strict_json(obj: Any) -> Any:
+    """``obj`` with every non-finite float (NaN, inf; numpy ones too) replaced by ``None``, numpy
+    values and paths converted: what strict JSON can hold (``null`` = no value)."""
+    if isinstance(obj, float) or (hasattr(obj, "dtype") and getattr(obj, "shape", None) == ()):
+        v = obj.item() if hasattr(obj, "item") else obj
+        return None if isinstance(v, float) and not math.isfinite(v) else v
+    if isinstance(obj, dict):
+        return {k: strict_json(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [strict_json(v) for v in obj]
+    if hasattr(obj, "tolist") or isinstance(obj, (set, frozenset, os.PathLike)):
+        return strict_json(json_default(obj))
+    return obj
 
 
 @dataclass(frozen=True)
@@ -155,9 +171,10 @@ class Writer:
         return p
 
     def save_json(self, name: str, obj: Any) -> Path:
-        """Write ``<name>.json`` (numpy values converted)."""
+        """Write ``<name>.json``: strict JSON (numpy values converted, NaN and inf written as
+        ``null``: a bare ``NaN`` is not JSON and breaks other readers)."""
         p = self.path(f"{name}.json")
-        p.write_text(json.dumps(obj, indent=1, default=json_default))
+        p.write_text(json.dumps(strict_json(obj), indent=1, allow_nan=False, default=json_default))
         return p
 
 

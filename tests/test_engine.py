@@ -278,3 +278,22 @@ def test_progress_bar_is_silent_when_stderr_is_not_a_terminal(capfd):
     assert list(bar(range(5), total=5, desc="frames")) == [0, 1, 2, 3, 4]
     assert bar(range(5)).disable  # stderr is captured here, not a tty
     assert capfd.readouterr().err == ""
+
+
+def test_reports_are_strict_json(tmp_path):
+    """A missing value (NaN) is written as null, never as a bare NaN that strict parsers reject."""
+    import json as _json
+
+    import numpy as np
+
+    from pipeline.store import Writer
+
+    w = Writer(tmp_path)
+    w.save_json("report", {"median": float("nan"), "per": {"a": np.float64(np.inf), "b": 2.5},
+                           "arr": np.array([1.0, np.nan]), "n": np.int64(3)})
+
+    def reject(c):
+        raise ValueError(f"non-standard constant {c}")
+
+    got = _json.loads((tmp_path / "report.json").read_text(), parse_constant=reject)
+    assert got == {"median": None, "per": {"a": None, "b": 2.5}, "arr": [1.0, None], "n": 3}
