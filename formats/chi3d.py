@@ -148,7 +148,9 @@ class ContactSignature:
 
     fr_id: the annotated contact frame; start_fr, end_fr: the contact interval (None when the
     file has none); smplx_regions, smplx_faces, ghum_regions, ghum_faces: (N, 2) int64 pairs
-    (person 0's region/facet, person 1's region/facet) that touch.
+    (person 0's region/facet, person 1's region/facet) that touch. anny_regions, anny_faces,
+    anny_region_names: the studio's ``anny_signature`` on the Anny mesh (names: (N,) pairs of
+    region names, empty when the file gives none). Only the families in :data:`FAMILIES`.
     """
 
     fr_id: int
@@ -158,6 +160,42 @@ class ContactSignature:
     ghum_faces: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
     start_fr: int | None = None
     end_fr: int | None = None
+    anny_regions: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    anny_faces: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    anny_region_names: tuple[tuple[str, str], ...] = ()
+
+    def regions(self, family: str) -> np.ndarray:
+        """(N, 2) region-id pairs of ``family`` (``"smplx"``, ``"ghum"``, ``"anny"``)."""
+        return getattr(self, f"{_family(family)}_regions")
+
+    def faces(self, family: str) -> np.ndarray:
+        """(N, 2) facet-id pairs of ``family``."""
+        return getattr(self, f"{_family(family)}_faces")
+
+    def families(self) -> tuple[str, ...]:
+        """The families with at least one region or facet pair."""
+        return tuple(f for f in FAMILIES if len(self.regions(f)) or len(self.faces(f)))
+
+
+#: Body-model families a signature can be given for (``<family>_signature`` in the file).
+FAMILIES = ("smplx", "ghum", "anny")
+
+
+def _family(family: str) -> str:
+    if family not in FAMILIES:
+        raise ValueError(f"family: expected one of {FAMILIES}, got {family!r}")
+    return family
+
+
+def _names(path, name: str, value, n: int, frame: int | None) -> tuple[tuple[str, str], ...]:
+    if value is None:
+        return ()
+    if (not isinstance(value, list) or len(value) != n
+            or any(not isinstance(p, list) or len(p) != 2 or not all(isinstance(x, str) for x in p)
+                   for p in value)):
+        raise InputError(path, name, f"expected {n} [person0, person1] pairs of region names "
+                         "(one per region_id pair)", frame)
+    return tuple((a, b) for a, b in value)
 
 
 def _pairs(path, name: str, value, frame: int | None) -> np.ndarray:
@@ -185,8 +223,10 @@ def _int(path, name: str, v, frame: int | None = None) -> int:
 def read_contact_signatures(path: str | Path) -> dict[str, ContactSignature]:
     """``interaction_contact_signature.json`` -> {action: ContactSignature}.
 
-    ``fr_id`` and ``smplx_signature`` are required; ``ghum_signature``, ``start_fr``,
-    ``end_fr`` optional; when given, ``start_fr <= fr_id <= end_fr``.
+    ``fr_id`` and ``smplx_signature`` are required; ``ghum_signature``, ``anny_signature``
+    (the studio's, with ``region_names`` beside ``region_id``), ``start_fr``, ``end_fr``
+    optional; when given, ``start_fr <= fr_id <= end_fr``. Ids are checked here only for being
+    non-negative integers; against a body model by ``fitting.contact_signature.load_contact``.
     """
     path = Path(path)
     d = _load(path)
@@ -203,7 +243,7 @@ def read_contact_signatures(path: str | Path) -> dict[str, ContactSignature]:
             raise InputError(path, f"{action}.start_fr/end_fr",
                              f"contact frame outside the interval {start}..{end}", fr)
         sig = {}
-        for model in ("smplx", "ghum"):
+        for model in FAMILIES:
             key = f"{model}_signature"
             s = a.get(key)
             if s is None:
@@ -216,13 +256,17 @@ def read_contact_signatures(path: str | Path) -> dict[str, ContactSignature]:
                 if model == "smplx" and kind not in s:
                     raise InputError(path, f"{action}.{key}.{kind}", "missing", fr)
                 sig[f"{model}_{fieldname}"] = _pairs(path, f"{action}.{key}.{kind}", s.get(kind), fr)
+            if model == "anny":
+                sig["anny_region_names"] = _names(path, f"{action}.{key}.region_names",
+                                                  s.get("region_names"), len(sig["anny_regions"]), fr)
         out[action] = ContactSignature(fr_id=fr, start_fr=start, end_fr=end, **sig)
     return out
 
 
 def write_contact_signatures(path: str | Path, signatures: Mapping[str, ContactSignature]) -> Path:
     """Write {action: ContactSignature} as ``interaction_contact_signature.json`` (both the
-    smplx and ghum signatures, empty lists where none; start/end only when known)."""
+    smplx and ghum signatures, empty lists where none; the anny signature, with its
+    ``region_names`` when known, only when it has pairs; start/end only when known)."""
     d = {}
     for action, s in signatures.items():
         e: dict = {"fr_id": int(s.fr_id)}
@@ -234,5 +278,11 @@ def write_contact_signatures(path: str | Path, signatures: Mapping[str, ContactS
             e[f"{model}_signature"] = {
                 "region_id": np.asarray(getattr(s, f"{model}_regions"), np.int64).reshape(-1, 2).tolist(),
                 "face_id": np.asarray(getattr(s, f"{model}_faces"), np.int64).reshape(-1, 2).tolist()}
+        if len(s.anny_regions) or len(s.anny_faces):
+            e["anny_signature"] = {
+                "region_id": np.asarray(s.anny_regions, np.int64).reshape(-1, 2).tolist(),
+                "face_id": np.asarray(s.anny_faces, np.int64).reshape(-1, 2).tolist()}
+            if s.anny_region_names:
+                e["anny_signature"]["region_names"] = [list(p) for p in s.anny_region_names]
         d[action] = e
     return _dump(path, d)

@@ -134,6 +134,12 @@ def test_contact_signatures_round_trip(tmp_path):
     ({"fr_id": 3.5, "smplx_signature": {"region_id": [], "face_id": []}}, "A.fr_id", None),
     ({"fr_id": 3, "start_fr": 5, "smplx_signature": {"region_id": [], "face_id": []}},
      "A.start_fr/end_fr", 3),
+    ({"fr_id": 3, "smplx_signature": {"region_id": [], "face_id": []},
+      "anny_signature": {"region_id": [[1, 2]], "face_id": [[4, -5]]}},
+     "A.anny_signature.face_id", 3),
+    ({"fr_id": 3, "smplx_signature": {"region_id": [], "face_id": []},
+      "anny_signature": {"region_id": [[1, 2]], "face_id": [], "region_names": [["a", "b"], ["c", "d"]]}},
+     "A.anny_signature.region_names", 3),
 ])
 def test_contact_signatures_bad_input(tmp_path, entry, field, frame):
     p = tmp_path / "c.json"
