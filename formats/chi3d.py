@@ -110,7 +110,7 @@ def _check_consistent(path, params: Mapping[str, np.ndarray]) -> None:
     for key, a in params.items():
         if a.shape[:2] != (P, F):
             raise InputError(path, key, f"(persons, frames) {a.shape[:2]} != {ref_key}'s {(P, F)}")
-        if a.shape[-2:] == (3, 3):
+        if SMPLX_SHAPES.get(key, ())[-2:] == (3, 3):  # by the key's layout, not the array's tail
             err = np.abs(a @ np.swapaxes(a, -1, -2) - np.eye(3)).max(axis=(-1, -2))
             err = np.maximum(err, np.abs(np.linalg.det(a) - 1.0))
             bad = (err > ROTATION_TOL).reshape(P, F, -1).any(axis=(0, 2))

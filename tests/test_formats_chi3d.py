@@ -147,3 +147,20 @@ def test_contact_signatures_bad_input(tmp_path, entry, field, frame):
     with pytest.raises(InputError) as e:
         read_contact_signatures(p)
     assert (e.value.file, e.value.field, e.value.frame) == (str(p), field, frame)
+
+
+def test_smplx_with_three_frames_is_not_mistaken_for_rotations(tmp_path):
+    """transl (P, 3, 3) for 3 frames is a translation per frame, not a rotation matrix."""
+    from formats.chi3d import SMPLX_SHAPES, read_smplx, write_smplx
+
+    rng = np.random.default_rng(0)
+    P, F = 2, 3
+    params = {}
+    for key, tail in SMPLX_SHAPES.items():
+        if tail[-2:] == (3, 3):
+            params[key] = np.broadcast_to(np.eye(3), (P, F) + tail).copy()
+        else:
+            params[key] = rng.normal(size=(P, F) + tail)
+    write_smplx(tmp_path / "a.json", params)
+    back = read_smplx(tmp_path / "a.json")
+    np.testing.assert_allclose(back["transl"], params["transl"])
