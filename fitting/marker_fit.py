@@ -41,10 +41,12 @@ from fitting.marker_graph import (
     placement_of,
 )
 from fitting.priors import PosePrior
-from fitting.skinned import FitSkeleton, slot_positions_np
+from fitting.skinned import FitSkeleton, SkinnedPoints
 from formats.errors import InputError
 from formats.skeletons import LEFT_HAND, RIGHT_HAND
 
+# the reasons (artifacts.body_fit.INVALID_REASONS) a frame of the marker fit can be not valid for
+MARKER_FIT_REASONS = ("held_before_first_marker", "too_few_markers")
 DEFAULT_WEIGHTS = {"L_3d": 1.0, "L_2d": 1e-6, "L_theta": 2e-7, "L_s": 1e-6}
 GNC_FACTORS = (20.0, 5.0, 1.0)  # first frame: robust scale sigma times these, in turn
 COMPILE_MODES = ("auto", "compiled", "interpreted")
@@ -141,11 +143,12 @@ def kabsch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return R, cd - R @ cs
 
 
-def initial_pose(skel: FitSkeleton, u: np.ndarray, Hm: np.ndarray, obs: np.ndarray,
+def initial_pose(skel: FitSkeleton, u: np.ndarray, Hm: SkinnedPoints, obs: np.ndarray,
                  vis: np.ndarray) -> np.ndarray:
-    """x with pose 0 and the rigid transform aligning the rest-pose markers to ``obs`` (M, 3)."""
+    """x with pose 0 and the rigid transform aligning the pose-0 markers ``Hm`` to ``obs``
+    (M, 3)."""
     x = np.zeros(skel.n)
-    rest = slot_positions_np(skel, u, Hm, x)
+    rest = Hm.positions(skel, u, x)
     ok = vis > 0
     if ok.sum() < 3:
         raise ValueError("fewer than 3 visible markers: can't initialise the pose")
@@ -160,7 +163,7 @@ def initial_pose(skel: FitSkeleton, u: np.ndarray, Hm: np.ndarray, obs: np.ndarr
 class FrameSolver:
     """Everything fixed over a sequence: the graph, its packed parameters, prior and options."""
 
-    def __init__(self, graph: MarkerGraph, skel: FitSkeleton, u: np.ndarray, Hm: np.ndarray,
+    def __init__(self, graph: MarkerGraph, skel: FitSkeleton, u: np.ndarray, Hm: SkinnedPoints,
                  prior: PosePrior, opts: MarkerFitOptions, Hk=None, cams=None):
         s = graph.spec
         self.graph, self.skel, self.u, self.Hm, self.opts = graph, skel, u, Hm, opts
@@ -249,7 +252,7 @@ def _fit_sequence(solver, obs, vis, uv, conf, progress) -> SequenceFit:
         X[f] = x
         iters[f] = r.iterations
         cost[f] = r.cost
-        m = slot_positions_np(solver.skel, solver.u, solver.Hm, x)
+        m = solver.Hm.positions(solver.skel, solver.u, x)  # = body.markers.marker_positions
         d = np.linalg.norm(m - np.nan_to_num(obs[f]), axis=1)
         res_m[f] = np.where(v > 0, d, np.nan)
         s = solver.opts.sigma_marker_m
@@ -386,7 +389,8 @@ def fit_markers(model, shape: ShapeFit, template: Placement, markers, clock: moc
     reasons = out.reasons()
     report = {
         "frames": F, "first_fitted_frame": first,
-        "frames_valid": reasons.pop("fitted"), "frames_not_valid": reasons,
+        "frames_valid": reasons["fitted"],
+        "frames_not_valid": {n: reasons[n] for n in MARKER_FIT_REASONS},
         "markers": len(pl.names),
         "markers_missing_from_c3d": [n for i, n in enumerate(pl.names) if not vis[:, i].any()],
         "residual_mm": {"median": float(np.nanmedian(mm)), "p90": float(np.nanpercentile(mm, 90)),

@@ -7,7 +7,9 @@ lens model), so it is compiled once per spec and cached (``fitting/compiled.py``
 
 Parameter vector ``p`` (:meth:`MarkerGraph.params` packs it):
     u (Q, 3)            reduced-tree offsets (fitting/skinned.py), metres
-    Hm (M, Q, 4)        marker slot coefficients, only on each marker's support joints
+    Hm (M, 3, Q, 4)     slot coefficients of each marker's three face corners, only on the
+                        marker's support joints (``skinned.SkinnedPoints.corners``)
+    bary (M, 3), offset (M,)        the markers' barycentric coordinates and normal offsets
     Hk (K, Q, 4)        keypoint slot coefficients, likewise
     cams (C, 21)        packed cameras (calib.camera_vector)
     obs (M, 3), vis (M,)            observed markers (metres, world) and visibility 0/1
@@ -15,9 +17,12 @@ Parameter vector ``p`` (:meth:`MarkerGraph.params` packs it):
 Residual ``r = [L_3d (3M), L_2d (2CK)]`` (fitting/terms.py), unweighted.
 
 Markers on the body (:class:`Placement`: face, barycentric coordinates, offset along the
-rest-pose face normal) and what the graph needs of them (slot coefficients, supports) live
+posed face normal) and what the graph needs of them (corner coefficients, supports) live
 here too, so the marker fit and the shape fit share them without importing each other.
-A marker skins like the blend of its face's vertices (weights interpolated with ``bary``).
+A marker is a ``fitting.skinned.SurfacePoints`` point: the bary blend of its posed face
+corners plus the offset along the posed unit face normal, the same definition as
+``body.markers.marker_positions`` on ``body.forward``'s mesh (so ``fit.npz`` residuals are
+reproduced through the public API).
 """
 from __future__ import annotations
 
@@ -52,17 +57,26 @@ class Placement:
     bary: np.ndarray
     offset: np.ndarray
 
+    def points(self) -> skinned.SurfacePoints:
+        """The markers as surface points (fitting/skinned.py)."""
+        return skinned.SurfacePoints(self.face, self.bary, self.offset)
+
+    def markerset(self) -> body_markers.MarkerSet:
+        """The placement as a ``body.markers.MarkerSet`` (for ``marker_positions``)."""
+        return body_markers.make_markerset(self.names, self.face, self.bary, self.offset)
 
 
 def marker_rest_points(rest_vertices: np.ndarray, faces: np.ndarray, pl: Placement) -> np.ndarray:
-    """(M, 3) rest positions: surface point + offset * rest face normal, metres."""
+    """(M, 3) the markers on the rest mesh: surface point + offset * rest face normal, metres
+    (the marker definition evaluated on the unposed mesh)."""
     tri = rest_vertices[faces[pl.face]]  # (M, 3, 3)
     surf = np.einsum("mk,mkd->md", pl.bary, tri)
     return surf + pl.offset[:, None] * face_normals(rest_vertices, faces[pl.face])
 
 
 def marker_weights(model: BodyModel, pl: Placement) -> sp.csr_matrix:
-    """(M, J) skinning weights of the markers (their face's vertex weights blended by bary)."""
+    """(M, J) skinning weights of the markers' surface points (their face's vertex weights
+    blended by bary; the shape fit's linearised placement update)."""
     M = len(pl.face)
     vids = model.faces[pl.face]  # (M, 3)
     B = sp.csr_matrix((pl.bary.reshape(-1), (np.repeat(np.arange(M), 3), vids.reshape(-1))),
@@ -70,10 +84,10 @@ def marker_weights(model: BodyModel, pl: Placement) -> sp.csr_matrix:
     return (B @ model.weights).tocsr()
 
 
-def marker_coeffs(model: BodyModel, rest, skel: skinned.FitSkeleton, pl: Placement) -> np.ndarray:
-    """Slot coefficients Hm (M, Q, 4) of a placement (fitting/skinned.py)."""
-    pts = marker_rest_points(rest.vertices[0], model.faces, pl)
-    return skinned.vertex_coeffs(model, rest, skel, marker_weights(model, pl), pts)
+def marker_coeffs(model: BodyModel, rest, skel: skinned.FitSkeleton,
+                  pl: Placement) -> skinned.SkinnedPoints:
+    """The markers' :class:`fitting.skinned.SkinnedPoints` on the shape ``rest``."""
+    return skinned.surface_coeffs(model, rest, skel, pl.points())
 
 
 
@@ -160,7 +174,7 @@ class GraphSpec:
     def name(self) -> str:
         kp = f"_k{self.n_keypoints}c{self.n_cameras}{self.camera_model}" if self.n_keypoints else ""
         nz = sum(len(s) for s in self.marker_support) + sum(len(s) for s in self.keypoint_support)
-        return f"markers_q{self.Q}_m{self.n_markers}{kp}_nz{nz}"
+        return f"markers_q{self.Q}_s{self.n_markers}{kp}_nz{nz}"
 
 
 class MarkerGraph:
@@ -171,9 +185,10 @@ class MarkerGraph:
             raise ValueError("keypoints need cameras")
         self.spec = spec
         Q, M, K, C = spec.Q, spec.n_markers, spec.n_keypoints, spec.n_cameras
-        self.n_hm = 4 * sum(len(sp) for sp in spec.marker_support)
+        self.n_hm = 12 * sum(len(sp) for sp in spec.marker_support)
         self.n_hk = 4 * sum(len(sp) for sp in spec.keypoint_support)
-        sizes = [("u", Q * 3), ("Hm", self.n_hm), ("Hk", self.n_hk),
+        sizes = [("u", Q * 3), ("Hm", self.n_hm), ("bary", 3 * M), ("offset", M),
+                 ("Hk", self.n_hk),
                  ("cams", C * CAM_VECTOR_SIZE), ("obs", M * 3), ("vis", M),
                  ("uv", C * K * 2), ("conf", C * K)]
         self.slices: dict[str, slice] = {}
@@ -190,8 +205,9 @@ class MarkerGraph:
 
         u = blk("u", Q, 3)
         G, t = skinned.fk_cs(spec.parents, x, u)
-        markers = skinned.slots_cs(G, t, self._blocks(p[self.slices["Hm"]], spec.marker_support),
-                                   spec.marker_support)
+        corners = skinned.corners_cs(G, t, self._blocks(p[self.slices["Hm"]], spec.marker_support,
+                                                        3), spec.marker_support)
+        markers = skinned.surface_points_cs(corners, blk("bary", M, 3), p[self.slices["offset"]])
         r = [terms.L_3d(markers, blk("obs", M, 3), p[self.slices["vis"]])]
         if K:
             kp = skinned.slots_cs(G, t, self._blocks(p[self.slices["Hk"]], spec.keypoint_support),
@@ -210,23 +226,27 @@ class MarkerGraph:
                                   opts or compiled.CompileOptions(), log=log)
 
     @staticmethod
-    def _blocks(flat, support):
+    def _blocks(flat, support, per=1):
         out, o = [], 0
         for sup in support:
-            n = len(sup)
+            n = per * len(sup)
             out.append(ca.reshape(flat[o:o + 4 * n], 4, n).T)
             o += 4 * n
         return out
 
     def params(self, u, Hm, obs, vis, Hk=None, cams=None, uv=None, conf=None) -> np.ndarray:
         """Pack the parameter vector (shapes in the module docstring; gaps: vis 0, obs any).
-        ``Hm (M, Q, 4)``/``Hk (K, Q, 4)`` are restricted to the spec's supports; the largest
-        weight that falls outside is kept in ``self.dropped_weight``."""
+        ``Hm`` (:class:`fitting.skinned.SkinnedPoints`, M points) and ``Hk (K, Q, 4)`` are
+        restricted to the spec's supports; the largest weight that falls outside is kept in
+        ``self.dropped_weight``."""
         s = self.spec
+        if len(Hm) != s.n_markers:
+            raise ValueError(f"{len(Hm)} markers for a graph of {s.n_markers}")
         p = np.zeros(self.n_p)
         p[self.slices["u"]] = np.asarray(u, float).reshape(-1)
-        p[self.slices["Hm"]], self.dropped_weight = skinned.restrict(np.asarray(Hm, float),
-                                                                     s.marker_support)
+        p[self.slices["Hm"]], self.dropped_weight = skinned.restrict_points(Hm, s.marker_support)
+        p[self.slices["bary"]] = np.asarray(Hm.bary, float).reshape(-1)
+        p[self.slices["offset"]] = np.asarray(Hm.offset, float).reshape(-1)
         vis = np.asarray(vis, float).reshape(-1)
         p[self.slices["obs"]] = np.where(vis[:, None] > 0, np.nan_to_num(
             np.asarray(obs, float).reshape(s.n_markers, 3)), 0.0).reshape(-1)

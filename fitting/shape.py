@@ -433,7 +433,7 @@ def _beta_step(model, skel, betas, pl, X, obs, vis, opts):
         rest = rest_state(model, b)
         u, _ = skinned.reduced_offsets(model, rest, skel)
         Hm = marker_coeffs(model, rest, skel, pl)
-        return np.concatenate([skinned.slot_positions_np(skel, u, Hm, x) for x in X])
+        return np.concatenate([Hm.positions(skel, u, x) for x in X])
 
     ok = (vis > 0).reshape(-1)
     target = obs.reshape(-1, 3)
@@ -520,7 +520,7 @@ def refine_placement(model: BodyModel, betas: np.ndarray, pl: Placement, obs: np
     Hm = marker_coeffs(model, rest, skel, pl)
     solver = make_solver(rest, skel, u, Hm)
     X = _solve_poses(solver, obs, vis, X)
-    res = np.stack([np.linalg.norm(skinned.slot_positions_np(skel, u, Hm, x) - np.nan_to_num(o),
+    res = np.stack([np.linalg.norm(Hm.positions(skel, u, x) - np.nan_to_num(o),
                                    axis=1) for x, o in zip(X, obs, strict=True)])
     res = np.where(vis > 0, 1000 * res, np.nan)
     return PlacementFit(pl, betas, X, res)

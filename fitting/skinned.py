@@ -34,6 +34,7 @@ import scipy.sparse as sp
 from body.lbs import RestState
 from body.model import BodyModel
 from body.rotations import rodrigues, rodrigues_cs
+from geometry import face_normals
 
 
 @dataclass(frozen=True, eq=False)
@@ -228,3 +229,153 @@ def regressed_coeffs(model: BodyModel, rest: RestState, skel: FitSkeleton,
         Hj[np.arange(J), skel.owner, 3] = 1.0
         H += (R[:, V:] @ Hj.reshape(J, -1)).reshape(R.shape[0], Q, 4)
     return H
+
+
+# ---------------------------------------------------------------------------- surface points
+
+
+@dataclass(frozen=True, eq=False)
+class SurfacePoints:
+    """Points on the skinned surface (markers, contact facets, colliding proxy vertices).
+
+    face : (N,) int face ids; bary : (N, 3) barycentric coordinates on the face's corners
+    (rows >= 0, sum 1); offset : (N,) metres along the outward unit normal of the *posed*
+    triangle. One definition (``body.markers.marker_positions`` is its full-mesh form):
+
+        p = sum_k bary_k v_k + offset * (v_1 - v_0) x (v_2 - v_0) / |...|,  v_k posed corners.
+
+    A vertex is the point of an incident face with a one-hot ``bary`` and offset 0
+    (:meth:`at_vertices`); a facet's centroid is bary 1/3 (:meth:`facets`)."""
+
+    face: np.ndarray
+    bary: np.ndarray
+    offset: np.ndarray
+
+    def __post_init__(self):
+        f = np.asarray(self.face, np.int64).reshape(-1)
+        b = np.asarray(self.bary, float).reshape(-1, 3)
+        o = np.broadcast_to(np.asarray(self.offset, float), f.shape).copy()
+        if len(b) != len(f):
+            raise ValueError(f"surface points: {len(f)} faces, {len(b)} bary rows")
+        object.__setattr__(self, "face", f)
+        object.__setattr__(self, "bary", b)
+        object.__setattr__(self, "offset", o)
+
+    def __len__(self) -> int:
+        return len(self.face)
+
+    @classmethod
+    def at_vertices(cls, faces: np.ndarray, vertex_ids) -> SurfacePoints:
+        """The vertices ``vertex_ids`` (N,) as surface points: the first face of ``faces``
+        (T, 3) using each, one-hot bary on it, offset 0. A vertex of no face is an error."""
+        F = np.asarray(faces, np.int64)
+        ids = np.asarray(vertex_ids, np.int64).reshape(-1)
+        first = np.full(max(int(F.max(initial=-1)), int(ids.max(initial=-1))) + 1, len(F))
+        np.minimum.at(first, F.reshape(-1), np.repeat(np.arange(len(F)), 3))
+        bad = ids[first[ids] == len(F)] if len(ids) else ids
+        if len(bad):
+            raise ValueError(f"vertices {bad[:5].tolist()} belong to no face")
+        face = first[ids]  # the lowest face id using each vertex (reproducible)
+        bary = (F[face] == ids[:, None]).astype(float)
+        return cls(face, bary, np.zeros(len(ids)))
+
+    @classmethod
+    def facets(cls, face_ids) -> SurfacePoints:
+        """Facet centroids (bary 1/3, offset 0); with :func:`facets_cs` their normals too."""
+        f = np.asarray(face_ids, np.int64).reshape(-1)
+        return cls(f, np.full((len(f), 3), 1.0 / 3.0), np.zeros(len(f)))
+
+
+@dataclass(frozen=True, eq=False)
+class SkinnedPoints:
+    """What the graph needs of :class:`SurfacePoints` for one shape and fit skeleton:
+    corners (N, 3, Q, 4) slot coefficients of each point's three face corners
+    (:func:`vertex_coeffs`), bary (N, 3), offset (N,) metres."""
+
+    corners: np.ndarray
+    bary: np.ndarray
+    offset: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.corners)
+
+    def corner_positions(self, skel: FitSkeleton, u: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """(N, 3, 3) posed corners at unknowns x (numpy twin of :func:`corners_cs`)."""
+        N, _, Q, _ = self.corners.shape
+        return slot_positions_np(skel, u, self.corners.reshape(3 * N, Q, 4), x).reshape(N, 3, 3)
+
+    def positions(self, skel: FitSkeleton, u: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """(N, 3) world positions at unknowns x (numpy twin of :func:`surface_points_cs`)."""
+        return points_on_corners(self.corner_positions(skel, u, x), self.bary, self.offset)
+
+
+def points_on_corners(corners: np.ndarray, bary: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """(..., N, 3) = sum_k bary_k c_k + offset * unit normal of (c_0, c_1, c_2), for corners
+    (..., N, 3, 3) metres (the numpy form of the definition in :class:`SurfacePoints`)."""
+    c = np.asarray(corners, float)
+    N = c.shape[-3]
+    flat = c.reshape(c.shape[:-3] + (3 * N, 3))
+    n = face_normals(flat, np.arange(3 * N).reshape(N, 3))
+    return np.einsum("...nkd,nk->...nd", c, bary) + np.asarray(offset)[:, None] * n
+
+
+def surface_coeffs(model: BodyModel, rest: RestState, skel: FitSkeleton,
+                   pts: SurfacePoints) -> SkinnedPoints:
+    """:class:`SkinnedPoints` of ``pts`` on the shape ``rest`` (each corner skins as its
+    vertex: its own weights and rest position)."""
+    vids = np.asarray(model.faces, np.int64)[pts.face].reshape(-1)  # (3N,)
+    H = vertex_coeffs(model, rest, skel, model.weights[vids], rest.vertices[0, vids])
+    return SkinnedPoints(H.reshape(len(pts), 3, len(skel.joints), 4), pts.bary, pts.offset)
+
+
+def corners_cs(G, t, corners, support):
+    """Posed corners of N points: ``corners`` a list of N SX blocks (3 |sup_n|, 4) (corner k
+    of point n on rows k |sup_n| ...), the three corners sharing the point's ``support[n]``.
+    Returns a list of N (3, 3) SX, one corner per column."""
+    out = []
+    for Hs, sup in zip(corners, support, strict=True):
+        GT = ca.horzcat(*[ca.horzcat(G[q], t[q]) for q in sup])  # (3, 4 |sup|)
+        n = len(sup)
+        cols = [ca.reshape(Hs[k * n:(k + 1) * n, :].T, -1, 1) for k in range(3)]
+        out.append(ca.mtimes(GT, ca.horzcat(*cols)))
+    return out
+
+
+def unit_normal_cs(c):
+    """Unit normal (3, 1) SX of a triangle given as a (3, 3) SX, one corner per column."""
+    n = ca.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
+    return n / ca.norm_2(n)
+
+
+def surface_points_cs(corners, bary, offset):
+    """World positions (N, 3) SX: ``corners`` from :func:`corners_cs`, ``bary`` (N, 3) SX,
+    ``offset`` (N,) SX metres along the posed unit normal (:class:`SurfacePoints`)."""
+    rows = []
+    for i, c in enumerate(corners):
+        rows.append((ca.mtimes(c, bary[i, :].T) + offset[i] * unit_normal_cs(c)).T)
+    return ca.vertcat(*rows) if rows else ca.SX(0, 3)
+
+
+def facets_cs(corners):
+    """Facets for L_N / L_D: (centroids (N, 3), unit normals (N, 3)) SX of posed triangles."""
+    cen = [ca.sum2(c).T / 3 for c in corners]
+    nrm = [unit_normal_cs(c).T for c in corners]
+    return ca.vertcat(*cen), ca.vertcat(*nrm)
+
+
+def restrict_points(pts: SkinnedPoints, support) -> tuple[np.ndarray, float]:
+    """Pack the corners of ``pts`` on ``support`` (per point, shared by its three corners;
+    the layout :func:`corners_cs` reads) and the largest dropped weight (:func:`restrict`)."""
+    N, _, Q, _ = pts.corners.shape
+    sup3 = [s for s in support for _ in range(3)]
+    parts, dropped = [], 0.0
+    for n in range(N):
+        flat, d = restrict(pts.corners[n], sup3[3 * n:3 * n + 3])
+        dropped = max(dropped, d)
+        parts.append(flat)
+    return (np.concatenate(parts) if parts else np.zeros(0)), dropped
+
+
+def points_support(pts: SkinnedPoints, tol: float = 0.0) -> tuple[tuple[int, ...], ...]:
+    """Per point: the fitted joints with a nonzero coefficient (|W| > tol) in any corner."""
+    return tuple(tuple(sorted(set(q for c in support_of(h, tol) for q in c))) for h in pts.corners)

@@ -1,6 +1,8 @@
-"""Slot skinning on the reduced fit skeleton vs body.lbs.forward (the peer), and the marker
-graph's residuals and Jacobian vs numpy and finite differences. A small random body model
-with Anny-style bind rotations stands in for the real one (fast, no export needed)."""
+"""Slot skinning on the reduced fit skeleton vs body.lbs.forward (the peer), surface points
+(markers: face corners + bary + offset along the posed normal) vs forward +
+body.markers.marker_positions, and the marker graph's residuals and Jacobian vs numpy and
+finite differences. A small random body model with Anny-style bind rotations stands in for
+the real one (fast, no export needed)."""
 from __future__ import annotations
 
 import numpy as np
@@ -34,7 +36,7 @@ def random_model(rng, V=60, bind=True, S=4):
                   orient_shapedirs=rng.normal(0, 0.01, (J, 3, 3, S)),
                   ref_orient=rodrigues(rng.normal(0, 0.3, (J, 3))))
     return BodyModel(
-        name="toy", v_template=verts, faces=np.array([[0, 1, 2]]),
+        name="toy", v_template=verts, faces=np.arange(V - V % 3).reshape(-1, 3),
         shapedirs=rng.normal(0, 0.01, (V, 3, S)), joint_template=joints,
         joint_shapedirs=rng.normal(0, 0.01, (J, 3, S)), parents=parents,
         joint_names=tuple(f"j{j}" for j in range(J)), weights=sp.csr_matrix(W),
@@ -75,14 +77,16 @@ def test_marker_graph_residuals_and_jacobian(tmp_path):
     skel = skinned.fit_skeleton(model)
     u, _ = skinned.reduced_offsets(model, rest, skel)
     M, K = 6, 4
-    vm = rng.choice(model.num_vertices, M, replace=False)
+    rng.choice(model.num_vertices, M, replace=False)  # (keeps the draws of the cases below)
     vk = rng.choice(model.num_vertices, K, replace=False)
-    Hm = skinned.vertex_coeffs(model, rest, skel, model.weights[vm], rest.vertices[0, vm])
+    fm = rng.choice(len(model.faces), M, replace=False)
+    pts = skinned.SurfacePoints(fm, rng.dirichlet(np.ones(3), M), rng.uniform(0, 0.02, M))
+    Hm = skinned.surface_coeffs(model, rest, skel, pts)
     Hk = skinned.vertex_coeffs(model, rest, skel, model.weights[vk], rest.vertices[0, vk])
     cams = [look_at(f"c{i}", [3 * np.cos(a), 3 * np.sin(a), 1.2], [0, 0, 0.3], (1000, 1000),
                     (450, 450), 900, 900, k=(-0.1, 0.05, 0.0), p=(1e-4, -2e-4))
             for i, a in enumerate([0.3, 2.0])]
-    spec = marker_graph.GraphSpec(skel.topology, skinned.support_of(Hm), skinned.support_of(Hk),
+    spec = marker_graph.GraphSpec(skel.topology, skinned.points_support(Hm), skinned.support_of(Hk),
                                   len(cams), "h36m")
     g = marker_graph.MarkerGraph(spec, compiled.CompileOptions(mode="interpreted"))
     obs = rng.normal(0, 0.3, (M, 3))
@@ -93,7 +97,7 @@ def test_marker_graph_residuals_and_jacobian(tmp_path):
     p = g.params(u, Hm, obs, vis, Hk, np.stack([camera_vector(c) for c in cams]), uv, conf)
 
     def numpy_r(x):
-        m = skinned.slot_positions_np(skel, u, Hm, x)
+        m = Hm.positions(skel, u, x)
         kp = skinned.slot_positions_np(skel, u, Hk, x)
         uvm = np.concatenate([project(c, kp) for c in cams])
         return np.concatenate([terms.L_3d(m, np.where(vis[:, None] > 0, obs, 0), vis),
@@ -150,3 +154,26 @@ def test_regressed_coeffs_match_regressing_the_full_forward():
     out = forward(model, betas, pose, rodrigues(x[:3])[None], x[3:6][None], rest=rest)
     want = R @ np.concatenate([out.vertices[0], out.joints[0]])
     np.testing.assert_allclose(skinned.slot_positions_np(skel, u, H, x), want, atol=1e-12)
+
+
+def test_surface_points_equal_forward_and_marker_positions():
+    from body.markers import make_markerset, marker_positions
+
+    rng = np.random.default_rng(4)
+    model = random_model(rng)
+    betas = rng.normal(0, 1, 4)
+    rest = rest_state(model, betas)
+    skel = skinned.fit_skeleton(model)
+    u, _ = skinned.reduced_offsets(model, rest, skel)
+    T = len(model.faces)
+    ms = make_markerset([f"m{i}" for i in range(T)], np.arange(T), rng.dirichlet(np.ones(3), T),
+                        rng.uniform(-0.01, 0.05, T))
+    Hm = skinned.surface_coeffs(model, rest, skel, skinned.SurfacePoints(ms.faces, ms.bary,
+                                                                          ms.offsets))
+    for _ in range(3):
+        x = rng.normal(0, 0.6, skel.n)
+        pose = np.zeros((1, model.num_joints, 3))
+        pose[0, skel.joints[1:]] = x[6:].reshape(-1, 3)
+        out = forward(model, betas, pose, rodrigues(x[:3])[None], x[3:6][None], rest=rest)
+        want = marker_positions(out.vertices[0], model.faces, ms)
+        np.testing.assert_allclose(Hm.positions(skel, u, x), want, atol=1e-12)

@@ -21,8 +21,9 @@ def setup():
     u, _ = skinned.reduced_offsets(model, rest, skel)
     M = 24
     vm = rng.choice(model.num_vertices, M, replace=False)
-    Hm = skinned.vertex_coeffs(model, rest, skel, model.weights[vm], rest.vertices[0, vm])
-    graph = MarkerGraph(GraphSpec(skel.topology, skinned.support_of(Hm)),
+    Hm = skinned.surface_coeffs(model, rest, skel,
+                                skinned.SurfacePoints.at_vertices(model.faces, vm))
+    graph = MarkerGraph(GraphSpec(skel.topology, skinned.points_support(Hm)),
                         compiled.CompileOptions(mode="interpreted"))
     prior = priors.default_prior(skel.names[1:])
     return skel, u, Hm, graph, prior
@@ -41,7 +42,7 @@ def motion(rng, skel, F=25):
 
 
 def markers_of(skel, u, Hm, X):
-    return np.stack([skinned.slot_positions_np(skel, u, Hm, x) for x in X])
+    return np.stack([Hm.positions(skel, u, x) for x in X])
 
 
 def test_known_motion_recovered_from_its_own_markers(setup):
@@ -103,9 +104,9 @@ def test_kabsch_initialisation(setup):
     x = np.zeros(skel.n)
     x[:3] = rng.normal(0, 1, 3)
     x[3:6] = rng.normal(0, 1, 3)
-    obs = skinned.slot_positions_np(skel, u, Hm, x)
+    obs = Hm.positions(skel, u, x)
     vis = np.ones(len(obs))
     x0 = marker_fit.initial_pose(skel, u, Hm, obs, vis)
-    np.testing.assert_allclose(skinned.slot_positions_np(skel, u, Hm, x0), obs, atol=1e-10)
+    np.testing.assert_allclose(Hm.positions(skel, u, x0), obs, atol=1e-10)
     with pytest.raises(ValueError, match="fewer than 3"):
         marker_fit.initial_pose(skel, u, Hm, obs, np.r_[1, 1, np.zeros(len(obs) - 2)])

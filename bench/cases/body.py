@@ -5,8 +5,9 @@ Keys:
   precomputed (``rest_state`` once per subject, as the pipeline does);
 - ``body.forward_batch_ms``: per frame, 100 frames in one call;
 - ``body.rest_state_ms``: the shape part for 404 betas (once per subject);
-- ``body.slot_graph_build_s``: building the CasADi marker graph (39 Plug-in Gait markers,
-  52 fit joints, shape fixed).
+- ``body.slot_graph_build_s``: building the CasADi marker graph (39 Plug-in Gait markers as
+  surface points, ``fitting.marker_graph.MarkerGraph``, 52 fit joints, shape fixed,
+  interpreted: the symbolic residual and Jacobian, no C compile).
 """
 from __future__ import annotations
 
@@ -30,9 +31,9 @@ def _best_ms(f, n: int) -> float:
 
 def run(work: Path) -> dict[str, float]:  # noqa: ARG001 (bench contract)
     from body import forward, load_model, rest_state
-    from body.lbs import marker_lbs_cs, slot_spec
-    from body.markers import plug_in_gait
     from body.rotations import rodrigues
+    from fitting import compiled, skinned
+    from fitting.marker_graph import GraphSpec, MarkerGraph, marker_support, template_placement
 
     model = load_model("anny")
     rng = np.random.default_rng(0)
@@ -48,6 +49,8 @@ def run(work: Path) -> dict[str, float]:  # noqa: ARG001 (bench contract)
         "body.rest_state_ms": _best_ms(lambda: rest_state(model, betas), 3),
     }
     t = time.perf_counter()
-    marker_lbs_cs(model, slot_spec(model, 3 * len(plug_in_gait(model))))
+    skel = skinned.fit_skeleton(model)
+    spec = GraphSpec(skel.topology, marker_support(model, skel, template_placement(model, "plug-in-gait")))
+    MarkerGraph(spec, compiled.CompileOptions(mode="interpreted"))
     res["body.slot_graph_build_s"] = time.perf_counter() - t
     return res
