@@ -87,6 +87,23 @@ class DetectorFactory(Protocol):
     def build(self) -> Detector: ...
 
 
+def call_detector(det, image, *, kind: Kind, box=None, cam: int = 0, frame: int = 0,
+                  stream=None) -> Detections:
+    """``det.detect(...)``, naming the ``stream`` (the person and view followed from frame to
+    frame, e.g. ``("wearer", cam)``) to detectors that track (``det.streams`` true:
+    mediapipe's video mode); other detectors are called without it."""
+    if stream is not None and getattr(det, "streams", False):
+        return det.detect(image, kind=kind, box=box, cam=cam, frame=frame, stream=stream)
+    return det.detect(image, kind=kind, box=box, cam=cam, frame=frame)
+
+
+def forget_stream(det, stream) -> None:
+    """Tell a tracking detector that its last result on ``stream`` was rejected (it must not
+    track that person on); a no-op for other detectors."""
+    if stream is not None and getattr(det, "streams", False):
+        det.forget(stream)
+
+
 @contextlib.contextmanager
 def quiet_native_logs():
     """Send file descriptor 2 (native stderr) to /dev/null inside the block. Python-level

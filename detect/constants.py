@@ -97,3 +97,40 @@ MIN_PARTNER_SPAN_FRAC = 0.3
 #: Cross-view check (detect/multiview.py): RANSAC inlier threshold, pixels. Detector noise on
 #: studio renders is ~5 px median, ~20 px p90; a mixed or mirrored skeleton misses by 40+.
 CROSS_VIEW_PX = 25.0
+
+#: A person keeps its keypoints in a view unless fewer than MIN_KEPT_FRAC of its confident
+#: body keypoints there survive the cross-view check and the partner/wearer guard AND at most
+#: MAX_LEFTOVER_KP are left (detect.sequence.mostly_dropped): then the detection mixed both
+#: people and the leftovers are as likely the other's. On the bench session (every 10th frame)
+#: 0.5 alone removed 4 of the 7 swapped views at a cost of 0.3 / 2 points of the wearer's /
+#: partner's body detection rate (0.8: 6 of 7, 7 / 5 points); with at most 8 (or 7) leftovers
+#: the same 4 went at 0.4 / 0.7 points; at most 6 removed only 2 of them.
+MIN_KEPT_FRAC = 0.5
+MAX_LEFTOVER_KP = 8
+
+#: ... and only when the leftovers look like the other person's (detect.sequence.
+#: leftovers_look_swapped), as fractions of the wearer's crop-box height: the wearer's lie
+#: (median) farther than LEFTOVER_OFF_ANCHOR_FRAC from its marker anchors (a correct wearer
+#: lies 0.027 from them, median), the partner's nearer than LEFTOVER_ON_WEARER_FRAC to one of
+#: the wearer's markers. On the bench session the mostly-dropped partners whose leftovers were
+#: its own lay 0.058-0.11 from the wearer's markers, those that were the wearer's 0.019-0.044.
+LEFTOVER_OFF_ANCHOR_FRAC = 0.03
+LEFTOVER_ON_WEARER_FRAC = 0.05
+
+#: A hand crop is run only when its expected wrist lies in the image and at least this
+#: fraction of the crop's area does (detect.people.hand_crop_useful): a hand mostly out of the
+#: picture is not found anyway, and each hand call costs as much as ~0.6 pose calls.
+MIN_HAND_BOX_INSIDE = 0.5
+
+#: The head centre needs at least this many of the four head markers seen (their mean is then
+#: within ~8 cm of the centre, the markers sitting ~10 cm from it; on the bench session one
+#: head marker is unseen in up to 40 % of a sequence's frames).
+MIN_HEAD_MARKERS = 2
+
+#: The partner's face keypoints, triangulated over the views, must lie farther than this
+#: (metres) from the wearer's head centre (mean of its head markers): a skull's radius is
+#: ~0.1 m, so a nearer "partner" nose or ear is the wearer's (detect.sequence.cross_view_guard;
+#: in 2D the partner's face in front of the wearer's head lies as near as the wearer's own).
+#: On the bench session it removed one swapped view (Hug, the wearer's face on the partner's
+#: body) for 0.3 points of the partner's body detection rate in Hug, none elsewhere.
+PARTNER_FACE_HEAD_M = 0.1

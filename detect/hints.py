@@ -23,6 +23,9 @@ PIG_HAND = (
     (("RWRA", "RWRB"), "RFIN"),
 )
 
+#: Head markers: their mean is the head's centre (~10 cm behind the nose, between the ears).
+PIG_HEAD = ("LFHD", "RFHD", "LBHD", "RBHD")
+
 #: KP65 keypoint -> markers whose mean lies near it (a few cm off the joint centre: markers
 #: sit on the skin). Used only as a coarse identity check, never as keypoints.
 PIG_ANCHORS = {
@@ -86,6 +89,26 @@ def _project_visible(cam: Camera, X: np.ndarray) -> np.ndarray:
     uv = project(cam, Xs)
     uv[~ok | (z <= 0)] = np.nan
     return uv
+
+
+def head_centre(markers: np.ndarray, labels: list[str]) -> np.ndarray:
+    """(F, 3) the wearer's head centre: the mean of the PIG_HEAD markers, or, where some are
+    unseen, the mean of the seen ones if there are at least MIN_HEAD_MARKERS of them (within
+    ~8 cm of the centre: the markers sit ~10 cm from it; NaN otherwise, and when the marker
+    set has none). markers : (F, M, 3) metres, world."""
+    markers = np.asarray(markers, dtype=np.float64)
+    index = {}
+    for i, lab in enumerate(labels):
+        index.setdefault(_key(lab), i)
+    idx = [index.get(n) for n in PIG_HEAD]
+    if any(i is None for i in idx):
+        return np.full((markers.shape[0], 3), np.nan)
+    H = markers[:, idx]  # (F, 4, 3)
+    seen = np.all(np.isfinite(H), axis=-1)
+    n = seen.sum(axis=1)
+    out = np.where(seen[..., None], H, 0.0).sum(axis=1) / np.maximum(n, 1)[:, None]
+    out[n < K.MIN_HEAD_MARKERS] = np.nan
+    return out
 
 
 def wearer_hints(cams: list[Camera], markers: np.ndarray, labels: list[str],

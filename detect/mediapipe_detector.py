@@ -10,6 +10,16 @@
   the person's right hand in our camera images. :func:`hand_side` does the flip.
 - Confidence: pose keypoints use the landmark's ``visibility``; hand keypoints all get the
   handedness score (the legacy API exposes no per-landmark confidence).
+- Video mode (``MediapipeOptions.video``): a caller that looks at the same person in the same
+  view frame after frame (the wearer's crop, the partner's tracked crop) names it with
+  ``stream=``; each stream gets its own ``solutions.pose`` graph in tracking mode
+  (``static_image_mode=False``, no landmark smoothing: the crop moves with the person and
+  frames may be strided), which skips the person detector while the previous frame's
+  landmarks still hold a person. A tracked call that finds nobody is redone in static mode
+  (no detection lost), and :meth:`MediapipeDetector.forget` drops a stream whose result the
+  caller rejected (the next call detects afresh: tracking never carries a wrong person on).
+  Streams live as long as the detector, and :mod:`detect.run` builds one per chunk of
+  fixed length, so results still do not depend on the number of workers.
 - The native code logs to stderr (TFLite, absl); :func:`detect.base.quiet_native_logs`
   silences it around graph construction and every call (and around whole chunks in
   :mod:`detect.run`, since some lines come from graph threads after a call returns).
@@ -25,6 +35,9 @@ from detect.base import Detections, Kind, quiet_native_logs
 from detect.constants import N_KP
 from detect.crops import crop_to_image, crop_window
 
+#: What a stale tracking graph is shown to make it drop its person (see MediapipeDetector.forget).
+_BLANK = np.zeros((32, 32, 3), np.uint8)
+
 
 def hand_side(label: str) -> int:
     """Anatomical side (0 left, 1 right) of a mediapipe handedness label on an unmirrored
@@ -38,18 +51,22 @@ def hand_side(label: str) -> int:
 
 @dataclass(frozen=True)
 class MediapipeOptions:
-    """Thresholds of the two mediapipe solutions (both run in static-image mode: every crop
-    is detected afresh, so results do not depend on frame order or on the worker split).
+    """Thresholds of the two mediapipe solutions. Hands always run in static-image mode;
+    pose too unless ``video`` (then calls naming a ``stream`` track, see the module doc).
 
     pose_min_conf : pose detector's minimum person score.
     hand_min_conf : palm detector's minimum score.
     max_hands : hands returned per hand crop (2: in a handshake both people's hands are in the
         crop and the caller picks the one at the expected wrist).
+    video : pose calls that name a ``stream`` track the person from the stream's previous
+        call (mediapipe's video mode). track_min_conf : its tracking threshold.
     """
 
     pose_min_conf: float = 0.3
     hand_min_conf: float = 0.3
     max_hands: int = 2
+    video: bool = False
+    track_min_conf: float = 0.5
 
     def build(self) -> "MediapipeDetector":
         return MediapipeDetector(self)
@@ -61,6 +78,7 @@ class MediapipeDetector:
 
     name = "mediapipe"
     needs_pixels = True
+    streams = True  # detect() takes stream= (see detect.base.call_detector)
 
     def __init__(self, opts: MediapipeOptions = MediapipeOptions()):
         self.opts = opts
@@ -74,15 +92,51 @@ class MediapipeDetector:
             self._hands = mp_hands.Hands(
                 static_image_mode=True, max_num_hands=opts.max_hands, model_complexity=1,
                 min_detection_confidence=opts.hand_min_conf)
+        self._tracks: dict = {}
+        self._stale: set = set()
+        #: tracked pose calls, and those redone in static mode (found nobody)
+        self.tracked_calls = 0
+        self.static_retries = 0
+
+    def _tracker(self, stream):
+        p = self._tracks.get(stream)
+        if p is None:
+            from mediapipe.python.solutions import pose as mp_pose
+
+            with quiet_native_logs():
+                p = mp_pose.Pose(static_image_mode=False, model_complexity=1,
+                                 smooth_landmarks=False, enable_segmentation=False,
+                                 min_detection_confidence=self.opts.pose_min_conf,
+                                 min_tracking_confidence=self.opts.track_min_conf)
+            self._tracks[stream] = p
+        elif stream in self._stale:
+            with quiet_native_logs():
+                p.process(_BLANK)  # nobody there: tracking stops, the next call detects
+        self._stale.discard(stream)
+        return p
+
+    def forget(self, stream) -> None:
+        """Drop what ``stream`` tracks (its caller rejected the last result): its next call
+        runs the person detector again. Restarting a graph costs ~7 pose calls, so the
+        stream's graph is instead shown a blank image before its next call (it loses the
+        person and detects afresh)."""
+        if stream in self._tracks:
+            self._stale.add(stream)
 
     def close(self) -> None:
         with quiet_native_logs():
             self._pose.close()
             self._hands.close()
+            for p in self._tracks.values():
+                p.close()
+        self._tracks = {}
+        self._stale = set()
 
     def detect(self, image: np.ndarray | None, *, kind: Kind, box: np.ndarray | None = None,
-               cam: int = 0, frame: int = 0) -> Detections:  # noqa: ARG002 (interface)
-        """See :meth:`detect.base.Detector.detect`. image : (H, W, 3) uint8 RGB."""
+               cam: int = 0, frame: int = 0, stream=None) -> Detections:  # noqa: ARG002
+        """See :meth:`detect.base.Detector.detect`. image : (H, W, 3) uint8 RGB. stream : any
+        hashable naming the person and view followed from call to call (video mode, body
+        only); None: static."""
         if image is None:
             raise ValueError("MediapipeDetector.detect: needs the image pixels")
         h, w = image.shape[:2]
@@ -92,14 +146,20 @@ class MediapipeDetector:
         x0, y0, x1, y1 = win
         crop = np.ascontiguousarray(image[y0:y1, x0:x1])
         if kind == "body":
-            return self._body(crop, win)
+            if self.opts.video and stream is not None:
+                self.tracked_calls += 1
+                out = self._body(crop, win, self._tracker(stream))
+                if len(out):
+                    return out
+                self.static_retries += 1  # the tracker lost the person: detect afresh
+            return self._body(crop, win, self._pose)
         if kind == "hands":
             return self._hand_list(crop, win)
         raise ValueError(f"MediapipeDetector.detect: kind must be 'body' or 'hands', got {kind!r}")
 
-    def _body(self, crop: np.ndarray, win) -> Detections:
+    def _body(self, crop: np.ndarray, win, graph) -> Detections:
         with quiet_native_logs():
-            res = self._pose.process(crop)
+            res = graph.process(crop)
         if res.pose_landmarks is None:
             return Detections.empty()
         lm = res.pose_landmarks.landmark

@@ -39,10 +39,12 @@ class CrossViewOptions:
 @dataclass(frozen=True)
 class CrossView:
     """outlier : (C, ...) bool, observed but missing the point >= min_agree views agree on.
-    confirmed : (C, ...) bool, observed and one of those agreeing views."""
+    confirmed : (C, ...) bool, observed and one of those agreeing views.
+    xyz : (..., 3) that point (world metres; NaN where fewer views agree), or None."""
 
     outlier: np.ndarray
     confirmed: np.ndarray
+    xyz: np.ndarray | None = None
 
 
 def cross_view_check(cams, kp: np.ndarray, opts: CrossViewOptions = CrossViewOptions()) -> CrossView:
@@ -60,7 +62,8 @@ def cross_view_check(cams, kp: np.ndarray, opts: CrossViewOptions = CrossViewOpt
                                                  min_views=opts.min_agree, min_conf=opts.min_conf))
     inl = np.moveaxis(t.inliers, -1, 0)  # (C, ...)
     judged = inl.sum(axis=0) >= opts.min_agree
-    return CrossView(obs & judged[None] & ~inl, obs & judged[None] & inl)
+    xyz = np.where(judged[..., None], t.xyz, np.nan)
+    return CrossView(obs & judged[None] & ~inl, obs & judged[None] & inl, xyz)
 
 
 def cross_view_outliers(cams, kp: np.ndarray, opts: CrossViewOptions = CrossViewOptions()) -> np.ndarray:

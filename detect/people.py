@@ -40,7 +40,7 @@ import numpy as np
 
 from detect import constants as K
 from detect import layout
-from detect.base import Detector
+from detect.base import Detector, call_detector, forget_stream
 from detect.crops import box_from_points, expand_box, hand_box_from_arm
 from detect.hints import WearerHints
 from detect.mask import paint_out, silhouette_mask
@@ -201,8 +201,10 @@ def _find_wearer(image, hints: WearerHints, det: Detector, o: PeopleOptions, cam
             near = silhouette_mask(image.shape[:2], np.zeros((layout.N, 3)), layout.EDGES,
                                    o.isolate_radius_frac * h, points=hints.markers)
             img = paint_out(image, ~near)
-        return best(det.detect(img, kind="body", box=hints.box, cam=cam, frame=frame))
+        return best(call_detector(det, img, kind="body", box=hints.box, cam=cam, frame=frame,
+                                  stream=stream))
 
+    stream = ("wearer", cam)  # the crop follows the wearer: a tracking detector follows it
     order = (True, False) if isolated_first else (False, True)
     if not det.needs_pixels:
         order = (False,)
@@ -211,6 +213,7 @@ def _find_wearer(image, hints: WearerHints, det: Detector, o: PeopleOptions, cam
         if cand is not None and ok:
             kp[layout.BODY] = cand[layout.BODY]
             return kp, isolated
+        forget_stream(det, stream)  # never track on from a rejected person
     # Nothing matched the markers: report the wearer missing in this view rather than risk
     # the partner's (or mirrored) keypoints as the wearer's.
     return kp, False
@@ -231,6 +234,8 @@ def _hands(image, person_kp: np.ndarray, boxes: np.ndarray, anchors: np.ndarray,
         box = boxes[side]
         if not np.all(np.isfinite(box)) or not np.all(np.isfinite(anchors[side])):
             continue
+        if image is not None and not hand_crop_useful(box, anchors[side], image.shape[:2]):
+            continue
         cands = det.detect(image, kind="hands", box=box, cam=cam, frame=frame).kp
         if avoid is not None and len(cands):
             cands = cands[~is_same_person(cands, avoid, radius)]
@@ -242,6 +247,21 @@ def _hands(image, person_kp: np.ndarray, boxes: np.ndarray, anchors: np.ndarray,
         hand = pick_hand(cands, side, anchors[side], o.hand_anchor_frac * _height(box), layout.HANDS)
         if hand is not None:
             person_kp[layout.HANDS[side]] = hand
+
+
+def hand_crop_useful(box: np.ndarray, wrist: np.ndarray, shape: tuple[int, int],
+                     min_inside: float = K.MIN_HAND_BOX_INSIDE) -> bool:
+    """Can a hand crop ``box`` (4,) whose wrist is expected at ``wrist`` (2,) find a hand in an
+    image of ``shape`` (H, W)? Not when the wrist lies outside the image or less than
+    ``min_inside`` of the box's area does (the hand is out of the picture: a detector call
+    for nothing)."""
+    h, w = shape
+    if not (0 <= wrist[0] < w and 0 <= wrist[1] < h):
+        return False
+    area = (box[2] - box[0]) * (box[3] - box[1])
+    ix = max(0.0, min(box[2], w) - max(box[0], 0.0))
+    iy = max(0.0, min(box[3], h) - max(box[1], 0.0))
+    return bool(area > 0 and ix * iy >= min_inside * area)
 
 
 def _partner_hand_boxes(kp: np.ndarray, conf: float) -> tuple[np.ndarray, np.ndarray]:
@@ -307,8 +327,9 @@ def find_people(image: np.ndarray | None, hints: WearerHints, prev_partner_box: 
         painted = paint_out(image, m)
         variants = [True, False] if partner_masked_first else [False, True]
 
-    def look(box, masked):
-        cands = det.detect(painted if masked else image, kind="body", box=box, cam=cam, frame=frame).kp
+    def look(box, masked, stream=None):
+        cands = call_detector(det, painted if masked else image, kind="body", box=box, cam=cam,
+                              frame=frame, stream=stream).kp
         if len(cands):
             # The wearer found again, by the markers, as labelled or mirrored (back views fool
             # the detector's left/right): not the partner, whatever the rule says (the rule
@@ -334,13 +355,15 @@ def find_people(image: np.ndarray | None, hints: WearerHints, prev_partner_box: 
         return not np.isfinite(hw) or span >= K.MIN_PARTNER_SPAN_FRAC * hw
 
     partner, mode, used = np.zeros((layout.N, 3), np.float32), 0, variants[0]
+    pstream = ("partner", cam)  # crops around the partner (tracked, refined) follow it
     if o.track and prev_partner_box is not None and np.all(np.isfinite(prev_partner_box)):
         sb = expand_box(prev_partner_box, o.track_margin, min_side=K.MIN_BODY_BOX_PX, square=True)
         for masked in variants:
-            p = look(sb, masked)
+            p = look(sb, masked, pstream)
             if found(p):
                 partner, mode, used, boxes[1] = p, 1, masked, sb
                 break
+            forget_stream(det, pstream)
     if mode == 0:
         if image is not None:
             boxes[1] = (0.0, 0.0, float(image.shape[1]), float(image.shape[0]))
@@ -354,7 +377,9 @@ def find_people(image: np.ndarray | None, hints: WearerHints, prev_partner_box: 
                 weak = p
         if mode == 2 and det.needs_pixels:  # refine in a crop around what the whole image gave
             rb = _person_box(partner, o.accept_conf, o.body_margin)
-            p2 = look(rb, used)
+            p2 = look(rb, used, pstream)
+            if not found(p2):
+                forget_stream(det, pstream)
             if found(p2) and _n_good(p2, o.accept_conf) >= _n_good(partner, o.accept_conf):
                 partner, boxes[1] = p2, rb
         elif mode == 0 and weak is not None and not det.needs_pixels:

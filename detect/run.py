@@ -16,7 +16,7 @@ from typing import Any, Callable, Protocol
 import numpy as np
 
 from detect import layout
-from detect.base import DetectorFactory, quiet_native_logs
+from detect.base import DetectorFactory, call_detector, forget_stream, quiet_native_logs
 from detect.hints import WearerHints
 from detect.people import PeopleOptions, find_people
 from pipeline.procs import process_pool
@@ -60,8 +60,12 @@ class SequenceKeypoints:
     boxes : (C, F, 2, 4) body crop boxes (x0, y0, x1, y1). hand_boxes : (C, F, 2, 2, 4).
     frames : (F,) video frame indices. wearer_retry : (C, F) bool. partner_mode : (C, F) int8
     (0 not found, 1 tracked, 2 whole image). cpu_s : CPU seconds spent in the workers
-    (all their threads); wall_s : wall-clock seconds. meter : detector calls and their CPU
-    seconds per kind (``body_calls``, ``hands_calls``, ``body_cpu_s``, ``hands_cpu_s``).
+    (all their threads), setup included; wall_s : wall-clock seconds. meter : detector
+    calls, calls that found nothing and their CPU seconds per kind (``body_calls``,
+    ``body_empty``, ``body_cpu_s``, the same for ``hands``), a tracking detector's
+    ``body_tracked_calls`` / ``body_static_retries``, and ``setup_cpu_s``: the part of
+    ``cpu_s`` spent building detectors and opening videos (per chunk; the first chunk of a
+    worker also imports mediapipe, ~1 s).
     """
 
     kp: np.ndarray
@@ -90,14 +94,32 @@ class _Metered:
         self.det = det
         self.name = det.name
         self.needs_pixels = det.needs_pixels
+        self.streams = getattr(det, "streams", False)
         self.calls = {"body": 0, "hands": 0}
+        self.empty = {"body": 0, "hands": 0}
         self.cpu_s = {"body": 0.0, "hands": 0.0}
 
-    def detect(self, image, *, kind, box=None, cam=0, frame=0):
+    def detect(self, image, *, kind, box=None, cam=0, frame=0, stream=None):
         t = time.process_time()
-        out = self.det.detect(image, kind=kind, box=box, cam=cam, frame=frame)
+        out = call_detector(self.det, image, kind=kind, box=box, cam=cam, frame=frame,
+                            stream=stream)
         self.cpu_s[kind] += time.process_time() - t
         self.calls[kind] += 1
+        self.empty[kind] += len(out) == 0
+        return out
+
+    def forget(self, stream):
+        forget_stream(self.det, stream)
+
+    def counts(self) -> dict:
+        """The meter: calls, calls that found nothing, CPU seconds per kind, and the tracking
+        detector's tracked calls and static retries (when it has them)."""
+        out = {f"{k}_calls": v for k, v in self.calls.items()}
+        out.update({f"{k}_empty": v for k, v in self.empty.items()})
+        out.update({f"{k}_cpu_s": v for k, v in self.cpu_s.items()})
+        for k in ("tracked_calls", "static_retries"):
+            if hasattr(self.det, k):
+                out[f"body_{k}"] = getattr(self.det, k)
         return out
 
     def close(self):
@@ -108,6 +130,7 @@ def _run_chunk_loud(source, factory, hints, frames, n_cam, opts):
     t0 = time.process_time()
     det = _Metered(factory.build())
     reader = source.open() if det.needs_pixels else None
+    setup = time.process_time() - t0  # the detector's import and graphs, the video readers
     n = len(frames)
     kp = np.zeros((n_cam, n, 2, layout.N, 3), np.float32)
     boxes = np.full((n_cam, n, 2, 4), np.nan)
@@ -134,9 +157,9 @@ def _run_chunk_loud(source, factory, hints, frames, n_cam, opts):
             reader.close()
         det.close()
     out = dict(kp=kp, boxes=boxes, hand_boxes=hand_boxes, wearer_retry=retry, partner_mode=mode)
-    meter = {f"{k}_calls": v for k, v in det.calls.items()}
-    meter.update({f"{k}_cpu_s": v for k, v in det.cpu_s.items()})
+    meter = det.counts()
     meter["cpu_s"] = time.process_time() - t0
+    meter["setup_cpu_s"] = setup
     return out, meter
 
 

@@ -90,7 +90,8 @@ def summary(kp: np.ndarray, cpu_s: float, wall_s: float, n_frames: int) -> dict:
     return out
 
 
-def cross_view_guard(cams, kp: np.ndarray, hints, opts: SequenceOptions) -> np.ndarray:
+def cross_view_guard(cams, kp: np.ndarray, hints, opts: SequenceOptions,
+                     head_xyz: np.ndarray | None = None) -> np.ndarray:
     """(C, F, 2, 65) bool: observations of ``kp (C, F, 2, 65, 3)`` to drop (not modified).
 
     1. :func:`detect.multiview.cross_view_check`: disagrees with what two other views agree on;
@@ -98,7 +99,17 @@ def cross_view_guard(cams, kp: np.ndarray, hints, opts: SequenceOptions) -> np.n
        keypoints) nothing there told the two people apart (the people overlap in that view),
        so the partner's keypoints in that view are kept only where other views confirm them;
     3. what is left of a partner candidate that mixed both people may be the wearer's part of
-       it: a partner that passes the wearer's marker check in a view is dropped there.
+       it: a partner that passes the wearer's marker check in a view is dropped there;
+    4. the partner's face keypoints that the views agree to put within PARTNER_FACE_HEAD_M of
+       the wearer's head centre ``head_xyz (F, 3)`` (world metres, the mean of its head
+       markers, :func:`detect.hints.head_centre`; None: not checked): the wearer's face taken
+       for the partner's (hugs);
+    5. a person whose confident body keypoints in a view were mostly dropped by 1-4
+       (:func:`mostly_dropped`) was a skeleton mixing both people there: when its leftovers
+       look like the other person's by the wearer's markers (:func:`leftovers_look_swapped`)
+       they are dropped too (on the bench session 4 of the 7 swapped views were such
+       leftovers), except the wearer's hands (found in crops around its hand markers, not
+       from that skeleton).
     """
     from detect.multiview import CrossViewOptions, cross_view_check
     from detect.people import partner_looks_like_wearer
@@ -113,7 +124,59 @@ def cross_view_guard(cams, kp: np.ndarray, hints, opts: SequenceOptions) -> np.n
     left[..., 2][outlier[:, :, 1]] = 0.0
     mixed = partner_looks_like_wearer(left, hints, opts.people())
     outlier[:, :, 1] |= mixed[..., None] & (left[..., 2] > 0)
-    return outlier
+    if head_xyz is not None and xv.xyz is not None:
+        X = xv.xyz[:, 1][:, layout.FACE]  # (F, 5, 3) the partner's face as the views agree
+        with np.errstate(invalid="ignore"):
+            on_head = np.linalg.norm(X - np.asarray(head_xyz)[:, None], axis=-1) < K.PARTNER_FACE_HEAD_M
+        bad = np.zeros(conf.shape[1:2] + (layout.N,), bool)  # (F, 65)
+        bad[:, layout.FACE] = on_head
+        outlier[:, :, 1] |= bad[None] & (conf[:, :, 1] > 0)
+    gone = mostly_dropped(conf, outlier) & leftovers_look_swapped(kp, outlier, hints)
+    gone = gone[..., None] & (conf > 0)
+    gone[:, :, 0, layout.BODY.stop:] = False  # the wearer's hands come from its own marker crops
+    return outlier | gone
+
+
+def leftovers_look_swapped(kp: np.ndarray, outlier: np.ndarray, hints) -> np.ndarray:
+    """(C, F, 2) bool: the confident body keypoints of ``kp (C, F, 2, 65, 3)`` left after
+    ``outlier (C, F, 2, 65)`` look like the other person's, by the wearer's markers: the
+    wearer's lie (median) farther than LEFTOVER_OFF_ANCHOR_FRAC x its crop-box height from
+    its marker anchors of the same type (either side), the partner's nearer than
+    LEFTOVER_ON_WEARER_FRAC to one of the wearer's projected markers. No anchors or markers
+    to judge by: False."""
+    C, F = kp.shape[:2]
+    out = np.zeros((C, F, 2), bool)
+    hw = hints.box[..., 3] - hints.box[..., 1]
+    body = kp[:, :, :, layout.BODY]
+    left = (body[..., 2] >= K.MIN_CONF) & ~outlier[:, :, :, layout.BODY]
+    A = hints.anchors[:, :, layout.BODY]
+    flip = layout.FLIP[layout.BODY]
+    with np.errstate(invalid="ignore"):
+        for c, f in zip(*np.nonzero(left.any(axis=-1).any(axis=-1)), strict=True):
+            w = body[c, f, 0]
+            da = np.fmin(np.linalg.norm(w[:, :2] - A[c, f], axis=-1),
+                         np.linalg.norm(w[:, :2] - A[c, f][flip], axis=-1))[left[c, f, 0]]
+            if np.isfinite(da).any():
+                out[c, f, 0] = np.nanmedian(da) > K.LEFTOVER_OFF_ANCHOR_FRAC * hw[c, f]
+            P = body[c, f, 1][left[c, f, 1], :2]
+            M = hints.markers[c, f]
+            M = M[np.all(np.isfinite(M), axis=-1)]
+            if len(P) and len(M):
+                dm = np.linalg.norm(P[:, None] - M[None], axis=-1).min(axis=1)
+                out[c, f, 1] = np.median(dm) < K.LEFTOVER_ON_WEARER_FRAC * hw[c, f]
+    return out
+
+
+def mostly_dropped(conf: np.ndarray, outlier: np.ndarray, frac: float | None = None) -> np.ndarray:
+    """(C, F, 2) bool: fewer than ``frac`` (default MIN_KEPT_FRAC) of the person's confident
+    body keypoints in that view survive ``outlier``, and at most MAX_LEFTOVER_KP do (a few
+    leftovers of a skeleton that mixed both people). conf : (C, F, 2, 65) detector
+    confidences; outlier : (C, F, 2, 65) bool."""
+    frac = K.MIN_KEPT_FRAC if frac is None else frac
+    body = conf[..., layout.BODY] >= K.MIN_CONF
+    raw = body.sum(axis=-1)
+    kept = (body & ~outlier[..., layout.BODY]).sum(axis=-1)
+    return (raw > 0) & (kept < frac * raw) & (kept <= K.MAX_LEFTOVER_KP)
 
 
 def detect_keypoints(cams: list, source: FrameSource, marker_xyz: np.ndarray,
@@ -136,7 +199,7 @@ def detect_keypoints(cams: list, source: FrameSource, marker_xyz: np.ndarray,
     partner modes, outliers, detection rates, speed).
     Raises ValueError when no marker is seen at any frame (the stage checks that first and
     names the C3D)."""
-    from detect.hints import wearer_hints
+    from detect.hints import head_centre, wearer_hints
     from detect.run import detect_sequence
 
     frames = np.asarray(frames, dtype=np.int64)
@@ -155,7 +218,8 @@ def detect_keypoints(cams: list, source: FrameSource, marker_xyz: np.ndarray,
     conf_raw = kp[..., 2].copy()
     outlier = np.zeros(conf_raw.shape, bool)
     if opts.cross_view and len(cams) >= 3:
-        outlier = cross_view_guard(cams, kp, hints, opts)
+        outlier = cross_view_guard(cams, kp, hints, opts,
+                                   head_centre(marker_xyz, list(marker_names)))
         kp[..., 2][outlier] = 0.0
     out = Keypoints2D(kp=kp.astype(np.float32), boxes=res.boxes.astype(np.float32),
                       hand_boxes=res.hand_boxes.astype(np.float32), frames=res.frames,

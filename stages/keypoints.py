@@ -45,6 +45,10 @@ class Options:
     body_margin : wearer crop margin (fraction of the marker box's larger side).
     near_frac : the paper's "close proximity", fraction of the wearer's box height.
     pose_min_conf / hand_min_conf : mediapipe detection thresholds.
+    video_mode : mediapipe pose tracks each person per view within a chunk (skips the person
+        detector between frames; detect/mediapipe_detector.py); ``auto``: only when the
+        frames are consecutive (stride 1): across strided frames people move too far for
+        the tracker, and per chunk the 8 tracking graphs cost ~1 s to build.
     cross_view / cross_view_px : drop observations that disagree with what the other views
         agree on (detect/multiview.py; RANSAC threshold in pixels), and the partner's
         unconfirmed keypoints in views where the wearer was not found.
@@ -65,6 +69,7 @@ class Options:
     near_frac: float = DK.NEAR_FRAC
     pose_min_conf: float = 0.3
     hand_min_conf: float = 0.3
+    video_mode: Literal["auto", "on", "off"] = "auto"
     cross_view: bool = True
     cross_view_px: float = DK.CROSS_VIEW_PX
     overlay_frame: int | None = None
@@ -209,7 +214,9 @@ def compute(view, raw: dict[str, Path], o: Options, *, unit: str = "", recipe_pa
                              "detector 'precomputed' but the sequence names no keypoint files")
         factory = read_precomputed(raw, cam_names, seq.keypoints_format, recipe_path, unit)
     else:
-        factory = MediapipeOptions(pose_min_conf=o.pose_min_conf, hand_min_conf=o.hand_min_conf)
+        video = o.video_mode == "on" or (o.video_mode == "auto" and o.stride == 1)
+        factory = MediapipeOptions(pose_min_conf=o.pose_min_conf, hand_min_conf=o.hand_min_conf,
+                                   video=video)
     source = VideoSource(tuple(str(v) for v in videos))
     log(f"keypoints: detector {kind}")
     kp, facts = detect_keypoints(cams, source, xyz, list(markers.names), frames, factory,

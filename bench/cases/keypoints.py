@@ -15,6 +15,10 @@ through ``body.joints`` KP65 regressor, projected with the calibrated cameras.
 Keys:
 
 - ``keypoints.fps_per_core``: video frames (all four views) per CPU-second of the workers;
+  ``keypoints.fps_per_core_steady``: the same without ``setup_cpu_s`` (importing mediapipe
+  and building its graphs, opening the videos: ~1.2 s per worker process and chunk, paid
+  once per 12-frame sequence here but once per 32 frames, the import once per worker, on a
+  full sequence at stride 1);
 - ``keypoints.median_px`` and ``_body`` / ``_hands`` / ``_feet`` (groups of detect.metrics),
   ``_wearer`` / ``_partner``: median pixel error of detected keypoints (confidence >= 0.1)
   whose truth lies in the image; ``keypoints.p90_px``;
@@ -25,6 +29,11 @@ Keys:
   ``keypoints.identity_swap_views``: the same counted per view. A person detected with its
   left and right swapped (back views fool the detector) is not a swap but a flip:
   ``keypoints.lr_flips_wearer`` / ``_partner`` count the views (detect.metrics.lr_flips).
+
+- ``keypoints.fps_per_core_clip``, ``keypoints.median_px_clip``: the same stage on CLIP_FRAMES
+  consecutive frames (stride 1, one chunk, ``video_mode`` auto = on) of CLIP_SEQUENCE: the
+  stage's default stride, where mediapipe's video mode tracks (at stride 10 people move too
+  far between kept frames and the per-chunk graphs cost more than tracking saves).
 
 Per-sequence details go to ``bench/work/keypoints/sequences.json``.
 """
@@ -39,6 +48,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[2]
 STRIDE = 10
+CLIP_SEQUENCE = "s01/Grab 1"
+CLIP_FRAMES = 32
 GOALS = {
     "keypoints.identity_swaps": ("<=", 0),
     "keypoints.median_px": ("<=", 8.0),
@@ -76,7 +87,7 @@ def run(work: Path) -> dict[str, float]:
     recipe = load_recipe(recipe_path)
     reg = regressor(load_model("anny"), "kp65")
     opts = Options(stride=STRIDE, workers=os.cpu_count() or 1)
-    errs, swaps, frames_total, cpu, per_seq = [], 0, 0, 0.0, {}
+    errs, swaps, frames_total, cpu, setup, per_seq = [], 0, 0, 0.0, 0.0, {}
     swap_views = 0
     flips = np.zeros(2, int)
     for sid, seq in recipe.sequences.items():
@@ -94,6 +105,7 @@ def run(work: Path) -> dict[str, float]:
         swap_views += int(sw.sum())
         frames_total += len(res.frames)
         cpu += c.report["cpu_s"]
+        setup += c.report["detector_calls"].get("setup_cpu_s", 0.0)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             per_seq[sid] = {"frames": len(res.frames), "swapped_frames": int(sw.any(axis=0).sum()),
@@ -101,16 +113,37 @@ def run(work: Path) -> dict[str, float]:
                             "wearer": group_summary(err[:, :, 0], inside[:, :, 0]),
                             "partner": group_summary(err[:, :, 1], inside[:, :, 1]),
                             "report": c.report}
+
+    clip = {}
+    if CLIP_SEQUENCE in recipe.sequences:
+        sid, seq = CLIP_SEQUENCE, recipe.sequences[CLIP_SEQUENCE]
+        o1 = Options(stride=1, start=0, stop=CLIP_FRAMES, chunk=CLIP_FRAMES, workers=1)
+        c = compute(view_for(recipe, "keypoints", sid), raw_inputs(recipe, sid), o1, unit=sid,
+                    recipe_path=recipe_path)
+        truth = _truth_uv(recipe, sid, seq, c.keypoints.frames, reg)
+        inside = (truth[..., 0] >= 0) & (truth[..., 0] < 900) & (truth[..., 1] >= 0) & (truth[..., 1] < 900)
+        e1 = keypoint_errors(c.keypoints.kp, truth, inside)
+        steady = c.report["cpu_s"] - c.report["detector_calls"].get("setup_cpu_s", 0.0)
+        clip = {"keypoints.fps_per_core_clip": c.report["fps_per_core"],
+                "keypoints.fps_per_core_clip_steady": CLIP_FRAMES / steady if steady > 0 else float("nan"),
+                "keypoints.median_px_clip": float(np.median(e1[np.isfinite(e1)]))}
+        per_seq["clip"] = {"sequence": sid, "frames": CLIP_FRAMES,
+                           "swapped_frames": int(identity_swaps(c.keypoints.kp, truth).any(axis=0).sum()),
+                           "wearer": group_summary(e1[:, :, 0], inside[:, :, 0]),
+                           "partner": group_summary(e1[:, :, 1], inside[:, :, 1]),
+                           "report": c.report}
     (work / "sequences.json").write_text(json.dumps(per_seq, indent=1, default=float))
 
     e = np.concatenate([x[0].reshape(-1, 2, 65) for x in errs])  # (C*F, 2, 65)
     ins = np.concatenate([x[1].reshape(-1, 2, 65) for x in errs])
     out = {"keypoints.fps_per_core": frames_total / cpu if cpu > 0 else float("nan"),
+           "keypoints.fps_per_core_steady": frames_total / (cpu - setup) if cpu > setup else float("nan"),
            "keypoints.frames": float(frames_total),
            "keypoints.identity_swaps": float(swaps),
            "keypoints.identity_swap_views": float(swap_views),
            "keypoints.lr_flips_wearer": float(flips[0]),
            "keypoints.lr_flips_partner": float(flips[1])}
+    out.update(clip)
     allv = e[np.isfinite(e)]
     out["keypoints.median_px"] = float(np.median(allv))
     out["keypoints.p90_px"] = float(np.percentile(allv, 90))
