@@ -30,7 +30,9 @@ from artifacts.base import (
     first_frame,
 )
 
-INVALID_REASONS: tuple[str, ...] = ("fitted", "held_before_first_marker", "too_few_markers")
+INVALID_REASONS: tuple[str, ...] = ("fitted", "held_before_first_marker", "too_few_markers",
+                                    "too_few_keypoints", "held_before_first_keypoints",
+                                    "poor_reprojection")
 REASON_CODE: dict[str, int] = {n: i for i, n in enumerate(INVALID_REASONS)}
 MARKER_FIELDS = ("marker_names", "marker_residual_m", "marker_weight", "visible")
 

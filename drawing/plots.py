@@ -77,3 +77,55 @@ def residual_plot(path: str | Path, res_mm: np.ndarray, fps: float, title: str,
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
     return fig
+
+
+def partner_fit_plot(path: str | Path, frames: np.ndarray, fps: float, reproj_px: np.ndarray,
+                     penetration_mm: np.ndarray, contact_mm: np.ndarray, ground_mm: np.ndarray,
+                     valid: np.ndarray, title: str, views: list[str] | None = None):
+    """PNG of the partner fit's per-frame figures over the sequence, two panels sharing the
+    time axis (seconds, from the video ``frames`` and ``fps``; frames not valid shaded):
+    top, the median 2D reprojection error per view (pixels, ``reproj_px (F, C)``, NaN where
+    the view saw nothing); bottom, in mm, the deepest penetration into the other body,
+    the contact distance in contact frames and the depth below the ground plane
+    (``(F,)`` each, NaN = not computed). Writes ``path``, returns the ``Figure``
+    (``fig.axes[0]``, ``fig.axes[1]``)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    frames = np.asarray(frames)
+    F = len(frames)
+    rp = np.asarray(reproj_px, float)
+    if rp.ndim != 2 or len(rp) != F:
+        raise ValueError(f"reproj_px: expected ({F}, C), got {rp.shape}")
+    for name, a in (("penetration_mm", penetration_mm), ("contact_mm", contact_mm),
+                    ("ground_mm", ground_mm), ("valid", valid)):
+        if np.shape(a) != (F,):
+            raise ValueError(f"{name}: expected ({F},), got {np.shape(a)}")
+    if not fps > 0:
+        raise ValueError(f"fps: expected > 0, got {fps}")
+    t = frames / fps
+    fig = Figure(figsize=(C.PLOT_SIZE_IN[0], 2 * C.PLOT_SIZE_IN[1]), dpi=C.PLOT_DPI)
+    FigureCanvasAgg(fig)
+    ax0, ax1 = fig.subplots(2, 1, sharex=True)
+    views = views or [f"view {c}" for c in range(rp.shape[1])]
+    for c in range(rp.shape[1]):
+        ax0.plot(t, rp[:, c], lw=1, label=str(views[c]))
+    for name, y in (("penetration", penetration_mm), ("contact distance", contact_mm),
+                    ("below ground", ground_mm)):
+        ax1.plot(t, np.asarray(y, float), lw=1, label=name)
+    bad = ~np.asarray(valid, bool)
+    dt = 0.5 * (np.median(np.diff(t)) if F > 1 else 1.0 / fps)
+    for ax in (ax0, ax1):
+        for i in np.flatnonzero(bad):
+            ax.axvspan(t[i] - dt, t[i] + dt, color="0.85", lw=0)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="upper right")
+    ax0.set_ylabel("reprojection (px, median)")
+    ax1.set_ylabel("mm")
+    ax1.set_xlabel("time (s); grey: frames not valid")
+    ax0.set_title(title, fontsize=9)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    return fig

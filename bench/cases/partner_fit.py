@@ -1,0 +1,155 @@
+"""partner_fit accuracy and speed on the studio bench session, CHI3D protocol, against the truth.
+
+Data: ``recipes/bench.yaml`` (studio preset ``bench``: the eight interaction classes, 120
+frames each, four 900 x 900 views; data in ``data/bench``, generated on demand). Every
+sequence runs through the engine (``python -m pipeline sequence ... --until partner_fit``)
+into ``bench/work/partner_fit/outputs`` (cached: a second run only re-scores), with
+``stages.keypoints.stride = STRIDE`` (mediapipe is the cost: ~2.5 CPU-s per frame), so the
+partner is fitted on every ``STRIDE``-th video frame (warm start over the stride). The recipe
+used is written to ``bench/work/partner_fit/recipe.yaml`` (the bench recipe with absolute
+paths and these stage options). ``BENCH_PARTNER_STRIDE`` overrides the stride.
+
+Truth: ``data/bench/gt/<group>/<action>.npz``, person 1 = the partner. CHI3D protocol
+(``evaluate.metrics``): H36M 17 joints (``body.joints.regressor(model, "h36m17")``) of both,
+MPJPE over the 14 LSP joints after pelvis centring, PA-MPJPE after a similarity Procrustes,
+MPVPE on the vertices centred on the model's joint 0, translation error of the pelvis; over the
+partner fit's valid frames only (``frames_valid_fraction`` says how many).
+
+Keys (also ``_<class>`` per interaction class, e.g. ``partner_fit.mpjpe_mm_grab``):
+``partner_fit.mpjpe_mm``, ``pa_mpjpe_mm``, ``mpvpe_mm``, ``transl_mm``;
+``contact_dist_median_mm`` / ``_mean_mm``: the stage's contact distance (mean over the
+annotated region pairs of the smallest facet distance between the two regions) in the
+annotated contact frames; ``penetration_p95_mm``: 95th percentile over all valid frames of the
+deepest interpenetration of the two fitted bodies (the wearer from marker_fit);
+``fps_per_core``: fitted frames per CPU-second of the partner fit (build excluded);
+``frames_valid_fraction``.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[2]
+RECIPE = REPO / "recipes" / "bench.yaml"
+STRIDE = 6
+GOALS = {
+    "partner_fit.mpjpe_mm": ("<=", 15.0),
+    "partner_fit.mpvpe_mm": ("<=", 20.0),
+    "partner_fit.transl_mm": ("<=", 15.0),
+    "partner_fit.contact_dist_median_mm": ("<=", 5.0),
+    "partner_fit.penetration_p95_mm": ("<=", 5.0),
+    "partner_fit.fps_per_core": (">=", 10.0),
+}
+
+
+def _absolute(v, root: Path):
+    if isinstance(v, dict):
+        return {k: _absolute(x, root) for k, x in v.items()}
+    if isinstance(v, list):
+        return [_absolute(x, root) for x in v]
+    if isinstance(v, str) and not Path(v).is_absolute() and (root / v).exists():
+        return str((root / v).resolve())
+    return v
+
+
+def bench_recipe(work: Path, stride: int) -> Path:
+    """The bench recipe with absolute paths and the case's stage options, in ``work``."""
+    import yaml
+
+    from studio import ensure_generated
+
+    ensure_generated(RECIPE)
+    rec = _absolute(yaml.safe_load(RECIPE.read_text()), RECIPE.parent)
+    rec["stages"] = {**(rec.get("stages") or {}), "keypoints": {"stride": stride}}
+    path = work / "recipe.yaml"
+    path.write_text(yaml.safe_dump(rec, sort_keys=False))
+    return path
+
+
+def _class(action: str) -> str:
+    return action.rsplit(" ", 1)[0].lower().replace(" ", "_")
+
+
+def run(work: Path) -> dict[str, float]:
+    from artifacts import BodyFit
+    from body import forward, load_model
+    from body.joints import regressor
+    from evaluate import metrics as M
+    from pipeline.cli import main
+    from recipes import load_recipe
+
+    stride = int(os.environ.get("BENCH_PARTNER_STRIDE", STRIDE))
+    path = bench_recipe(work, stride)
+    recipe = load_recipe(path)
+    outputs = work / "outputs"
+    logs: list[str] = []
+    rc = main(["sequence", *recipe.sequences, "--recipe", str(path), "--outputs", str(outputs),
+               "--until", "partner_fit"], log=logs.append)
+    if rc != 0:
+        raise RuntimeError("engine failed:\n" + "\n".join(logs[-30:]))
+    model = load_model("anny")
+    R = regressor(model, "h36m17")
+
+    def h36(V, J):
+        return np.stack([R @ np.concatenate([V[i], J[i]]) for i in range(len(V))])
+
+    per_seq, pooled = {}, {}
+    cpu, fitted = 0.0, 0
+    for sid in recipe.sequences:
+        group, action = sid.split("/")
+        art = outputs / recipe.session / group / action / "partner_fit"
+        fit = BodyFit.load(art)
+        rep = json.loads((art / "report.json").read_text())
+        terms = dict(np.load(art / "terms.npz"))
+        gt = np.load(Path(recipe.sequences[sid].c3d).parents[2] / "gt" / group / f"{action}.npz")
+        fr, ok = np.asarray(fit.frames), np.asarray(fit.valid)
+        est = forward(model, fit.betas, fit.body_pose, fit.global_orient, fit.transl)
+        gv = gt["vertices"][1][fr].astype(float)
+        gj = gt["joints"][1][fr].astype(float)
+        pj, tj = h36(est.vertices, est.joints), h36(gv, gj)
+        m = {
+            "mpjpe": M.mpjpe(pj[ok], tj[ok]) * 1000,
+            "pa_mpjpe": M.pa_mpjpe(pj[ok], tj[ok]) * 1000,
+            "mpvpe": M.mpvpe(est.vertices[ok], gv[ok], est.joints[ok, 0], gj[ok, 0]) * 1000,
+            "transl": M.translation_error(pj[ok], tj[ok]) * 1000,
+            "contact": terms["contact_m"][ok][np.isfinite(terms["contact_m"][ok])] * 1000,
+            "penetration": terms["penetration_m"][ok] * 1000,
+        }
+        cpu += float(rep["fit_cpu_s"])
+        fitted += int(np.count_nonzero(terms["term_active"][:, 0]))
+        cls = _class(action)
+        for k, v in m.items():
+            pooled.setdefault(("all", k), []).append(v)
+            pooled.setdefault((cls, k), []).append(v)
+        pooled.setdefault(("all", "valid"), []).append(ok)
+        pooled.setdefault((cls, "valid"), []).append(ok)
+        per_seq[sid] = {k: float(np.mean(v)) if len(v) else None for k, v in m.items()}
+        per_seq[sid].update(frames=int(len(fr)), valid=int(ok.sum()),
+                            not_valid=rep["frames_not_valid"], fps=rep["fps"])
+    (work / "sequences.json").write_text(json.dumps(per_seq, indent=1))
+
+    out: dict[str, float] = {}
+    for cls in sorted({c for c, _ in pooled}, key=lambda c: (c != "all", c)):
+        suf = "" if cls == "all" else f"_{cls}"
+
+        def cat(k, cls=cls):
+            return np.concatenate(pooled[(cls, k)]) if (cls, k) in pooled else np.zeros(0)
+
+        for k in ("mpjpe", "pa_mpjpe", "mpvpe", "transl"):
+            v = cat(k)
+            if len(v):
+                out[f"partner_fit.{k}_mm{suf}"] = float(v.mean())
+        c = cat("contact")
+        if len(c):
+            out[f"partner_fit.contact_dist_median_mm{suf}"] = float(np.median(c))
+            out[f"partner_fit.contact_dist_mean_mm{suf}"] = float(c.mean())
+        p = cat("penetration")
+        if len(p):
+            out[f"partner_fit.penetration_p95_mm{suf}"] = float(np.percentile(p, 95))
+        out[f"partner_fit.frames_valid_fraction{suf}"] = float(cat("valid").mean())
+    out["partner_fit.fps_per_core"] = float(fitted / max(cpu, 1e-9))
+    out["partner_fit.stride"] = float(stride)
+    return out

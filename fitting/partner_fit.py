@@ -1,0 +1,692 @@
+"""Fit the partner (the person without markers) frame after frame from the four views (paper,
+"3D Reconstruction in a Controlled Setup"; issue #15).
+
+Per frame ``t`` the unknowns ``x_t = [r (3), T (3), theta ((Q-1)*3)]`` of the fit skeleton
+(fitting/skinned.py; shape fixed from ``shape_fit``) minimise
+
+    w_2d rho(L_2d) + w_theta L_theta + w_s L_s(x_t, x_{t-1}) + sum_extra w_e |r_e(x_t)|^2
+
+- ``L_2d``: every KP65 keypoint of the partner detected in any view (body, feet, hands),
+  confidence-weighted, with a Geman-McClure ``rho`` per observation (IRLS in ``fitting/lm.py``,
+  as in the marker fit): a wrong detection in one view pulls with a bounded force. The
+  residual function is ``fitting.marker_graph.MarkerGraph`` with no markers and the 65 KP65
+  slots (``body.joints.regressor(model, "kp65")`` -> ``fitting.skinned.regressed_coeffs``).
+- ``L_theta`` (Gaussian + joint limits, ``fitting/priors.py``) and ``L_s`` (toward the previous
+  frame) are quadratic terms / a box in numpy.
+- The extra terms (``L_gp``, ``L_ic``; later ``L_sc``, ``L_D``, ``L_N``) are the seam:
+  :class:`ExtraTerm` hooks called before each of ``outer_rounds`` LM rounds with the current
+  posed mesh (:class:`Posed`) choose the offending points (numpy: winding numbers, nearest
+  points, the lowest vertices) and return :class:`Block` s: the points' slot coefficients
+  ``H (N, Q, 4)`` and the paper's term (``fitting/terms.py``) as a function of their
+  positions, with the targets fixed for the round. :class:`Augmented` appends the blocks' rows
+  to the compiled graph's residual function; LM evaluates them exactly at every step, with
+  the exact Jacobian of the points (:func:`point_jacobian`: closed-form derivative of the
+  reduced-tree skinning, no finite differences), so the graph stays fixed and only the
+  offending points cost anything.
+
+The first frame (and the first frame after more than ``reinit_after`` frames without enough
+detections) starts from ``fitting.init_pose.init_pose`` (keypoints triangulated across the
+views) with a graduated robust scale. Frames with too few detections are held at the previous
+solution and are not valid; so are frames before the first one that could be initialised, and
+frames whose median reprojection error stays above ``max_reproj_px``.
+
+Pure function over typed artifacts (no file I/O): :func:`fit_partner`; the stage adapter
+``stages/partner_fit.py`` reads the files and saves the result.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Literal, Protocol
+
+import numpy as np
+
+from artifacts import REASON_CODE, BodyFit, ShapeFit
+from artifacts.keypoints import PARTNER, Keypoints2D
+from body.joints import regressor
+from body.lbs import RestState, forward, rest_state
+from body.model import BodyModel
+from body.rotations import rodrigues, skew
+from calib import camera_vector, project
+from fitting import collision, compiled, lm, priors, skinned, terms
+from fitting.init_pose import InitOptions, init_pose
+from fitting.marker_fit import GNC_FACTORS, rewrap, unpack
+from fitting.marker_graph import GraphSpec, MarkerGraph, body_joints
+from formats.skeletons import KP65
+
+# constants
+DEFAULT_WEIGHTS = {"L_2d": 1.0, "L_theta": 0.02, "L_s": 0.2, "L_gp": 1e5, "L_ic": 1e4,
+                   "L_sc": 0.0, "L_D": 0.0, "L_N": 0.0}
+WIRED = ("L_2d", "L_theta", "L_s", "L_gp", "L_ic")  # terms this version evaluates
+EXTRA_TERMS = ("L_gp", "L_ic", "L_sc", "L_D", "L_N")
+COMPILE_MODES = ("auto", "compiled", "interpreted")
+N_BODY = 23  # KP65 body keypoints (COCO-WholeBody order) counted for "enough detections"
+JR_SMALL = 1e-8  # below this angle the SO(3) right Jacobian is its series
+GROUND_K = 300  # L_gp candidates: the lowest vertices (both soles; 20 let a foot tilt under)
+
+
+@dataclass(frozen=True)
+class PartnerFitOptions:
+    """The partner fit's options (also the recipe's ``stages.partner_fit`` section).
+
+    weights : per paper term (``fitting.terms.PARTNER_TERMS`` minus ``L_3d``); missing ones at
+    their default; ``L_sc``, ``L_D``, ``L_N`` are not wired yet and must stay 0.
+    sigma_keypoint_px : Geman-McClure scale of a keypoint's 2D error, pixels;
+    min_conf : detections below this confidence are ignored;
+    min_keypoints / min_views : a frame is fitted when at least this many body keypoint
+    detections (of the 23, over all views) in at least this many views are there;
+    reinit_after : after a run of more than this many frames without enough detections the
+    next frame starts again from triangulation; max_iters / first_iters : LM iterations per
+    round / for a (re)initialised frame; outer_rounds : LM rounds between which the extra
+    terms re-detect their offending points; max_reproj_px : a fitted frame whose median
+    reprojection error is above this is not valid (``poor_reprojection``); use_hands : fit
+    the fingers to the hand keypoints (52 fit joints; else the 22 body joints and the 23 body
+    keypoints); ground_k : lowest vertices for L_gp; proxy_vertices : size of the proxy mesh
+    of L_ic; max_frames : fit only the first N frames; compile : how the residual function
+    runs."""
+
+    weights: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_WEIGHTS))
+    sigma_keypoint_px: float = 20.0
+    min_conf: float = 0.2
+    min_keypoints: int = 12
+    min_views: int = 2
+    reinit_after: int = 10
+    max_iters: int = 15
+    first_iters: int = 40
+    outer_rounds: int = 3
+    max_reproj_px: float = 25.0
+    use_hands: bool = True
+    ground_k: int = GROUND_K
+    proxy_vertices: int = 1500
+    max_frames: int | None = None
+    compile: Literal["auto", "compiled", "interpreted"] = "auto"
+
+    def __post_init__(self):
+        problems = []
+        for name, v in self.weights.items():
+            if name not in DEFAULT_WEIGHTS:
+                problems.append(f"weights.{name}: unknown term (known: {', '.join(DEFAULT_WEIGHTS)})")
+            elif not float(v) >= 0:
+                problems.append(f"weights.{name}: must be >= 0, got {v}")
+            elif name not in WIRED and float(v) > 0:
+                problems.append(f"weights.{name}: not wired in this version of the partner fit "
+                                f"(wired: {', '.join(WIRED)}); set it to 0")
+        for name in ("sigma_keypoint_px", "max_reproj_px"):
+            if not getattr(self, name) > 0:
+                problems.append(f"{name}: must be > 0, got {getattr(self, name)}")
+        if not 0 <= self.min_conf <= 1:
+            problems.append(f"min_conf: must be in [0, 1], got {self.min_conf}")
+        for name, lo in (("min_keypoints", 1), ("min_views", 2), ("max_iters", 1),
+                         ("first_iters", 1), ("outer_rounds", 1), ("reinit_after", 0),
+                         ("ground_k", 1), ("proxy_vertices", 100)):
+            if getattr(self, name) < lo:
+                problems.append(f"{name}: must be >= {lo}, got {getattr(self, name)}")
+        if self.max_frames is not None and self.max_frames < 1:
+            problems.append(f"max_frames: must be >= 1, got {self.max_frames}")
+        if self.compile not in COMPILE_MODES:
+            problems.append(f"compile: must be one of {', '.join(COMPILE_MODES)}, got {self.compile!r}")
+        if problems:
+            raise ValueError("; ".join(problems))
+        w = dict(DEFAULT_WEIGHTS)
+        w.update({k: float(v) for k, v in self.weights.items()})
+        object.__setattr__(self, "weights", w)
+
+
+# ---------------------------------------------------------------------------- exact Jacobians
+
+
+def right_jacobian(rv: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) SO(3) right Jacobian of rotation vectors (..., 3):
+    ``exp(r + d) = exp(r) exp(J_r(r) d)`` to first order."""
+    rv = np.asarray(rv, float)
+    th = np.linalg.norm(rv, axis=-1)[..., None, None]
+    K = skew(rv)
+    small = th < JR_SMALL
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 0.5, (1 - np.cos(ths)) / ths ** 2)
+    b = np.where(small, 1.0 / 6.0, (ths - np.sin(ths)) / ths ** 3)
+    return np.eye(3) - a * K + b * (K @ K)
+
+
+def subtree(skel: skinned.FitSkeleton) -> np.ndarray:
+    """(Q, Q) bool, ``A[i, q]``: fitted joint q is i or a descendant of i."""
+    Q = len(skel.joints)
+    A = np.eye(Q, dtype=bool)
+    for q in range(1, Q):  # parents come before children
+        p = int(skel.parents[q])
+        while p >= 0:
+            A[p, q] = True
+            p = int(skel.parents[p])
+    return A
+
+
+def _fk(skel: skinned.FitSkeleton, u: np.ndarray, x: np.ndarray):
+    """G (Q, 3, 3), t (Q, 3) of the reduced tree (fitting/skinned.py) and the world axes
+    ``G_i J_r(theta_i)`` (Q, 3, 3) of each joint's local rotation vector (the root: r)."""
+    Q = len(skel.joints)
+    rv = np.concatenate([x[:3], x[6:]]).reshape(Q, 3)
+    D = rodrigues(rv)
+    Jr = right_jacobian(rv)
+    G = np.zeros((Q, 3, 3))
+    t = np.zeros((Q, 3))
+    G[0], t[0] = D[0], u[0] + x[3:6]
+    for i in range(1, Q):
+        p = skel.parents[i]
+        G[i] = G[p] @ D[i]
+        t[i] = t[p] + G[p] @ u[i]
+    return G, t, G @ Jr
+
+
+def point_jacobian(skel: skinned.FitSkeleton, u: np.ndarray, H: np.ndarray, x: np.ndarray,
+                   sub: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """World positions (N, 3) and their exact Jacobian (N, 3, n) w.r.t. the unknowns ``x`` of
+    slots ``H (N, Q, 4)`` (``fitting.skinned.vertex_coeffs``; a point is
+    ``sum_q G_q l_q + W_q t_q``).
+
+    Turning joint i's rotation vector by ``d`` turns everything below i about ``t_i`` by the
+    world axis ``a = G_i J_r(theta_i) d``: ``dp = a x S_i``, ``S_i = sum_{q under i}
+    (G_q l_q + W_q (t_q - t_i))``; ``dp/dT = (sum_q W_q) I``. ``sub``: :func:`subtree` (cached
+    by the caller)."""
+    H = np.asarray(H, float)
+    G, t, axes = _fk(skel, u, x)
+    A = (subtree(skel) if sub is None else sub).astype(float)
+    Q, N = len(skel.joints), len(H)
+    P = np.matmul(G[None], H[..., :3, None])[..., 0] + H[..., 3:] * t[None]  # (N, Q, 3)
+    pos = P.sum(1)
+    W = H[..., 3]
+    S = np.matmul(A, P) - (W @ A.T)[..., None] * t[None]  # (N, Q, 3)
+    # d p / d rv_i[k] = axes_i[:, k] x S_i = -[S_i]x axes_i[:, k]: (N, Q, 3, 3) [n, i, a, k]
+    Jrot = -np.matmul(skew(S), axes[None])
+    J = np.empty((N, 3, 3 * Q + 3))
+    J[:, :, 0:3] = Jrot[:, 0]
+    J[:, :, 3:6] = W.sum(1)[:, None, None] * np.eye(3)[None]
+    J[:, :, 6:] = Jrot[:, 1:].transpose(0, 2, 1, 3).reshape(N, 3, 3 * (Q - 1))
+    return pos, J
+
+
+# ---------------------------------------------------------------------------- the seam
+
+
+@dataclass(frozen=True, eq=False)
+class Block:
+    """One extra term's offending points, chosen between LM rounds: ``name`` (a paper term),
+    ``H (N, Q, 4)`` their slot coefficients (points on the skinned surface), and
+    ``residual(pos (N, 3)) -> (r (m,), dr (m, 3), point (m,))`` the term (``fitting/terms.py``,
+    unweighted), each row's derivative in the position of the one point it depends on, and
+    that point's index; evaluated exactly at every LM evaluation (the targets found by the
+    hook stay fixed within a round)."""
+
+    name: str
+    H: np.ndarray
+    residual: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+    @property
+    def points(self) -> int:
+        return len(self.H)
+
+    def evaluate(self, skel, u, x, sub=None) -> tuple[np.ndarray, np.ndarray]:
+        """(r (m,), J (m, n)) at unknowns x (chain rule through :func:`point_jacobian`)."""
+        pos, Jp = point_jacobian(skel, u, self.H, x, sub)
+        r, dr, point = self.residual(pos)
+        return r, np.einsum("ma,max->mx", dr, Jp[point])
+
+
+class Posed:
+    """The partner's current state inside a frame's solve, with what hooks need lazily:
+    ``x (n,)``, ``vertices (V, 3)`` (``body.forward``), ``slots(vertex_ids, weights)``: slot
+    coefficients (N, Q, 4) of points ``sum_m weights[n, m] * vertex[vertex_ids[n, m]]``
+    (a proxy vertex: its face corners and barycentric coordinates)."""
+
+    def __init__(self, ctx: _BodyCtx, x: np.ndarray, frame: int):
+        self.ctx, self.x, self.frame = ctx, np.asarray(x, float), frame
+        self._V = None
+
+    @property
+    def vertices(self) -> np.ndarray:
+        if self._V is None:
+            self._V = self.ctx.posed_vertices(self.x)
+        return self._V
+
+    def slots(self, vertex_ids: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        return np.einsum("nm,nmqc->nqc", np.asarray(weights, float),
+                         self.ctx.vertex_H(np.asarray(vertex_ids, np.int64)))
+
+
+class ExtraTerm(Protocol):
+    """A term that enters between LM rounds: ``name`` (its weight's key) and
+    ``__call__(posed) -> list[Block]`` (empty when nothing offends)."""
+
+    name: str
+
+    def __call__(self, posed: Posed) -> list[Block]: ...
+
+
+@dataclass
+class GroundTerm:
+    """``L_gp``: the ``k`` lowest vertices (``fitting.collision.ground_candidates``) as slots,
+    each ``min(0, normal . p - offset)`` (``fitting.terms.L_gp``), only when one of them is
+    below the plane ``normal . x = offset``."""
+
+    normal: np.ndarray
+    offset: float
+    k: int = collision.GROUND_K
+    name: str = "L_gp"
+
+    def __call__(self, posed: Posed) -> list[Block]:
+        V = posed.vertices
+        n = np.asarray(self.normal, float)
+        idx = collision.ground_candidates(V, n, self.offset, self.k)
+        if not np.any(V[idx] @ n - self.offset < 0):
+            return []
+
+        def residual(pos):
+            r = terms.L_gp(pos, n, self.offset)
+            return r, np.where((r < 0)[:, None], n[None], 0.0), np.arange(len(pos))
+
+        return [Block(self.name, posed.slots(idx[:, None], np.ones((len(idx), 1))), residual)]
+
+
+def _pull_residual(targets: np.ndarray):
+    """Residual of ``L_ic``/``L_sc`` toward fixed targets (N, 3) and its derivative."""
+    N = len(targets)
+    dr = np.tile(np.eye(3), (N, 1))  # row 3i + a: d/dp_i[a]
+    point = np.repeat(np.arange(N), 3)
+
+    def residual(pos):
+        return terms.L_ic(pos, targets, np.ones(N)), dr, point
+
+    return residual
+
+
+class InterpenetrationTerm:
+    """``L_ic`` against the wearer's posed body, both sums (``fitting.collision
+    .interpenetration`` on the proxy meshes): partner proxy points inside the wearer pushed
+    to the wearer's surface, and the partner's surface pushed past the wearer's proxy points
+    inside it. ``wearer_vertices``: per fitted frame the wearer's mesh (V, 3) or None."""
+
+    name = "L_ic"
+
+    def __init__(self, proxy: collision.ProxyMesh, wearer_vertices):
+        self.proxy = proxy
+        self.wearer = wearer_vertices
+        self._wp: dict[int, np.ndarray | None] = {}
+
+    def wearer_points(self, f: int):
+        if f not in self._wp:
+            V = None if self.wearer is None else self.wearer[f]
+            self._wp = {f: None if V is None else self.proxy.points(V)}  # one frame at a time
+        return self._wp[f]
+
+    def __call__(self, posed: Posed) -> list[Block]:
+        Pb = self.wearer_points(posed.frame)
+        if Pb is None:
+            return []
+        pr = self.proxy
+        Pa = pr.points(posed.vertices)
+        a_in_b, b_in_a = collision.interpenetration(Pa, Pa, pr.faces, Pb, Pb, pr.faces)
+        out = []
+        if a_in_b.n:
+            H = posed.slots(pr.corners[a_in_b.index], pr.bary[a_in_b.index])
+            out.append(Block(self.name, H, _pull_residual(a_in_b.target)))
+        if b_in_a.n:  # the nearest point of the partner's proxy surface: 3 proxy vertices
+            tri = pr.faces[b_in_a.face]  # (n, 3) proxy vertex ids
+            vids = pr.corners[tri].reshape(b_in_a.n, 9)
+            w = (b_in_a.bary[:, :, None] * pr.bary[tri]).reshape(b_in_a.n, 9)
+            out.append(Block(self.name, posed.slots(vids, w), _pull_residual(b_in_a.target)))
+        return out
+
+
+class Augmented:
+    """The graph's residual function with the extra blocks' rows appended (the interface of
+    ``fitting.compiled.ResidualFunction`` that ``fitting.lm.solve`` uses): the blocks are
+    evaluated in numpy at every call, with exact dense Jacobian rows."""
+
+    def __init__(self, base, blocks: list[Block], body: _BodyCtx):
+        self.base, self.blocks, self.body = base, blocks, body
+        self.sizes = [len(b.residual(np.zeros((b.points, 3)))[0]) for b in blocks]
+        self.n_x, self.n_p = base.n_x, base.n_p
+        self.n_r = base.n_r + sum(self.sizes)
+        extra = np.arange(base.n_r, self.n_r)
+        self._flat = np.concatenate([base._flat, (extra[:, None] * self.n_x
+                                                  + np.arange(self.n_x)).reshape(-1)])
+        self.compiled = base.compiled
+
+    def rows(self) -> list[tuple[str, slice]]:
+        out, o = [], self.base.n_r
+        for b, m in zip(self.blocks, self.sizes, strict=True):
+            out.append((b.name, slice(o, o + m)))
+            o += m
+        return out
+
+    def __call__(self, x, p):
+        r0, j0 = self.base(x, p)
+        t0 = time.perf_counter()
+        rs, js = [r0], [j0]
+        for b in self.blocks:
+            r, J = b.evaluate(self.body.skel, self.body.u, x, self.body.sub)
+            rs.append(r)
+            js.append(J.reshape(-1))
+        self.body.jacobian_s += time.perf_counter() - t0
+        return np.concatenate(rs), np.concatenate(js)
+
+
+# ---------------------------------------------------------------------------- the solver
+
+
+class _BodyCtx:
+    """The partner's fixed shape on the fit skeleton: rest state, offsets, vertex slots."""
+
+    def __init__(self, model: BodyModel, betas, rest: RestState, skel: skinned.FitSkeleton):
+        self.model, self.betas, self.rest, self.skel = model, betas, rest, skel
+        self.u, _ = skinned.reduced_offsets(model, rest, skel)
+        self.sub = subtree(skel)
+        self._H: dict[int, np.ndarray] = {}
+        self.jacobian_s = 0.0  # extra terms' exact Jacobians inside LM, seconds
+        self.hook_s = 0.0  # the hooks (posing the mesh, finding offending points), seconds
+
+    def posed_vertices(self, x: np.ndarray) -> np.ndarray:
+        pose, R, T = unpack(self.skel, self.model.num_joints, x[None])
+        return forward(self.model, self.betas, pose, R, T, rest=self.rest).vertices[0]
+
+    def vertex_H(self, vids: np.ndarray) -> np.ndarray:
+        """(..., Q, 4) slot coefficients of mesh vertices ``vids`` (...), cached."""
+        flat = vids.reshape(-1)
+        new = np.unique(flat[[int(v) not in self._H for v in flat]]) if len(flat) else flat
+        if len(new):
+            H = skinned.vertex_coeffs(self.model, self.rest, self.skel, self.model.weights[new],
+                                      self.rest.vertices[0, new])
+            self._H.update(zip(new.tolist(), H, strict=True))
+        return np.stack([self._H[int(v)] for v in flat]).reshape(vids.shape
+                                                                  + (len(self.skel.joints), 4))
+
+
+class PartnerSolver:
+    """Everything fixed over a sequence: the keypoint graph, its packed parameters, the prior,
+    the options and the extra terms."""
+
+    def __init__(self, graph: MarkerGraph, body: _BodyCtx, Hk: np.ndarray, cams,
+                 prior: priors.PosePrior, opts: PartnerFitOptions, extra=()):
+        s = graph.spec
+        self.graph, self.body, self.opts, self.extra = graph, body, opts, list(extra)
+        C, K = s.n_cameras, s.n_keypoints
+        empty = skinned.SkinnedPoints(np.zeros((0, 3, s.Q, 4)), np.zeros((0, 3)), np.zeros(0))
+        self.p = graph.params(body.u, empty, np.zeros((0, 3)), np.zeros(0), Hk,
+                              np.stack([camera_vector(c) for c in cams]), np.zeros((C, K, 2)),
+                              np.zeros((C, K)))
+        w = opts.weights
+        n = s.n_x
+        pose_idx = np.arange(6, n)
+        g = prior.gaussian
+        self.quad_prior = terms.quadratic_L_theta(n, pose_idx, g.mean, g.sqrt_precision, w["L_theta"])
+        self.box = terms.box_L_theta(pose_idx, prior.lo, prior.hi, prior.limit_idx, w["L_theta"])
+        self.row_scale = np.full(2 * C * K, np.sqrt(w["L_2d"]))
+        self.rows_k = np.arange(2 * C * K).reshape(C * K, 2)
+
+    def groups(self, conf, factor=1.0):
+        kk = max(int(np.count_nonzero(np.asarray(conf) > 0)), 1)
+        return [lm.RobustGroups(self.rows_k, "geman_mcclure", factor * self.opts.sigma_keypoint_px
+                                * np.sqrt(self.opts.weights["L_2d"] / kk))]
+
+    def blocks(self, x, frame) -> list[Block]:
+        """The extra terms' offending points at unknowns x (hooks on the posed mesh)."""
+        posed = Posed(self.body, x, frame)
+        out = []
+        t0 = time.perf_counter()
+        for term in self.extra:
+            if self.opts.weights.get(term.name, 0) > 0:
+                out.extend(term(posed))
+        self.body.hook_s += time.perf_counter() - t0
+        return out
+
+    def solve(self, x0, uv, conf, frame: int, x_prev=None, first=False):
+        """One frame: uv (C, K, 2) pixels, conf (C, K) (0 = missing). Rounds of LM; before
+        each the hooks choose the offending points, which LM then evaluates exactly
+        (:class:`Augmented`). Returns (LMResult, the blocks at the solution, rounds)."""
+        self.graph.set_observations(self.p, np.zeros((0, 3)), np.zeros(0), uv, conf)
+        quad = self.quad_prior
+        if x_prev is not None and self.opts.weights["L_s"] > 0:
+            quad = quad + terms.quadratic_L_s(len(x0), np.arange(len(x0)), x_prev,
+                                              self.opts.weights["L_s"])
+        x = np.asarray(x0, float)
+        res, rounds = None, 0
+        blocks = self.blocks(x, frame) if (self.extra and not first) else []
+        for k in range(self.opts.outer_rounds if self.extra else 1):
+            if k > 0 and not blocks:
+                break
+            fun, scale = self.graph.fun, self.row_scale
+            if blocks:
+                fun = Augmented(self.graph.fun, blocks, self.body)
+                scale = np.concatenate([scale] + [np.full(m, np.sqrt(self.opts.weights[b.name]))
+                                                  for b, m in zip(blocks, fun.sizes, strict=True)])
+            for fct in (GNC_FACTORS if (first and k == 0) else (1.0,)):
+                res = lm.solve(fun, self.p, x, row_scale=scale, groups=self.groups(conf, fct),
+                               quad=quad, box=self.box,
+                               opts=lm.LMOptions(max_iters=self.opts.first_iters if first
+                                                 else self.opts.max_iters, ftol=1e-8))
+                x = res.x
+            rounds += 1
+            if self.extra:
+                blocks = self.blocks(x, frame)
+        return res, blocks, rounds
+
+
+# ---------------------------------------------------------------------------- one sequence
+
+
+def _partner_keypoints(keypoints: Keypoints2D, cams, frames, kidx, min_conf):
+    """(uv (F, C, K, 2), conf (F, C, K)) of the partner at the fit's frames, cameras by id."""
+    kp = np.asarray(keypoints.person(PARTNER), float)[[keypoints.camera(c.name) for c in cams]]
+    kf = np.asarray(keypoints.frames)
+    pos = np.searchsorted(kf, frames)
+    full = kp[:, pos].copy()  # (C, F, 65, 3)
+    full[..., 2] = np.where(full[..., 2] >= min_conf, full[..., 2], 0.0)
+    kp = full[:, :, kidx]
+    return np.transpose(kp[..., :2], (1, 0, 2, 3)), np.transpose(kp[..., 2], (1, 0, 2)), full
+
+
+def wearer_vertices(model: BodyModel, wearer: BodyFit, frames: np.ndarray):
+    """(F, V, 3) the wearer's posed mesh at video ``frames`` (NaN-free; frames the wearer's
+    fit does not have: None in the returned list)."""
+    wf = np.asarray(wearer.frames)
+    out = []
+    for f in frames:
+        i = np.flatnonzero(wf == f)
+        if not len(i):
+            out.append(None)
+            continue
+        i = int(i[0])
+        out.append(forward(model, np.asarray(wearer.betas, float), wearer.body_pose[i:i + 1],
+                           wearer.global_orient[i:i + 1], wearer.transl[i:i + 1]).vertices[0])
+    return out
+
+
+def reprojection_px(cams, pts: np.ndarray, uv: np.ndarray, conf: np.ndarray) -> np.ndarray:
+    """(C, K) pixel error of model keypoints ``pts (K, 3)`` against detections, NaN where
+    not detected."""
+    err = np.stack([np.linalg.norm(project(c, pts) - uv[i], axis=-1) for i, c in enumerate(cams)])
+    return np.where(conf > 0, err, np.nan)
+
+
+def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
+                wearer: BodyFit | None = None, contact=None, ground=None,
+                opts: PartnerFitOptions = PartnerFitOptions(), progress=None,
+                log=None) -> tuple[BodyFit, dict]:
+    """The partner's motion over the keypoints' video frames.
+
+    model : BodyModel; shape : the partner's own :class:`artifacts.ShapeFit` (betas held
+    fixed); keypoints : :class:`artifacts.Keypoints2D` (person 1 = the partner; its frames are
+    the frames fitted; ``opts.max_frames`` keeps the first N); cams : ``calib.Camera`` per
+    view (matched to the keypoints' views by id); wearer : the marker wearer's
+    :class:`artifacts.BodyFit` (``L_ic``; None: no collision term); contact : a
+    ``fitting.contact_signature.ContactAnnotation`` (contact distance in its interval is
+    reported; ``L_D``/``L_N`` are not wired yet); ground : ``(normal (3,), offset)`` of the
+    ground plane (``L_gp``; None: none); progress : iterable wrapper; log : ``log(str)``.
+
+    Returns the :class:`artifacts.BodyFit` (no marker fields) and a report dict whose
+    ``per_frame`` entry holds arrays (the stage writes them to ``terms.npz``): ``reproj_px
+    (F, C)`` median error per view, ``detections (F,)``, ``term_cost (F, T)`` the weighted
+    cost of each term at the solution, ``term_active (F, T)``, ``term_points (F, T)``
+    (offending points of the extra terms), names in ``report["terms"]``.
+    """
+    log = log or (lambda _msg: None)
+    frames = np.asarray(keypoints.frames, np.int64)
+    if opts.max_frames:
+        frames = frames[: opts.max_frames]
+    F, C = len(frames), len(cams)
+    betas = np.asarray(shape.betas, float)
+    rest = rest_state(model, betas)
+    skel = skinned.fit_skeleton(model, None if opts.use_hands else body_joints(model))
+    kidx = np.arange(len(KP65) if opts.use_hands else N_BODY)
+    Hk = skinned.regressed_coeffs(model, rest, skel, regressor(model, "kp65")[kidx])
+    uv, conf, kp_raw = _partner_keypoints(keypoints, cams, frames, kidx, opts.min_conf)
+    body = _BodyCtx(model, betas, rest, skel)
+
+    extra: list = []
+    if ground is not None and opts.weights["L_gp"] > 0:
+        extra.append(GroundTerm(np.asarray(ground[0], float), float(ground[1]), opts.ground_k))
+    WV = None
+    if wearer is not None:
+        WV = wearer_vertices(model, wearer, frames)
+        if opts.weights["L_ic"] > 0:
+            proxy = collision.ProxyMesh.from_model(model, opts.proxy_vertices)
+            extra.append(InterpenetrationTerm(proxy, WV))
+    spec = GraphSpec(skel.topology, (), skinned.support_of(Hk), C, cams[0].model)
+    t0 = time.perf_counter()
+    graph = MarkerGraph(spec, compiled.CompileOptions(mode=opts.compile), log=log)
+    t_build = time.perf_counter() - t0
+    prior = priors.default_prior(skel.names[1:])
+    solver = PartnerSolver(graph, body, Hk, cams, prior, opts, extra)
+    names = ["L_2d", "L_theta", "L_s"] + [t.name for t in extra]
+
+    X = np.zeros((F, skel.n))
+    reason = np.zeros(F, np.int8)
+    reproj = np.full((F, C), np.nan)
+    cost = np.zeros((F, len(names)))
+    active = np.zeros((F, len(names)), bool)
+    npts = np.zeros((F, len(names)), np.int64)
+    det = (conf[:, :, :N_BODY] > 0).sum((1, 2))
+    views = (conf[:, :, :N_BODY] > 0).any(2).sum(1)
+    enough = (det >= opts.min_keypoints) & (views >= opts.min_views)
+    x_prev, miss, first_fit, inits, iters = None, 0, None, 0, []
+    from threadpoolctl import threadpool_limits
+
+    it = range(F) if progress is None else progress(range(F), total=F, desc="partner_fit")
+    t0, c0 = time.perf_counter(), time.thread_time()
+    with threadpool_limits(limits=1):
+        for f in it:
+            start = x_prev is None or miss > opts.reinit_after
+            x0 = x_prev
+            if enough[f] and start:
+                init = init_pose(model, betas, cams, kp_raw[:, f], skel, InitOptions())
+                x0 = init.x if init.ok else None
+                if not init.ok:
+                    log(f"frame {int(frames[f])}: no initialisation ({init.reason})")
+                else:
+                    inits += 1
+            if not enough[f] or x0 is None:
+                if x_prev is not None:
+                    X[f] = x_prev
+                    reason[f] = REASON_CODE["too_few_keypoints"]
+                else:
+                    reason[f] = REASON_CODE["held_before_first_keypoints"]
+                miss += 1
+                continue
+            res, blocks, _ = solver.solve(x0, uv[f], conf[f], f, None if start else x_prev,
+                                          first=start)
+            x = rewrap(res.x)
+            X[f] = x
+            iters.append(res.iterations)
+            miss = 0
+            first_fit = f if first_fit is None else first_fit
+            pts = skinned.slot_positions_np(skel, body.u, Hk, x)
+            e = reprojection_px(cams, pts, uv[f], conf[f])
+            with np.errstate(all="ignore"):
+                reproj[f] = [np.nanmedian(r) if np.isfinite(r).any() else np.nan for r in e]
+            if not np.nanmedian(e) <= opts.max_reproj_px:
+                reason[f] = REASON_CODE["poor_reprojection"]
+            # the terms at the solution
+            s2 = solver.row_scale[0] ** 2
+            r2 = np.sum(((np.nan_to_num(e) ** 2) * conf[f]) / max(int((conf[f] > 0).sum()), 1))
+            cost[f, 0] = s2 * r2
+            th = x[6:]
+            g = prior.gaussian
+            cost[f, 1] = opts.weights["L_theta"] * float(np.sum((g.sqrt_precision @ (th - g.mean)) ** 2))
+            cost[f, 2] = 0.0 if start else opts.weights["L_s"] * float(np.sum((x - x_prev) ** 2))
+            active[f, :2] = True
+            active[f, 2] = not start
+            for b in blocks:
+                j = names.index(b.name)
+                r, _ = b.evaluate(skel, body.u, x, body.sub)
+                cost[f, j] += opts.weights[b.name] * float(r @ r)
+                active[f, j] = True
+                npts[f, j] += b.points
+            x_prev = x
+    t_fit, c_fit = time.perf_counter() - t0, time.thread_time() - c0
+    if first_fit is not None:
+        X[:first_fit] = X[first_fit]
+    body_pose, R, T = unpack(skel, model.num_joints, X)
+    out = BodyFit(body_pose=body_pose, global_orient=R, transl=T, betas=betas, frames=frames,
+                  valid=reason == 0, invalid_reason=reason)
+    reasons = out.reasons()
+    n_fit = int(np.count_nonzero(active[:, 0]))
+    with np.errstate(all="ignore"):
+        rp = {"median": float(np.nanmedian(reproj)) if np.isfinite(reproj).any() else None,
+              "per_view_median": [float(np.nanmedian(reproj[:, c])) if np.isfinite(reproj[:, c]).any()
+                                  else None for c in range(C)]}
+    report = {
+        "frames": F, "first_fitted_frame": None if first_fit is None else int(frames[first_fit]),
+        "frames_valid": reasons.pop("fitted"), "frames_not_valid": reasons,
+        "initialisations": inits, "terms": names, "weights": dict(opts.weights),
+        "reprojection_px": rp, "hands": bool(opts.use_hands), "fitted_joints": list(skel.names),
+        "prior": prior.source, "compiled": graph.fun.compiled, "build_s": round(t_build, 3),
+        "fit_s": round(t_fit, 3), "fit_cpu_s": c_fit, "extra_jacobian_s": round(body.jacobian_s, 3),
+        "extra_hooks_s": round(body.hook_s, 3),
+        "fps": round(n_fit / max(t_fit, 1e-9), 2),
+        "mean_iterations": float(np.mean(iters)) if iters else 0.0,
+        "contact_frames": 0 if contact is None or not contact.has_contact else int(np.count_nonzero(
+            (frames >= contact.interval[0]) & (frames <= contact.interval[1]))),
+        "contact_terms": "L_D, L_N not wired in this version: contact is only measured",
+        "frames_with": {n: int(active[:, i].sum()) for i, n in enumerate(names)},
+        "per_frame": {"reproj_px": reproj, "detections": det, "term_cost": cost,
+                      "term_active": active, "term_points": npts, "frames": frames},
+    }
+    return out, report
+
+
+# ---------------------------------------------------------------------------- figures
+
+
+def contact_figures(model: BodyModel, partner: BodyFit, wearer: BodyFit | None, contact=None,
+                    ground=None, rmap=None) -> dict[str, np.ndarray]:
+    """Per-frame figures of a fit (metres): ``penetration_m (F,)`` deepest interpenetration
+    of the two posed meshes (``geometry.interpenetration``; NaN without the wearer),
+    ``contact_m (F,)`` in the contact interval (NaN outside): mean over the annotated region
+    pairs of the smallest facet distance between the two regions (wearer region, partner
+    region; ``geometry.facet_distances``), ``ground_m (F,)`` depth of the lowest partner
+    vertex below the ground plane (0 above; NaN without a plane)."""
+    from geometry import facet_distances, interpenetration
+
+    F = partner.num_frames
+    VP = forward(model, np.asarray(partner.betas, float), partner.body_pose,
+                 partner.global_orient, partner.transl).vertices
+    faces = np.asarray(model.faces)
+    pen = np.full(F, np.nan)
+    con = np.full(F, np.nan)
+    gnd = np.full(F, np.nan)
+    WV = wearer_vertices(model, wearer, partner.frames) if wearer is not None else [None] * F
+    sel = []
+    if contact is not None and contact.has_contact:
+        from body.regions import region_map
+
+        rm = region_map(model) if rmap is None else rmap
+        sel = [(rm.faces_of(int(a)), rm.faces_of(int(b))) for a, b in contact.region_pairs]
+    for i, f in enumerate(np.asarray(partner.frames)):
+        if WV[i] is not None:
+            pen[i] = interpenetration(VP[i], WV[i], faces).depth
+            if sel and contact.interval[0] <= f <= contact.interval[1]:
+                con[i] = float(np.mean([facet_distances(WV[i], faces, a, VP[i], faces, b).a_to_b.min()
+                                        for a, b in sel]))
+        if ground is not None:
+            d = VP[i] @ np.asarray(ground[0], float) - float(ground[1])
+            gnd[i] = max(0.0, -float(d.min()))
+    return {"penetration_m": pen, "contact_m": con, "ground_m": gnd}
