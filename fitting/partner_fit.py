@@ -63,6 +63,8 @@ COMPILE_MODES = ("auto", "compiled", "interpreted")
 N_BODY = 23  # KP65 body keypoints (COCO-WholeBody order) counted for "enough detections"
 JR_SMALL = 1e-8  # below this angle the SO(3) right Jacobian is its series
 GROUND_K = 300  # L_gp candidates: the lowest vertices (both soles; 20 let a foot tilt under)
+# the reasons (artifacts.body_fit.INVALID_REASONS) a frame of the partner fit can be not valid for
+PARTNER_FIT_REASONS = ("too_few_keypoints", "held_before_first_keypoints", "poor_reprojection")
 
 
 @dataclass(frozen=True)
@@ -635,7 +637,8 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
                                   else None for c in range(C)]}
     report = {
         "frames": F, "first_fitted_frame": None if first_fit is None else int(frames[first_fit]),
-        "frames_valid": reasons.pop("fitted"), "frames_not_valid": reasons,
+        "frames_valid": reasons["fitted"],
+        "frames_not_valid": {n: reasons[n] for n in PARTNER_FIT_REASONS},
         "initialisations": inits, "terms": names, "weights": dict(opts.weights),
         "reprojection_px": rp, "hands": bool(opts.use_hands), "fitted_joints": list(skel.names),
         "prior": prior.source, "compiled": graph.fun.compiled, "build_s": round(t_build, 3),
