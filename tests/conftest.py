@@ -79,3 +79,16 @@ def build_small_session() -> Path:
 def small_session() -> Path:
     """Recipe path of the cached tiny studio session (see module doc)."""
     return build_small_session()
+
+
+@pytest.fixture(scope="session")
+def anny():
+    """The exported Anny model, loaded once for the whole test session (skipped when it is not
+    exported: ``make setup`` exports it)."""
+    from body import load_model
+    from formats.errors import InputError
+
+    try:
+        return load_model("anny")
+    except InputError as e:
+        pytest.skip(f"Anny not exported: {e}")

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from artifacts import INVALID_REASONS, REASON_CODE, ArtifactError, BodyFit, ShapeFit
+from artifacts import REASON_CODE, ArtifactError, BodyFit, ShapeFit
 from formats.errors import InputError
 from pipeline.store import StoredArtifact, Writer
 

@@ -24,11 +24,6 @@ from formats.errors import InputError
 
 
 @pytest.fixture(scope="module")
-def anny():
-    return load_model("anny")
-
-
-@pytest.fixture(scope="module")
 def smplx_path(anny):
     return smplx_from_anny_path(anny)  # cached in assets/build/smplx_from_anny/
 

@@ -11,24 +11,13 @@ import numpy as np
 import pytest
 from test_marker_fit_vicon import write_vicon_pig
 
-from formats.errors import InputError
+from pipeline.store import Writer
 
 
-class FakeWriter:
-    def __init__(self, folder: Path):
-        self.dir = folder
-        folder.mkdir(parents=True, exist_ok=True)
-
-    def save_arrays(self, name, **arrays):
-        np.savez(self.dir / f"{name}.npz", **arrays)
-        return self.dir / f"{name}.npz"
-
-    def save_json(self, name, obj):
-        (self.dir / f"{name}.json").write_text(json.dumps(obj))
-        return self.dir / f"{name}.json"
-
-    def path(self, filename):
-        return self.dir / filename
+def FakeWriter(folder: Path) -> Writer:
+    """The engine's own writer, into a folder of the test's (created)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    return Writer(folder)
 
 
 def view(stage_module, values: dict):
@@ -52,16 +41,6 @@ def keypoints_artifact(folder: Path, kp: np.ndarray, frames: np.ndarray, cams) -
                 cross_view_outlier=np.zeros((C, F, 2, 65), bool),
                 conf_raw=kp[..., 2].copy(), cameras=np.array(list(cams))).save(FakeWriter(folder))
     return folder
-
-
-@pytest.fixture(scope="module")
-def anny():
-    from body import load_model
-
-    try:
-        return load_model("anny")
-    except InputError as e:
-        pytest.skip(f"Anny not exported: {e}")
 
 
 def _session(tmp: Path, model, rng, F=40, fps=50.0, rate=240.0, swap=True, fingers=False,

@@ -18,36 +18,16 @@ import numpy as np
 import pytest
 
 from formats.errors import InputError
+from pipeline.store import Writer
 
 F_SYN = 6
 FPS = 25.0
 
 
-class FakeWriter:
-    def __init__(self, folder: Path):
-        self.dir = folder
-        folder.mkdir(parents=True, exist_ok=True)
-
-    def save_arrays(self, name, **arrays):
-        np.savez(self.dir / f"{name}.npz", **arrays)
-        return self.dir / f"{name}.npz"
-
-    def save_json(self, name, obj):
-        (self.dir / f"{name}.json").write_text(json.dumps(obj))
-        return self.dir / f"{name}.json"
-
-    def path(self, filename):
-        return self.dir / filename
-
-
-@pytest.fixture(scope="module")
-def anny():
-    from body import load_model
-
-    try:
-        return load_model("anny")
-    except InputError as e:
-        pytest.skip(f"Anny not exported: {e}")
+def FakeWriter(folder: Path) -> Writer:
+    """The engine's own writer, into a folder of the test's (created)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    return Writer(folder)
 
 
 def _cams():

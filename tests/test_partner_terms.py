@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from body import forward, load_model, rest_state
+from body import forward, rest_state
 from body.regions import region_map
 from body.rotations import rodrigues
 from fitting import collision as C
@@ -70,11 +70,6 @@ def _gauss_newton(x0, residual, iters=40, h=1e-6, damping=1e-9):
         H = J.T @ J
         x = x - np.linalg.solve(H + damping * np.eye(len(x)) * max(np.trace(H), 1.0), J.T @ r)
     return x
-
-
-@pytest.fixture(scope="module")
-def anny():
-    return load_model("anny")
 
 
 @pytest.fixture(scope="module")

@@ -47,16 +47,6 @@ def test_scan_points_and_normals_read_back(tmp_path):
     assert n2 is None and len(p2) == 500
 
 
-@pytest.fixture(scope="module")
-def anny():
-    from body import load_model
-
-    try:
-        return load_model("anny")
-    except InputError as e:
-        pytest.skip(f"Anny not exported: {e}")
-
-
 @pytest.mark.slow
 def test_scan_fit_recovers_shape(anny):
     """A scan of a known body (2 mm noise, armpit holes, no soles, random heading and place):

@@ -10,13 +10,6 @@ import numpy as np
 import pytest
 
 
-@pytest.fixture(scope="module")
-def anny():
-    from body import load_model
-
-    return load_model("anny")
-
-
 def test_inspect_finds_the_deepest_frame_and_draws_it(anny, tmp_path, capsys):
     """python -m studio.inspect on a ground truth where the two bodies overlap in one frame."""
     import cv2

@@ -101,13 +101,6 @@ def test_rig_surrounds_the_capture_volume():
 
 
 # ------------------------------------------------------------------------------ kinematics
-@pytest.fixture(scope="module")
-def anny():
-    from body import load_model
-
-    return load_model("anny")
-
-
 def test_chain_fk_matches_body_forward(anny):
     from body.lbs import forward_kinematics
     from studio.kin import Person

@@ -9,16 +9,11 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from body import forward, load_model, rest_state
+from body import forward, rest_state
 from body.markers import marker_positions, plug_in_gait
 from body.rotations import rodrigues
 from fitting import skinned
 from geometry import face_normals
-
-
-@pytest.fixture(scope="module")
-def anny():
-    return load_model("anny")
 
 
 def _pose(model, skel, x):
