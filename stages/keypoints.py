@@ -121,16 +121,15 @@ def frame_indices(n_video: int, o: Options) -> np.ndarray:
     return np.arange(o.start, max(stop, o.start), o.stride, dtype=np.int64)
 
 
-def markers_on_frames(times_s: np.ndarray, xyz: np.ndarray, frames: np.ndarray, fps: float,
-                      sync_offset_s: float) -> np.ndarray:
+def markers_on_frames(markers, frames: np.ndarray, clock) -> np.ndarray:
     """Marker positions at video frames: (F, M, 3) metres, world, NaN where not observed.
 
-    times_s : (Fs,) mocap sample times (mocap clock); xyz : (Fs, M, 3) with NaN gaps; video
-    frame f is at f / fps - sync_offset_s on the mocap clock. Gaps are never bridged."""
-    from fitting.mocap import resample
+    markers : ``formats.c3d.Markers``; clock : ``fitting.mocap.VideoClock`` (video frame f is
+    at f / fps - sync_offset_s on the mocap clock; ``rate_hz`` overrides the C3D's rate). The
+    marker fit's own resampling (``fitting.mocap.video_observations``); gaps are never bridged."""
+    from fitting.mocap import video_observations
 
-    t = np.asarray(frames, dtype=np.float64) / float(fps) - float(sync_offset_s)
-    obs, vis = resample(times_s, xyz, t)
+    obs, vis = video_observations(markers, frames, clock)
     return np.where(vis[..., None], obs, np.nan)
 
 
@@ -181,6 +180,7 @@ def compute(view, raw: dict[str, Path], o: Options, *, unit: str = "", recipe_pa
     from detect.mediapipe_detector import MediapipeOptions
     from detect.run import VideoSource
     from detect.sequence import detect_keypoints
+    from fitting.mocap import VideoClock
     from formats.c3d import read_c3d
     from formats.video import video_info
     from stages.common import video_errors
@@ -198,9 +198,8 @@ def compute(view, raw: dict[str, Path], o: Options, *, unit: str = "", recipe_pa
         raise InputError(videos[0], "frames", f"no frame in [{o.start}, {o.stop}) of {n_video}")
 
     markers = read_c3d(raw["c3d"])
-    rate = seq.mocap.rate_hz
-    times = markers.times_s if rate is None else (markers.first_frame + np.arange(len(markers.xyz))) / rate
-    xyz = markers_on_frames(times, markers.xyz, frames, seq.fps, seq.mocap.sync_offset_s)
+    xyz = markers_on_frames(markers, frames, VideoClock(seq.fps, seq.mocap.sync_offset_s,
+                                                        seq.mocap.rate_hz))
     if not np.isfinite(xyz[..., 0]).any():
         raise InputError(raw["c3d"], "markers", "no marker observed at any video frame "
                          "(check mocap.sync_offset_s and fps)")

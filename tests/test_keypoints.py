@@ -10,6 +10,8 @@ import pytest
 import yaml
 
 from detect import layout
+from fitting.mocap import VideoClock
+from formats.c3d import Markers
 from stages.keypoints import Options, frame_indices, markers_on_frames
 
 FPS, HZ, OFFSET = 50.0, 100.0, -0.12
@@ -71,12 +73,13 @@ def test_markers_on_frames_follow_the_recipe_sync_convention():
     xyz[:, 1, 0] = t
     xyz[20:23, 1] = np.nan  # a gap
     frames = np.array([0, 1, 2, 5])
-    out = markers_on_frames(t, xyz, frames, FPS, OFFSET)
+    mk = Markers(("a", "b"), xyz, HZ, 0, None)
+    out = markers_on_frames(mk, frames, VideoClock(FPS, OFFSET))
     np.testing.assert_allclose(out[:, 0, 0], frames / FPS - OFFSET)
     # marker 1: frame 5 is at mocap time 0.22 -> inside the gap (samples 20..22): missing
     assert np.isnan(out[3, 1]).all() and np.isfinite(out[:3, 1]).all()
     # before the capture starts: missing
-    out = markers_on_frames(t, xyz, frames, FPS, 0.5)
+    out = markers_on_frames(mk, frames, VideoClock(FPS, 0.5))
     assert np.isnan(out[0]).all()
 
 
@@ -280,7 +283,7 @@ def test_detect_keypoints_is_pure_and_drops_what_other_views_disagree_with(sessi
     cams = truth["cams"]
     frames = np.arange(N_FRAMES)
     m = read_c3d(root / "s01" / "mocap" / "Test 1.c3d")
-    xyz = markers_on_frames(m.times_s, m.xyz, frames, FPS, OFFSET)
+    xyz = markers_on_frames(m, frames, VideoClock(FPS, OFFSET))
     uv = _truth_uv(truth, frames)  # (C, F, 2, 65, 2)
     per_cam = []
     for c in range(len(cams)):
