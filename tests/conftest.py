@@ -34,16 +34,11 @@ def small_session_path() -> Path:
 
 def _live_tmp(name: str) -> bool:
     """``.tmp-<pid>-<hex>`` of a process still running (another pytest building it now)."""
+    from pipeline.procs import pid_alive
+
     parts = name.split("-")
-    if not name.startswith(".tmp-") or len(parts) < 3 or not parts[1].isdigit():
-        return False
-    try:
-        os.kill(int(parts[1]), 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+    return (name.startswith(".tmp-") and len(parts) >= 3 and parts[1].isdigit()
+            and pid_alive(int(parts[1])))
 
 
 def build_small_session() -> Path:
