@@ -5,6 +5,8 @@ cases) with::
 
     def run(work: pathlib.Path) -> dict[str, float]   # flat keys, e.g. "marker_fit.mpjpe_mm"
     GOALS = {"marker_fit.mpjpe_mm": ("<=", 5.0)}      # optional
+    LIMITS = {"marker_fit.mpjpe_mm": "what limits it"} # optional: shown under a FAIL
+    def report(results: dict) -> str                  # optional: a markdown section
 
 Cases run in name order, each with its own work folder ``bench/work/<name>/`` (created, not
 wiped: a case decides what to reuse). A case that raises is recorded as failed
@@ -13,8 +15,9 @@ wiped: a case decides what to reuse). A case that raises is recorded as failed
 ``bench/measured.json`` records for every key the commit and the code it was measured on
 (``{key: {"commit", "code", "date"}}``; ``code`` is a hash of the project's source files, so
 a figure measured before a code change is known as such), and ``bench/RESULTS.md`` is
-rewritten: one table row per key (value, goal, verdict, commit), then the machine (CPU model,
-cores, Python, numpy), the date and the command. A row measured on other code than the one
+rewritten: one table row per key (value, goal, verdict, commit), then for every goal missed
+what limits it (the case's ``LIMITS``), the cases' own sections (``report(results)``, e.g. an
+ablation table), then the machine (CPU model, cores, Python, numpy), the date and the command. A row measured on other code than the one
 rendering the table says so in place of pass/FAIL: an old figure never passes a goal.
 ``python -m bench --table`` re-renders the table against the code as it is now.
 """
@@ -190,6 +193,21 @@ def all_goals(paths: list[Path], ran: list[CaseResult]) -> dict[str, tuple[str, 
     return goals
 
 
+def case_extras(paths: list[Path]) -> tuple[dict[str, str], list[str]]:
+    """Every case's ``LIMITS`` (merged) and its ``report`` function (in name order)."""
+    limits: dict[str, str] = {}
+    reports = []
+    for p in paths:
+        try:
+            mod = load_case(p)
+        except Exception:  # noqa: BLE001 - an unimportable case just has no extras
+            continue
+        limits.update(getattr(mod, "LIMITS", {}) or {})
+        if callable(getattr(mod, "report", None)):
+            reports.append(mod.report)
+    return limits, reports
+
+
 def merge_measured(measured_file: Path, cases: list[CaseResult], commit: str, code: str) -> dict:
     """``{key: {"commit", "code", "date"}}`` updated with this run's keys."""
     try:
@@ -204,9 +222,12 @@ def merge_measured(measured_file: Path, cases: list[CaseResult], commit: str, co
 
 
 def render_markdown(results: dict, goals: dict, ran: list[CaseResult], machine: dict,
-                    command: str, measured: dict | None = None, code: str | None = None) -> str:
+                    command: str, measured: dict | None = None, code: str | None = None,
+                    limits: dict[str, str] | None = None, reports=()) -> str:
     """The table. ``measured``/``code``: where each key was measured and the code version
-    rendering now; a row whose code differs (or is unknown) gets no pass/FAIL verdict."""
+    rendering now; a row whose code differs (or is unknown) gets no pass/FAIL verdict.
+    ``limits``: per key what limits it, listed for every FAIL; ``reports``: functions
+    ``results -> markdown`` appended as sections."""
     now = {k for c in ran for k in c.values}
     measured = measured or {}
     lines = ["# Benchmark results", "",
@@ -225,6 +246,20 @@ def render_markdown(results: dict, goals: dict, ran: list[CaseResult], machine: 
         ver = verdict(v, g) if current else ("not re-measured on this code" if g else "")
         at = m.get("commit", "unknown") + ("" if current else " (older code)")
         lines.append(f"| `{k}` | {v:.4g}{note} | {goal_s} | {ver} | {at} |")
+    failed = [k for k, v in results.items() if not k.endswith(".error") and k in goals
+              and (code is None or (measured.get(k) or {}).get("code") == code)
+              and verdict(v, goals[k]) == "FAIL"]
+    if failed:
+        lines += ["", "## Goals missed: what limits them", ""]
+        lines += [f"- `{k}` = {results[k]:.4g} (goal {goals[k][0]} {goals[k][1]:g}): FAIL. "
+                  + ((limits or {}).get(k) or "not analysed yet.") for k in failed]
+    for rep in reports:
+        try:
+            sec = rep(results)
+        except Exception as e:  # noqa: BLE001 - a broken section must not lose the table
+            sec = f"(section failed: {type(e).__name__}: {e})"
+        if sec:
+            lines += ["", sec.rstrip()]
     errs = {k: v for k, v in results.items() if k.endswith(".error")}
     if errs:
         lines += ["", "## Failed cases", ""]
@@ -248,7 +283,7 @@ def main(argv: list[str] | None = None, bench_dir: Path = BENCH) -> int:
         mf = bench_dir / "measured.json"
         measured = json.loads(mf.read_text()) if mf.exists() else {}
         md = render_markdown(results, all_goals(paths, []), [], machine_info(),
-                             "python -m bench --table", measured, code)
+                             "python -m bench --table", measured, code, *case_extras(paths))
         (bench_dir / "RESULTS.md").write_text(md)
         print(f"[bench] wrote {bench_dir / 'RESULTS.md'} (code {code})", file=sys.stderr)
         return 0
@@ -280,7 +315,7 @@ def main(argv: list[str] | None = None, bench_dir: Path = BENCH) -> int:
     (bench_dir / "measured.json").write_text(json.dumps(measured, indent=1) + "\n")
     command = "python -m bench" + "".join(f" {a}" for a in argv)
     md = render_markdown(results, all_goals(paths, ran), ran, machine_info(), command,
-                         measured, code)
+                         measured, code, *case_extras(paths))
     (bench_dir / "RESULTS.md").write_text(md)
     print(f"[bench] wrote {bench_dir / 'results.json'} and {bench_dir / 'RESULTS.md'}",
           file=sys.stderr)

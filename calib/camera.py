@@ -196,6 +196,26 @@ def project(cam: Camera, X: np.ndarray, distorted: bool = True) -> np.ndarray:
     return xy * cam.f + cam.c
 
 
+def project_jacobian(cam: Camera, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels of world points and their exact derivative in the point.
+
+    X: (N, 3) world, metres. Returns ``uv (N, 2)`` (as :func:`project`) and ``J (N, 2, 3)``,
+    ``d uv / d X`` through the camera rotation, the perspective division and the lens
+    distortion (chain rule of :func:`world_to_cam`, :func:`distort`). Checked against
+    ``cv2.projectPoints``'s own Jacobian in the tests."""
+    X = np.asarray(X, dtype=np.float64).reshape(-1, 3)
+    Xc = world_to_cam(cam, X)
+    z = Xc[:, 2]
+    xy = Xc[:, :2] / z[:, None]
+    dxy = np.zeros((len(X), 2, 3))  # d(x/z, y/z) / d Xc
+    dxy[:, 0, 0] = dxy[:, 1, 1] = 1.0 / z
+    dxy[:, :, 2] = -xy / z[:, None]
+    Jd = _distort_jacobian(xy, cam.k, cam.p, cam.model)
+    uv = distort(xy, cam.k, cam.p, cam.model) * cam.f + cam.c
+    J = cam.f[None, :, None] * (Jd @ dxy @ cam.R)
+    return uv, J
+
+
 def normalized_from_pixels(cam: Camera, uv: np.ndarray) -> np.ndarray:
     """uv: (..., 2) observed (distorted) pixels -> (..., 2) undistorted normalized coordinates
     (X/Z, Y/Z in the camera frame); NaN where the lens model cannot be inverted."""

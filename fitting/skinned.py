@@ -33,7 +33,7 @@ import scipy.sparse as sp
 
 from body.lbs import RestState
 from body.model import BodyModel
-from body.rotations import rodrigues, rodrigues_cs
+from body.rotations import rodrigues, rodrigues_cs, skew
 from geometry import face_normals
 
 
@@ -138,6 +138,80 @@ def _fk_np(skel: FitSkeleton, u: np.ndarray, x: np.ndarray):
         G[i] = G[p] @ D[i - 1]
         t[i] = t[p] + G[p] @ u[i]
     return G, t
+
+
+# ---------------------------------------------------------------------------- exact Jacobians in numpy
+
+JR_SMALL = 1e-8  # below this angle the SO(3) right Jacobian is its series
+
+
+def right_jacobian(rv: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) SO(3) right Jacobian of rotation vectors (..., 3):
+    ``exp(r + d) = exp(r) exp(J_r(r) d)`` to first order."""
+    rv = np.asarray(rv, float)
+    th = np.linalg.norm(rv, axis=-1)[..., None, None]
+    K = skew(rv)
+    small = th < JR_SMALL
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 0.5, (1 - np.cos(ths)) / ths ** 2)
+    b = np.where(small, 1.0 / 6.0, (ths - np.sin(ths)) / ths ** 3)
+    return np.eye(3) - a * K + b * (K @ K)
+
+
+def subtree(skel: FitSkeleton) -> np.ndarray:
+    """(Q, Q) bool, ``A[i, q]``: fitted joint q is i or a descendant of i."""
+    Q = len(skel.joints)
+    A = np.eye(Q, dtype=bool)
+    for q in range(1, Q):  # parents come before children
+        p = int(skel.parents[q])
+        while p >= 0:
+            A[p, q] = True
+            p = int(skel.parents[p])
+    return A
+
+
+def _fk_axes(skel: FitSkeleton, u: np.ndarray, x: np.ndarray):
+    """G (Q, 3, 3), t (Q, 3) of the reduced tree (fitting/skinned.py) and the world axes
+    ``G_i J_r(theta_i)`` (Q, 3, 3) of each joint's local rotation vector (the root: r)."""
+    Q = len(skel.joints)
+    rv = np.concatenate([x[:3], x[6:]]).reshape(Q, 3)
+    D = rodrigues(rv)
+    Jr = right_jacobian(rv)
+    G = np.zeros((Q, 3, 3))
+    t = np.zeros((Q, 3))
+    G[0], t[0] = D[0], u[0] + x[3:6]
+    for i in range(1, Q):
+        p = skel.parents[i]
+        G[i] = G[p] @ D[i]
+        t[i] = t[p] + G[p] @ u[i]
+    return G, t, G @ Jr
+
+
+def point_jacobian(skel: FitSkeleton, u: np.ndarray, H: np.ndarray, x: np.ndarray,
+                   sub: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """World positions (N, 3) and their exact Jacobian (N, 3, n) w.r.t. the unknowns ``x`` of
+    slots ``H (N, Q, 4)`` (:func:`vertex_coeffs`; a point is
+    ``sum_q G_q l_q + W_q t_q``).
+
+    Turning joint i's rotation vector by ``d`` turns everything below i about ``t_i`` by the
+    world axis ``a = G_i J_r(theta_i) d``: ``dp = a x S_i``, ``S_i = sum_{q under i}
+    (G_q l_q + W_q (t_q - t_i))``; ``dp/dT = (sum_q W_q) I``. ``sub``: :func:`subtree` (cached
+    by the caller)."""
+    H = np.asarray(H, float)
+    G, t, axes = _fk_axes(skel, u, x)
+    A = (subtree(skel) if sub is None else sub).astype(float)
+    Q, N = len(skel.joints), len(H)
+    P = np.matmul(G[None], H[..., :3, None])[..., 0] + H[..., 3:] * t[None]  # (N, Q, 3)
+    pos = P.sum(1)
+    W = H[..., 3]
+    S = np.matmul(A, P) - (W @ A.T)[..., None] * t[None]  # (N, Q, 3)
+    # d p / d rv_i[k] = axes_i[:, k] x S_i = -[S_i]x axes_i[:, k]: (N, Q, 3, 3) [n, i, a, k]
+    Jrot = -np.matmul(skew(S), axes[None])
+    J = np.empty((N, 3, 3 * Q + 3))
+    J[:, :, 0:3] = Jrot[:, 0]
+    J[:, :, 3:6] = W.sum(1)[:, None, None] * np.eye(3)[None]
+    J[:, :, 6:] = Jrot[:, 1:].transpose(0, 2, 1, 3).reshape(N, 3, 3 * (Q - 1))
+    return pos, J
 
 
 def fk_cs(parents: tuple[int, ...], x, u):

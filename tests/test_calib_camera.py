@@ -15,6 +15,7 @@ from calib import (
     normalized_from_pixels,
     project,
     project_cs,
+    project_jacobian,
     undistort_pixels,
     world_to_cam,
 )
@@ -88,6 +89,25 @@ def test_opencv_model_matches_cv2_and_pycolmap(rng):
                              params=[*cam.f, *cam.c, k1, k2, p1, p2, k3, 0, 0, 0])
         uv_colmap = pc.img_from_cam(world_to_cam(cam, X))
         assert np.abs(uv - uv_colmap).max() < 1e-6
+
+
+def test_project_jacobian_matches_cv2_and_finite_differences(rng):
+    """d uv / d X: against OpenCV's own Jacobian (its d/d tvec times R, opencv model) and
+    central differences (both models)."""
+    for model in ("opencv", "h36m"):
+        cam = random_camera(rng, model)
+        X = random_points(rng, cam, 50)
+        uv, J = project_jacobian(cam, X)
+        assert np.abs(uv - project(cam, X)).max() < 1e-9
+        h = 1e-6
+        fd = np.stack([(project(cam, X + h * e) - project(cam, X - h * e)) / (2 * h)
+                       for e in np.eye(3)], axis=-1)
+        assert np.abs(J - fd).max() < 1e-4 * np.abs(fd).max()
+        if model == "opencv":
+            rvec, tvec, K, dist = to_opencv(cam)
+            _, jac = cv2.projectPoints(X, rvec, tvec, K, dist)
+            J_cv = jac[:, 3:6].reshape(len(X), 2, 3) @ cam.R  # d uv / d tvec = d uv / d Xc
+            assert np.abs(J - J_cv).max() < 1e-6 * np.abs(J_cv).max()
 
 
 def test_models_differ_when_p_nonzero(rng):

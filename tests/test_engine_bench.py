@@ -9,6 +9,9 @@ import bench
 
 OK = '''
 GOALS = {"ok.speed_s": ("<=", 1.0), "ok.acc_mm": (">=", 10.0)}
+LIMITS = {"ok.acc_mm": "the toy detector is blind", "ok.speed_s": "never shown: it passes"}
+def report(results):
+    return "## Toy section\\n\\nacc is " + str(results["ok.acc_mm"])
 def run(work):
     (work / "touched").write_text("x")
     return {"ok.speed_s": 0.5, "ok.acc_mm": 3.0}
@@ -49,6 +52,10 @@ def test_harness_records_failures_merges_and_renders(tmp_path, monkeypatch):
     meas = json.loads((d / "measured.json").read_text())
     assert meas["ok.speed_s"]["commit"] == "abc123" and meas["ok.speed_s"]["code"] == "code-one"
     assert "- `b_bad`: RuntimeError: boom in case" in md
+    # a missed goal says what limits it; a passed one is not listed; the case's own section
+    assert "- `ok.acc_mm` = 3 (goal >= 10): FAIL. the toy detector is blind" in md
+    assert "never shown" not in md
+    assert "## Toy section\n\nacc is 3.0" in md
     for word in ("- cpu: ", "- cores: ", "- python: ", "- numpy: ", "- date: ",
                  "- command: `python -m bench`"):
         assert word in md
