@@ -9,18 +9,21 @@ Per frame ``t`` the unknowns ``x_t = [r (3), T (3), theta ((Q-1)*3)]`` of the fi
 - ``L_2d``: every KP65 keypoint of the partner detected in any view (body, feet, hands),
   confidence-weighted, with a Geman-McClure ``rho`` per observation (IRLS in ``fitting/lm.py``,
   as in the marker fit): a wrong detection in one view pulls with a bounded force. The
-  residual function is ``fitting.marker_graph.MarkerGraph`` with no markers and the 65 KP65
-  slots (``body.joints.regressor(model, "kp65")`` -> ``fitting.skinned.regressed_coeffs``).
+  residual function is ``fitting.reprojection.Reprojection``: the 65 KP65 slots
+  (``body.joints.regressor(model, "kp65")`` -> ``fitting.skinned.regressed_coeffs``) posed
+  with their exact Jacobian (``fitting.skinned.point_jacobian``) and projected with
+  ``calib.project_jacobian``, in numpy (the CasADi graph of 65 slots over 52 joints was 17 MB
+  of C and ran interpreted at ~8 ms per evaluation).
 - ``L_theta`` (Gaussian + joint limits, ``fitting/priors.py``) and ``L_s`` (toward the previous
   frame) are quadratic terms / a box in numpy.
-- The extra terms (``L_gp``, ``L_ic``; later ``L_sc``, ``L_D``, ``L_N``) are the seam:
+- The extra terms (``L_gp``, ``L_ic``, ``L_sc``, ``L_D``, ``L_N``) are the seam:
   :class:`ExtraTerm` hooks called before each of ``outer_rounds`` LM rounds with the current
   posed mesh (:class:`Posed`) choose the offending points (numpy: winding numbers, nearest
   points, the lowest vertices) and return :class:`Block` s: the points' slot coefficients
   ``H (N, Q, 4)`` and the paper's term (``fitting/terms.py``) as a function of their
   positions, with the targets fixed for the round. :class:`Augmented` appends the blocks' rows
-  to the compiled graph's residual function; LM evaluates them exactly at every step, with
-  the exact Jacobian of the points (:func:`point_jacobian`: closed-form derivative of the
+  to the keypoint residual function; LM evaluates them exactly at every step, with
+  the exact Jacobian of the points (``fitting.skinned.point_jacobian``: closed-form derivative of the
   reduced-tree skinning, no finite differences), so the graph stays fixed and only the
   offending points cost anything.
 
@@ -46,22 +49,34 @@ from artifacts.keypoints import PARTNER, Keypoints2D
 from body.joints import regressor
 from body.lbs import RestState, forward, rest_state
 from body.model import BodyModel
-from body.rotations import rodrigues, skew
-from calib import camera_vector, project
-from fitting import collision, compiled, lm, priors, skinned, terms
+from calib import project
+from fitting import collision, lm, priors, skinned, terms
 from fitting.init_pose import InitOptions, init_pose
 from fitting.marker_fit import GNC_FACTORS, rewrap, unpack
-from fitting.marker_graph import GraphSpec, MarkerGraph, body_joints
-from formats.skeletons import KP65
+from fitting.marker_graph import body_joints
+from fitting.reprojection import Reprojection
+from fitting.skinned import point_jacobian, subtree
+from formats.skeletons import KP65, KP65_FLIP
 
 # constants
+# L_2d costs the mean squared pixel error (1/K per keypoint). L_ic / L_sc: 1e4 per m^2 of
+# each penetrating point (1 cm deep = 1 px^2). L_D: 1/P per matched facet pair of a region
+# pair, so a region pair costs 1e5 x its mean squared centre gap: a 1 cm gap = 10 px^2, as
+# much as ~3 px of 2D error on every keypoint. L_N: (1 + n1.n2)^2, 1/P per pair: 15 degrees
+# off opposite cost 1e4 x 1.2e-3 = 12 px^2, about a 1 cm gap.
 DEFAULT_WEIGHTS = {"L_2d": 1.0, "L_theta": 0.02, "L_s": 0.2, "L_gp": 1e5, "L_ic": 1e4,
-                   "L_sc": 0.0, "L_D": 0.0, "L_N": 0.0}
-WIRED = ("L_2d", "L_theta", "L_s", "L_gp", "L_ic")  # terms this version evaluates
+                   "L_sc": 1e4, "L_D": 1e5, "L_N": 1e4}
+WIRED = ("L_2d", "L_theta", "L_s", "L_gp", "L_ic", "L_sc", "L_D", "L_N")  # terms evaluated
+CONTACT_SELECTIONS = ("annotated", "all", "uniform")  # psi_D modes (contact_selection)
+# L_G pulls a region pair only when its closest matched facets are nearer than this: a gap of
+# tens of cm in an annotated contact frame means the annotation or the pose is off, and
+# dragging the body there would overrule the 2D evidence (the frame is reported instead)
+CONTACT_MAX_GAP_M = 0.25
+CONTACT_FACETS_N = 50  # psi_D "uniform": facets drawn per region
 EXTRA_TERMS = ("L_gp", "L_ic", "L_sc", "L_D", "L_N")
-COMPILE_MODES = ("auto", "compiled", "interpreted")
 N_BODY = 23  # KP65 body keypoints (COCO-WholeBody order) counted for "enough detections"
-JR_SMALL = 1e-8  # below this angle the SO(3) right Jacobian is its series
+FLIP_MIN_PX = 15.0  # check_views: a view this close to the estimate (median px) is kept as is
+FLIP_RATIO = 0.5  # ... else mirrored / dropped when that fits at least twice as well
 GROUND_K = 300  # L_gp candidates: the lowest vertices (both soles; 20 let a foot tilt under)
 # the reasons (artifacts.body_fit.INVALID_REASONS) a frame of the partner fit can be not valid for
 PARTNER_FIT_REASONS = ("too_few_keypoints", "held_before_first_keypoints", "poor_reprojection")
@@ -72,7 +87,13 @@ class PartnerFitOptions:
     """The partner fit's options (also the recipe's ``stages.partner_fit`` section).
 
     weights : per paper term (``fitting.terms.PARTNER_TERMS`` minus ``L_3d``); missing ones at
-    their default; ``L_sc``, ``L_D``, ``L_N`` are not wired yet and must stay 0.
+    their default (``DEFAULT_WEIGHTS``, the reasons beside it); 0 switches a term off.
+    contact_selection : the paper's ``psi_D`` for ``L_D`` / ``L_N``: "annotated" (the
+    signature's facets of each region pair; a pair without annotated facets uses "all"),
+    "all" (every facet of both regions) or "uniform" (``contact_facets_n`` facets drawn per
+    region, once per sequence, seed ``contact_seed``); contact_max_gap_m : a region pair
+    whose closest matched facets are farther apart is not pulled in that frame (reported in
+    ``contact_terms.pairs_too_far``).
     sigma_keypoint_px : Geman-McClure scale of a keypoint's 2D error, pixels;
     min_conf : detections below this confidence are ignored;
     min_keypoints / min_views : a frame is fitted when at least this many body keypoint
@@ -84,8 +105,8 @@ class PartnerFitOptions:
     reprojection error is above this is not valid (``poor_reprojection``); use_hands : fit
     the fingers to the hand keypoints (52 fit joints; else the 22 body joints and the 23 body
     keypoints); ground_k : lowest vertices for L_gp; proxy_vertices : size of the proxy mesh
-    of L_ic; max_frames : fit only the first N frames; compile : how the residual function
-    runs."""
+    of L_ic; max_frames : fit only the first N frames; check_views : mirror back a view's
+    detection read left/right mirrored, drop one that is the wearer (:func:`check_views`)."""
 
     weights: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_WEIGHTS))
     sigma_keypoint_px: float = 20.0
@@ -101,7 +122,11 @@ class PartnerFitOptions:
     ground_k: int = GROUND_K
     proxy_vertices: int = 1500
     max_frames: int | None = None
-    compile: Literal["auto", "compiled", "interpreted"] = "auto"
+    check_views: bool = True
+    contact_selection: Literal["annotated", "all", "uniform"] = "annotated"
+    contact_facets_n: int = CONTACT_FACETS_N
+    contact_seed: int = 0
+    contact_max_gap_m: float = CONTACT_MAX_GAP_M
 
     def __post_init__(self):
         problems = []
@@ -118,92 +143,23 @@ class PartnerFitOptions:
                 problems.append(f"{name}: must be > 0, got {getattr(self, name)}")
         if not 0 <= self.min_conf <= 1:
             problems.append(f"min_conf: must be in [0, 1], got {self.min_conf}")
+        if not self.contact_max_gap_m > 0:
+            problems.append(f"contact_max_gap_m: must be > 0, got {self.contact_max_gap_m}")
         for name, lo in (("min_keypoints", 1), ("min_views", 2), ("max_iters", 1),
                          ("first_iters", 1), ("outer_rounds", 1), ("reinit_after", 0),
-                         ("ground_k", 1), ("proxy_vertices", 100)):
+                         ("ground_k", 1), ("proxy_vertices", 100), ("contact_facets_n", 1)):
             if getattr(self, name) < lo:
                 problems.append(f"{name}: must be >= {lo}, got {getattr(self, name)}")
         if self.max_frames is not None and self.max_frames < 1:
             problems.append(f"max_frames: must be >= 1, got {self.max_frames}")
-        if self.compile not in COMPILE_MODES:
-            problems.append(f"compile: must be one of {', '.join(COMPILE_MODES)}, got {self.compile!r}")
+        if self.contact_selection not in CONTACT_SELECTIONS:
+            problems.append(f"contact_selection: must be one of {', '.join(CONTACT_SELECTIONS)}, "
+                            f"got {self.contact_selection!r}")
         if problems:
             raise ValueError("; ".join(problems))
         w = dict(DEFAULT_WEIGHTS)
         w.update({k: float(v) for k, v in self.weights.items()})
         object.__setattr__(self, "weights", w)
-
-
-# ---------------------------------------------------------------------------- exact Jacobians
-
-
-def right_jacobian(rv: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) SO(3) right Jacobian of rotation vectors (..., 3):
-    ``exp(r + d) = exp(r) exp(J_r(r) d)`` to first order."""
-    rv = np.asarray(rv, float)
-    th = np.linalg.norm(rv, axis=-1)[..., None, None]
-    K = skew(rv)
-    small = th < JR_SMALL
-    ths = np.where(small, 1.0, th)
-    a = np.where(small, 0.5, (1 - np.cos(ths)) / ths ** 2)
-    b = np.where(small, 1.0 / 6.0, (ths - np.sin(ths)) / ths ** 3)
-    return np.eye(3) - a * K + b * (K @ K)
-
-
-def subtree(skel: skinned.FitSkeleton) -> np.ndarray:
-    """(Q, Q) bool, ``A[i, q]``: fitted joint q is i or a descendant of i."""
-    Q = len(skel.joints)
-    A = np.eye(Q, dtype=bool)
-    for q in range(1, Q):  # parents come before children
-        p = int(skel.parents[q])
-        while p >= 0:
-            A[p, q] = True
-            p = int(skel.parents[p])
-    return A
-
-
-def _fk(skel: skinned.FitSkeleton, u: np.ndarray, x: np.ndarray):
-    """G (Q, 3, 3), t (Q, 3) of the reduced tree (fitting/skinned.py) and the world axes
-    ``G_i J_r(theta_i)`` (Q, 3, 3) of each joint's local rotation vector (the root: r)."""
-    Q = len(skel.joints)
-    rv = np.concatenate([x[:3], x[6:]]).reshape(Q, 3)
-    D = rodrigues(rv)
-    Jr = right_jacobian(rv)
-    G = np.zeros((Q, 3, 3))
-    t = np.zeros((Q, 3))
-    G[0], t[0] = D[0], u[0] + x[3:6]
-    for i in range(1, Q):
-        p = skel.parents[i]
-        G[i] = G[p] @ D[i]
-        t[i] = t[p] + G[p] @ u[i]
-    return G, t, G @ Jr
-
-
-def point_jacobian(skel: skinned.FitSkeleton, u: np.ndarray, H: np.ndarray, x: np.ndarray,
-                   sub: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """World positions (N, 3) and their exact Jacobian (N, 3, n) w.r.t. the unknowns ``x`` of
-    slots ``H (N, Q, 4)`` (``fitting.skinned.vertex_coeffs``; a point is
-    ``sum_q G_q l_q + W_q t_q``).
-
-    Turning joint i's rotation vector by ``d`` turns everything below i about ``t_i`` by the
-    world axis ``a = G_i J_r(theta_i) d``: ``dp = a x S_i``, ``S_i = sum_{q under i}
-    (G_q l_q + W_q (t_q - t_i))``; ``dp/dT = (sum_q W_q) I``. ``sub``: :func:`subtree` (cached
-    by the caller)."""
-    H = np.asarray(H, float)
-    G, t, axes = _fk(skel, u, x)
-    A = (subtree(skel) if sub is None else sub).astype(float)
-    Q, N = len(skel.joints), len(H)
-    P = np.matmul(G[None], H[..., :3, None])[..., 0] + H[..., 3:] * t[None]  # (N, Q, 3)
-    pos = P.sum(1)
-    W = H[..., 3]
-    S = np.matmul(A, P) - (W @ A.T)[..., None] * t[None]  # (N, Q, 3)
-    # d p / d rv_i[k] = axes_i[:, k] x S_i = -[S_i]x axes_i[:, k]: (N, Q, 3, 3) [n, i, a, k]
-    Jrot = -np.matmul(skew(S), axes[None])
-    J = np.empty((N, 3, 3 * Q + 3))
-    J[:, :, 0:3] = Jrot[:, 0]
-    J[:, :, 3:6] = W.sum(1)[:, None, None] * np.eye(3)[None]
-    J[:, :, 6:] = Jrot[:, 1:].transpose(0, 2, 1, 3).reshape(N, 3, 3 * (Q - 1))
-    return pos, J
 
 
 # ---------------------------------------------------------------------------- the seam
@@ -215,8 +171,9 @@ class Block:
     ``H (N, Q, 4)`` their slot coefficients (points on the skinned surface), and
     ``residual(pos (N, 3)) -> (r (m,), dr (m, 3), point (m,))`` the term (``fitting/terms.py``,
     unweighted), each row's derivative in the position of the one point it depends on, and
-    that point's index; evaluated exactly at every LM evaluation (the targets found by the
-    hook stay fixed within a round)."""
+    that point's index; or, for rows that depend on ``k`` points each (a facet normal: its 3
+    corners), ``dr (m, k, 3)`` and ``point (m, k)``; evaluated exactly at every LM evaluation
+    (the targets found by the hook stay fixed within a round)."""
 
     name: str
     H: np.ndarray
@@ -230,7 +187,9 @@ class Block:
         """(r (m,), J (m, n)) at unknowns x (chain rule through :func:`point_jacobian`)."""
         pos, Jp = point_jacobian(skel, u, self.H, x, sub)
         r, dr, point = self.residual(pos)
-        return r, np.einsum("ma,max->mx", dr, Jp[point])
+        if np.ndim(dr) == 2:
+            return r, np.einsum("ma,max->mx", dr, Jp[point])
+        return r, np.einsum("mka,mkax->mx", dr, Jp[point])
 
 
 class Posed:
@@ -288,14 +247,15 @@ class GroundTerm:
         return [Block(self.name, posed.slots(idx[:, None], np.ones((len(idx), 1))), residual)]
 
 
-def _pull_residual(targets: np.ndarray):
-    """Residual of ``L_ic``/``L_sc`` toward fixed targets (N, 3) and its derivative."""
+def _pull_residual(targets: np.ndarray, term=terms.L_ic):
+    """Residual of ``L_ic`` (or ``term`` = ``terms.L_sc``) toward fixed targets (N, 3) and its
+    derivative."""
     N = len(targets)
     dr = np.tile(np.eye(3), (N, 1))  # row 3i + a: d/dp_i[a]
     point = np.repeat(np.arange(N), 3)
 
     def residual(pos):
-        return terms.L_ic(pos, targets, np.ones(N)), dr, point
+        return term(pos, targets, np.ones(N)), dr, point
 
     return residual
 
@@ -336,6 +296,189 @@ class InterpenetrationTerm:
             w = (b_in_a.bary[:, :, None] * pr.bary[tri]).reshape(b_in_a.n, 9)
             out.append(Block(self.name, posed.slots(vids, w), _pull_residual(b_in_a.target)))
         return out
+
+
+class SelfCollisionTerm:
+    """``L_sc``: the partner's proxy points inside its own body, counting only the parts that
+    are not neighbours of the point's region (``fitting.collision.self_collisions`` on
+    ``proxy.points(posed.vertices)``; the proxy needs regions: ``ProxyMesh.from_model``).
+    Each penetrating proxy point is pulled to its nearest point on the non-neighbouring own
+    proxy surface (the paper's ``NN(V_l, M)``), pushed ``collision.MARGIN_M`` beyond it, the
+    target fixed for the round as ``L_ic``'s: ``terms.L_sc(p, target, 1)`` (3n,), metres.
+    (A target riding on the own surface, both points moving, was tried: on an elbow folded
+    into the belly it moved the body twice as far and left 0.6 mm where this leaves none.)"""
+
+    name = "L_sc"
+
+    def __init__(self, proxy: collision.ProxyMesh):
+        self.proxy = proxy
+
+    def __call__(self, posed: Posed) -> list[Block]:
+        pr = self.proxy
+        col = collision.self_collisions(pr, pr.points(posed.vertices))
+        if not col.n:
+            return []
+        H = posed.slots(pr.corners[col.index], pr.bary[col.index])
+        return [Block(self.name, H, _pull_residual(col.target, terms.L_sc))]
+
+
+def contact_selection(contact, rmap, mode: str = "annotated", n: int = CONTACT_FACETS_N,
+                      rng: np.random.Generator | None = None):
+    """The paper's ``psi_D`` for every region pair of ``contact`` (a
+    ``fitting.contact_signature.ContactAnnotation``, person 0 = the wearer, person 1 = the
+    partner): ``(selection, modes)``, selection one ``(wearer facets, partner facets)`` int64
+    pair per row of ``contact.region_pairs``, modes the mode used for each. ``"annotated"``
+    falls back to ``"all"`` for a pair without annotated facets; ``"uniform"`` draws ``n``
+    facets per region with ``rng`` (default ``np.random.default_rng(0)``)."""
+    from fitting.contact_signature import select_facets
+
+    R = len(contact.region_pairs)
+    if mode == "uniform":
+        rng = np.random.default_rng(0) if rng is None else rng
+        return select_facets(contact, rmap, mode, n, rng), [mode] * R
+    if mode != "annotated":
+        return select_facets(contact, rmap, mode), [mode] * R
+    full = None
+    sel, modes = [], []
+    for r in range(R):
+        fp = contact.facets_of_pair(r)
+        if len(fp):
+            sel.append((np.unique(fp[:, 0]), np.unique(fp[:, 1])))
+            modes.append("annotated")
+            continue
+        full = select_facets(contact, rmap, "all") if full is None else full
+        sel.append(full[r])
+        modes.append("all")
+    return sel, modes
+
+
+class FacetMatches:
+    """The nearest-facet matches of ``Phi_D`` between the wearer's and the partner's selected
+    facets at the current pose, shared by the ``L_D`` and ``L_N`` terms (computed once per
+    :class:`Posed`).
+
+    contact : the ``ContactAnnotation``; frames : (F,) the fit's video frame numbers
+    (``Posed.frame`` indexes them; ``contact.active`` takes video frames); wearer_vertices :
+    per fit frame the wearer's posed mesh (V, 3) or None; faces : (T, 3) the model's faces;
+    selection : :func:`contact_selection`'s per-pair ``(wearer facets, partner facets)``.
+
+    ``__call__(posed)`` -> None outside the contact interval or without the wearer's mesh,
+    else ``(face_w (P,), face_p (P,), weight (P,), wearer vertices (V, 3))``: per region pair
+    both directions of ``collision.match_facets`` (every wearer facet with its nearest partner
+    facet, then every partner facet with its nearest wearer facet), ``weight = 1 / P_k`` for
+    the ``P_k`` matches of region pair k (a region pair's terms are means over its matches;
+    region pairs add up)."""
+
+    def __init__(self, contact, frames: np.ndarray, wearer_vertices, faces: np.ndarray,
+                 selection: list[tuple[np.ndarray, np.ndarray]], max_gap_m: float = np.inf):
+        self.contact, self.frames = contact, np.asarray(frames, np.int64)
+        self.wearer, self.faces, self.selection = wearer_vertices, np.asarray(faces), selection
+        self.max_gap_m = float(max_gap_m)
+        self.too_far: set[tuple[int, int]] = set()  # (fit frame, region pair) not pulled
+        self._last = (None, None)
+
+    def active(self, f: int) -> bool:
+        """L_G applies at fit frame index ``f``: its video frame is in the contact interval and
+        the wearer's mesh is there."""
+        return (self.wearer is not None and self.wearer[f] is not None
+                and self.contact.active(int(self.frames[f])))
+
+    def __call__(self, posed: Posed):
+        if self._last[0] is posed:
+            return self._last[1]
+        out = None
+        if self.active(posed.frame):
+            VW, VP = self.wearer[posed.frame], posed.vertices
+            fw, fp, w = [], [], []
+            for k, (s_w, s_p) in enumerate(self.selection):
+                a, b = collision.match_facets(VW, self.faces, s_w, VP, self.faces, s_p)
+                gap = np.linalg.norm(VW[self.faces[a]].mean(1) - VP[self.faces[b]].mean(1), axis=1)
+                if not gap.min() <= self.max_gap_m:  # the annotation or the pose is off
+                    self.too_far.add((int(posed.frame), k))
+                    continue
+                self.too_far.discard((int(posed.frame), k))
+                fw.append(a)
+                fp.append(b)
+                w.append(np.full(len(a), 1.0 / len(a)))
+            if fw:
+                out = (np.concatenate(fw), np.concatenate(fp), np.concatenate(w), VW)
+        self._last = (posed, out)
+        return out
+
+
+class ContactTerm:
+    """One half of ``L_G = L_D + L_N`` in the contact frames (``name`` "L_D" or "L_N"; the two
+    share one :class:`FacetMatches`). With the matched facet pairs (wearer facet ``f_w``,
+    partner facet ``f_p``, weight ``1 / P_k``), the wearer fixed:
+
+    - ``L_D``: the partner facets' centres (each a point: the mean of its 3 corner vertices)
+      pulled to the wearer facets' centres, ``terms.L_D(c_p, c_w, w)`` (3P,), metres;
+    - ``L_N``: the partner facets' unit normals turned opposite to the wearer's,
+      ``terms.L_N(tri_w, tri_p, w)`` = ``sqrt(w)(1 + n_w . n_p)`` (P,), dimensionless; each
+      row depends on the partner facet's 3 corners (exact derivative of the unit normal:
+      :func:`normal_residual`)."""
+
+    def __init__(self, name: str, matches: FacetMatches):
+        if name not in ("L_D", "L_N"):
+            raise ValueError(f"name: expected 'L_D' or 'L_N', got {name!r}")
+        self.name, self.matches = name, matches
+
+    def __call__(self, posed: Posed) -> list[Block]:
+        m = self.matches(posed)
+        if m is None:
+            return []
+        fw, fp, w, VW = m
+        F = self.matches.faces
+        if self.name == "L_D":
+            H = posed.slots(F[fp], np.full((len(fp), 3), 1.0 / 3.0))
+            return [Block(self.name, H, centre_residual(VW[F[fw]].mean(1), w))]
+        H = posed.slots(F[fp].reshape(-1, 1), np.ones((3 * len(fp), 1)))
+        return [Block(self.name, H, normal_residual(VW[F[fw]], w))]
+
+
+def centre_residual(targets: np.ndarray, weights: np.ndarray):
+    """``L_D`` of points (P, 3) toward fixed facet centres ``targets`` (P, 3), per-pair
+    ``weights`` (P,): ``residual(pos) -> (terms.L_D(pos, targets, w) (3P,), dr (3P, 3),
+    point (3P,))``."""
+    P = len(targets)
+    sw = np.sqrt(np.asarray(weights, float))
+    dr = np.repeat(sw, 3)[:, None] * np.tile(np.eye(3), (P, 1))
+    point = np.repeat(np.arange(P), 3)
+
+    def residual(pos):
+        return terms.L_D(pos, targets, weights), dr, point
+
+    return residual
+
+
+def normal_residual(tri_fixed: np.ndarray, weights: np.ndarray):
+    """``L_N`` of triangles whose corners are the points (3P, 3) (triangle i = points 3i,
+    3i + 1, 3i + 2, outward order) against fixed triangles ``tri_fixed`` (P, 3, 3):
+    ``residual(pos) -> (r (P,), dr (P, 3, 3), point (P, 3))`` with ``r = terms.L_N(tri_fixed,
+    tri, w) = sqrt(w)(1 + n_1 . n)`` and its exact derivative in the three corners: with
+    ``N = (b - a) x (c - a)``, ``n = N / |N|`` and ``g = sqrt(w) (I - n n^T) n_1 / |N|``,
+    ``dr/da = g x (c - b)``, ``dr/db = (c - a) x g``, ``dr/dc = g x (b - a)``. Degenerate
+    triangles (|N| = 0) give NaN rows."""
+    P = len(tri_fixed)
+    n1 = terms.facet_normals(np.asarray(tri_fixed, float))
+    w = np.asarray(weights, float)
+    sw = np.sqrt(w)
+    point = np.arange(3 * P).reshape(P, 3)
+
+    def residual(pos):
+        tri = np.asarray(pos, float).reshape(P, 3, 3)
+        a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+        u, v = b - a, c - a
+        N = np.cross(u, v)
+        L = np.linalg.norm(N, axis=1, keepdims=True)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            r = terms.L_N(tri_fixed, tri, w)
+            n = N / L
+            g = sw[:, None] * (n1 - (n * n1).sum(1, keepdims=True) * n) / L
+        dr = np.stack([np.cross(g, c - b), np.cross(v, g), np.cross(g, u)], axis=1)
+        return r, dr, point
+
+    return residual
 
 
 class Augmented:
@@ -406,17 +549,13 @@ class PartnerSolver:
     """Everything fixed over a sequence: the keypoint graph, its packed parameters, the prior,
     the options and the extra terms."""
 
-    def __init__(self, graph: MarkerGraph, body: _BodyCtx, Hk: np.ndarray, cams,
-                 prior: priors.PosePrior, opts: PartnerFitOptions, extra=()):
-        s = graph.spec
-        self.graph, self.body, self.opts, self.extra = graph, body, opts, list(extra)
-        C, K = s.n_cameras, s.n_keypoints
-        empty = skinned.SkinnedPoints(np.zeros((0, 3, s.Q, 4)), np.zeros((0, 3)), np.zeros(0))
-        self.p = graph.params(body.u, empty, np.zeros((0, 3)), np.zeros(0), Hk,
-                              np.stack([camera_vector(c) for c in cams]), np.zeros((C, K, 2)),
-                              np.zeros((C, K)))
+    def __init__(self, reproj: Reprojection, body: _BodyCtx, prior: priors.PosePrior,
+                 opts: PartnerFitOptions, extra=()):
+        self.reproj, self.body, self.opts, self.extra = reproj, body, opts, list(extra)
+        C, K = reproj.C, reproj.K
+        self.p = np.zeros(0)
         w = opts.weights
-        n = s.n_x
+        n = reproj.n_x
         pose_idx = np.arange(6, n)
         g = prior.gaussian
         self.quad_prior = terms.quadratic_L_theta(n, pose_idx, g.mean, g.sqrt_precision, w["L_theta"])
@@ -444,7 +583,7 @@ class PartnerSolver:
         """One frame: uv (C, K, 2) pixels, conf (C, K) (0 = missing). Rounds of LM; before
         each the hooks choose the offending points, which LM then evaluates exactly
         (:class:`Augmented`). Returns (LMResult, the blocks at the solution, rounds)."""
-        self.graph.set_observations(self.p, np.zeros((0, 3)), np.zeros(0), uv, conf)
+        self.reproj.set_observations(uv, conf)
         quad = self.quad_prior
         if x_prev is not None and self.opts.weights["L_s"] > 0:
             quad = quad + terms.quadratic_L_s(len(x0), np.arange(len(x0)), x_prev,
@@ -455,9 +594,9 @@ class PartnerSolver:
         for k in range(self.opts.outer_rounds if self.extra else 1):
             if k > 0 and not blocks:
                 break
-            fun, scale = self.graph.fun, self.row_scale
+            fun, scale = self.reproj, self.row_scale
             if blocks:
-                fun = Augmented(self.graph.fun, blocks, self.body)
+                fun = Augmented(self.reproj, blocks, self.body)
                 scale = np.concatenate([scale] + [np.full(m, np.sqrt(self.opts.weights[b.name]))
                                                   for b, m in zip(blocks, fun.sizes, strict=True)])
             for fct in (GNC_FACTORS if (first and k == 0) else (1.0,)):
@@ -486,6 +625,68 @@ def _partner_keypoints(keypoints: Keypoints2D, cams, frames, kidx, min_conf):
     return np.transpose(kp[..., :2], (1, 0, 2, 3)), np.transpose(kp[..., 2], (1, 0, 2)), full
 
 
+def check_views(cams, pred: np.ndarray, uv: np.ndarray, conf: np.ndarray, flip: np.ndarray,
+                other: np.ndarray | None = None, min_px: float = FLIP_MIN_PX,
+                ratio: float = FLIP_RATIO) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Cross-view consistency of one frame's partner detections against a 3D body.
+
+    pred : (K, 3) the partner's keypoints from the current estimate (the previous frame's
+    solution, or this frame's); uv (C, K, 2), conf (C, K) the detections; flip : (K,) the
+    left/right mirror of the K keypoints (``formats.skeletons.KP65_FLIP``); other : (K, 3) the
+    marker wearer's keypoints (from ``marker_fit``) or None. Per view, ``e`` is the median
+    pixel distance of the detected body keypoints to ``pred``'s projection:
+
+    - a view whose detection read mirrored fits ``pred`` better (``e_flip < ratio * e`` and
+      ``e > min_px``) is mirrored back (a person seen from behind read as seen from the
+      front: the fit must not follow it);
+    - a view whose detection lies nearer the wearer's projected keypoints than the partner's
+      (``e_other < ratio * e``, ``e > min_px``; an identity swap) is dropped (conf 0).
+
+    Returns ``(uv, conf, flipped (C,), dropped (C,))`` (copies)."""
+    uv, conf = np.array(uv, float), np.array(conf, float)
+    C, K = conf.shape
+    body = np.arange(min(K, N_BODY))
+    flipped, dropped = np.zeros(C, bool), np.zeros(C, bool)
+
+    def med(c, target, perm):
+        ok = conf[c, perm][body] > 0
+        if ok.sum() < 4:
+            return np.nan
+        d = np.linalg.norm(uv[c, perm][body][ok] - project(cams[c], target[body][ok]), axis=-1)
+        return float(np.median(d))
+
+    ident = np.arange(K)
+    for c in range(C):
+        e = med(c, pred, ident)
+        if not e > min_px:
+            continue
+        if other is not None:
+            e_other = min(med(c, other, ident), med(c, other, flip))
+            if e_other < ratio * e:
+                conf[c] = 0.0
+                dropped[c] = True
+                continue
+        if med(c, pred, flip) < ratio * e:
+            uv[c], conf[c] = uv[c, flip], conf[c, flip]
+            flipped[c] = True
+    return uv, conf, flipped, dropped
+
+
+def wearer_keypoints(model: BodyModel, wearer: BodyFit, frames: np.ndarray, R) -> np.ndarray:
+    """(F, K, 3) the wearer's keypoints (regressor ``R`` (K, V + J)) at video ``frames``; NaN
+    where the wearer's fit has no such frame."""
+    wf = np.asarray(wearer.frames)
+    pos = np.searchsorted(wf, frames).clip(0, len(wf) - 1)
+    has = wf[pos] == frames
+    out = np.full((len(frames), R.shape[0], 3), np.nan)
+    if has.any():
+        i = pos[has]
+        o = forward(model, np.asarray(wearer.betas, float), wearer.body_pose[i],
+                    wearer.global_orient[i], wearer.transl[i])
+        out[has] = np.stack([R @ np.concatenate([v, j]) for v, j in zip(o.vertices, o.joints, strict=True)])
+    return out
+
+
 def wearer_vertices(model: BodyModel, wearer: BodyFit, frames: np.ndarray):
     """(F, V, 3) the wearer's posed mesh at video ``frames`` (NaN-free; frames the wearer's
     fit does not have: None in the returned list)."""
@@ -509,6 +710,72 @@ def reprojection_px(cams, pts: np.ndarray, uv: np.ndarray, conf: np.ndarray) -> 
     return np.where(conf > 0, err, np.nan)
 
 
+def _too_far(extra, frames) -> dict:
+    """``pairs_too_far``: the fit frames (video numbers) where a region pair was farther than
+    ``contact_max_gap_m`` at the last evaluation and so not pulled, per region pair index."""
+    m = next((t.matches for t in extra if isinstance(t, ContactTerm)), None)
+    if m is None:
+        return {}
+    out: dict[str, list[int]] = {}
+    for f, k in sorted(m.too_far):
+        out.setdefault(str(k), []).append(int(frames[f]))
+    return {"max_gap_m": m.max_gap_m, "pairs_too_far": out}
+
+
+def extra_terms(model: BodyModel, frames: np.ndarray, wearer_V, contact=None, ground=None,
+                opts: PartnerFitOptions = PartnerFitOptions(), rmap=None) -> tuple[list, dict]:
+    """The extra terms of a sequence whose weight is > 0, in the order ``L_gp``, ``L_ic``,
+    ``L_sc``, ``L_D``, ``L_N``, and the report's ``contact_terms`` entry.
+
+    frames : (F,) the fit's video frames; wearer_V : per fit frame the wearer's mesh (V, 3) or
+    None (:func:`wearer_vertices`), or None without a wearer; contact : a
+    ``ContactAnnotation`` or None; ground : ``(normal, offset)`` or None; rmap : the region
+    map the annotation's region ids index (default ``body.regions.region_map(model)``).
+    ``L_sc`` needs nothing else; ``L_ic`` the wearer; ``L_D`` / ``L_N`` the wearer and an
+    annotation with contact (active in its interval only). ``contact_terms``: ``terms`` (the
+    contact terms built), ``selection`` (the ``psi_D`` option), and when built
+    ``frames`` (fit frames in the interval with the wearer's mesh) and ``pairs`` (per region
+    pair: ``regions`` [wearer, partner], the ``selection`` used, ``facets`` [wearer, partner]
+    selected); else ``why_not``."""
+    w = opts.weights
+    extra: list = []
+    if ground is not None and w["L_gp"] > 0:
+        extra.append(GroundTerm(np.asarray(ground[0], float), float(ground[1]), opts.ground_k))
+    use_ic = wearer_V is not None and w["L_ic"] > 0
+    if use_ic or w["L_sc"] > 0:
+        proxy = collision.ProxyMesh.from_model(model, opts.proxy_vertices)
+        if use_ic:
+            extra.append(InterpenetrationTerm(proxy, wearer_V))
+        if w["L_sc"] > 0:
+            extra.append(SelfCollisionTerm(proxy))
+    want = [n for n in ("L_D", "L_N") if w[n] > 0]
+    info: dict = {"terms": [], "selection": opts.contact_selection}
+    if not want:
+        info["why_not"] = "weights L_D and L_N are 0"
+    elif contact is None:
+        info["why_not"] = "no contact annotation"
+    elif not contact.has_contact:
+        info["why_not"] = "the annotation has no contact"
+    elif wearer_V is None:
+        info["why_not"] = "no wearer fit"
+    else:
+        if rmap is None:
+            from body.regions import region_map
+
+            rmap = region_map(model)
+        sel, modes = contact_selection(contact, rmap, opts.contact_selection,
+                                       opts.contact_facets_n,
+                                       np.random.default_rng(opts.contact_seed))
+        matches = FacetMatches(contact, frames, wearer_V, np.asarray(model.faces), sel,
+                               opts.contact_max_gap_m)
+        extra.extend(ContactTerm(n, matches) for n in want)
+        info.update(terms=want, frames=int(sum(matches.active(f) for f in range(len(frames)))),
+                    pairs=[{"regions": list(map(str, contact.region_names[k])),
+                            "selection": modes[k], "facets": [int(len(a)), int(len(b))]}
+                           for k, (a, b) in enumerate(sel)])
+    return extra, info
+
+
 def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
                 wearer: BodyFit | None = None, contact=None, ground=None,
                 opts: PartnerFitOptions = PartnerFitOptions(), progress=None,
@@ -520,8 +787,9 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
     the frames fitted; ``opts.max_frames`` keeps the first N); cams : ``calib.Camera`` per
     view (matched to the keypoints' views by id); wearer : the marker wearer's
     :class:`artifacts.BodyFit` (``L_ic``; None: no collision term); contact : a
-    ``fitting.contact_signature.ContactAnnotation`` (contact distance in its interval is
-    reported; ``L_D``/``L_N`` are not wired yet); ground : ``(normal (3,), offset)`` of the
+    ``fitting.contact_signature.ContactAnnotation`` (``L_D`` / ``L_N`` in its interval, with
+    the wearer; what was used: ``report["contact_terms"]``, :func:`extra_terms`); ground :
+    ``(normal (3,), offset)`` of the
     ground plane (``L_gp``; None: none); progress : iterable wrapper; log : ``log(str)``.
 
     Returns the :class:`artifacts.BodyFit` (no marker fields) and a report dict whose
@@ -543,26 +811,23 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
     uv, conf, kp_raw = _partner_keypoints(keypoints, cams, frames, kidx, opts.min_conf)
     body = _BodyCtx(model, betas, rest, skel)
 
-    extra: list = []
-    if ground is not None and opts.weights["L_gp"] > 0:
-        extra.append(GroundTerm(np.asarray(ground[0], float), float(ground[1]), opts.ground_k))
-    WV = None
-    if wearer is not None:
-        WV = wearer_vertices(model, wearer, frames)
-        if opts.weights["L_ic"] > 0:
-            proxy = collision.ProxyMesh.from_model(model, opts.proxy_vertices)
-            extra.append(InterpenetrationTerm(proxy, WV))
-    spec = GraphSpec(skel.topology, (), skinned.support_of(Hk), C, cams[0].model)
+    WV = None if wearer is None else wearer_vertices(model, wearer, frames)
+    extra, contact_info = extra_terms(model, frames, WV, contact, ground, opts)
     t0 = time.perf_counter()
-    graph = MarkerGraph(spec, compiled.CompileOptions(mode=opts.compile), log=log)
+    reproj = Reprojection(skel, body.u, Hk, cams, body.sub)
     t_build = time.perf_counter() - t0
     prior = priors.default_prior(skel.names[1:])
-    solver = PartnerSolver(graph, body, Hk, cams, prior, opts, extra)
+    solver = PartnerSolver(reproj, body, prior, opts, extra)
     names = ["L_2d", "L_theta", "L_s"] + [t.name for t in extra]
 
+    flipK = np.asarray(KP65_FLIP)[kidx]
+    WK = None if wearer is None else wearer_keypoints(model, wearer, frames,
+                                                      regressor(model, "kp65")[kidx])
     X = np.zeros((F, skel.n))
     reason = np.zeros(F, np.int8)
-    reproj = np.full((F, C), np.nan)
+    err_px = np.full((F, C), np.nan)
+    flipped = np.zeros((F, C), bool)
+    dropped = np.zeros((F, C), bool)
     cost = np.zeros((F, len(names)))
     active = np.zeros((F, len(names)), bool)
     npts = np.zeros((F, len(names)), np.int64)
@@ -593,8 +858,22 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
                     reason[f] = REASON_CODE["held_before_first_keypoints"]
                 miss += 1
                 continue
-            res, blocks, _ = solver.solve(x0, uv[f], conf[f], f, None if start else x_prev,
-                                          first=start)
+            uvf, cf = uv[f], conf[f]
+            if opts.check_views and not start:  # against the previous frame's solution
+                uvf, cf, fl, dr = check_views(cams, skinned.slot_positions_np(skel, body.u, Hk, x0),
+                                              uvf, cf, flipK, None if WK is None else WK[f])
+                flipped[f] |= fl
+                dropped[f] |= dr
+            res, blocks, _ = solver.solve(x0, uvf, cf, f, None if start else x_prev, first=start)
+            if opts.check_views:  # and against this frame's own solution
+                uv2, cf2, fl, dr = check_views(cams, skinned.slot_positions_np(skel, body.u, Hk, res.x),
+                                               uvf, cf, flipK, None if WK is None else WK[f])
+                if fl.any() or dr.any():
+                    flipped[f] |= fl
+                    dropped[f] |= dr
+                    uvf, cf = uv2, cf2
+                    res, blocks, _ = solver.solve(res.x, uvf, cf, f, None if start else x_prev)
+            uv[f], conf[f] = uvf, cf
             x = rewrap(res.x)
             X[f] = x
             iters.append(res.iterations)
@@ -603,7 +882,7 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
             pts = skinned.slot_positions_np(skel, body.u, Hk, x)
             e = reprojection_px(cams, pts, uv[f], conf[f])
             with np.errstate(all="ignore"):
-                reproj[f] = [np.nanmedian(r) if np.isfinite(r).any() else np.nan for r in e]
+                err_px[f] = [np.nanmedian(r) if np.isfinite(r).any() else np.nan for r in e]
             if not np.nanmedian(e) <= opts.max_reproj_px:
                 reason[f] = REASON_CODE["poor_reprojection"]
             # the terms at the solution
@@ -632,8 +911,8 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
     reasons = out.reasons()
     n_fit = int(np.count_nonzero(active[:, 0]))
     with np.errstate(all="ignore"):
-        rp = {"median": float(np.nanmedian(reproj)) if np.isfinite(reproj).any() else None,
-              "per_view_median": [float(np.nanmedian(reproj[:, c])) if np.isfinite(reproj[:, c]).any()
+        rp = {"median": float(np.nanmedian(err_px)) if np.isfinite(err_px).any() else None,
+              "per_view_median": [float(np.nanmedian(err_px[:, c])) if np.isfinite(err_px[:, c]).any()
                                   else None for c in range(C)]}
     report = {
         "frames": F, "first_fitted_frame": None if first_fit is None else int(frames[first_fit]),
@@ -641,16 +920,18 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
         "frames_not_valid": {n: reasons[n] for n in PARTNER_FIT_REASONS},
         "initialisations": inits, "terms": names, "weights": dict(opts.weights),
         "reprojection_px": rp, "hands": bool(opts.use_hands), "fitted_joints": list(skel.names),
-        "prior": prior.source, "compiled": graph.fun.compiled, "build_s": round(t_build, 3),
+        "prior": prior.source, "build_s": round(t_build, 3),
         "fit_s": round(t_fit, 3), "fit_cpu_s": c_fit, "extra_jacobian_s": round(body.jacobian_s, 3),
         "extra_hooks_s": round(body.hook_s, 3),
         "fps": round(n_fit / max(t_fit, 1e-9), 2),
         "mean_iterations": float(np.mean(iters)) if iters else 0.0,
         "contact_frames": 0 if contact is None or not contact.has_contact else int(np.count_nonzero(
             (frames >= contact.interval[0]) & (frames <= contact.interval[1]))),
-        "contact_terms": "L_D, L_N not wired in this version: contact is only measured",
+        "contact_terms": {**contact_info, **_too_far(extra, frames)},
         "frames_with": {n: int(active[:, i].sum()) for i, n in enumerate(names)},
-        "per_frame": {"reproj_px": reproj, "detections": det, "term_cost": cost,
+        "views_mirrored_back": int(flipped.sum()), "views_dropped_as_wearer": int(dropped.sum()),
+        "per_frame": {"reproj_px": err_px, "views_flipped": flipped, "views_dropped": dropped,
+                      "detections": det, "term_cost": cost,
                       "term_active": active, "term_points": npts, "frames": frames},
     }
     return out, report

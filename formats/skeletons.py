@@ -24,6 +24,18 @@ KP65 = BODY23 + tuple(f"l_hand_{n}" for n in HAND21) + tuple(f"r_hand_{n}" for n
 LEFT_HAND = slice(23, 44)
 RIGHT_HAND = slice(44, 65)
 
+
+def _mirror(names: tuple[str, ...]) -> tuple[int, ...]:
+    """Index of each name's left/right mirror (``l_*`` <-> ``r_*``; itself when unsided)."""
+    idx = {n: i for i, n in enumerate(names)}
+    sw = {"l_": "r_", "r_": "l_"}
+    return tuple(idx[sw[n[:2]] + n[2:]] if n[:2] in sw else i for i, n in enumerate(names))
+
+
+#: Left/right mirror of KP65 (``l_*`` <-> ``r_*``, the hand blocks swapped): a detection of a
+#: person seen from behind and read as seen from the front has ``kp[KP65_FLIP]`` right.
+KP65_FLIP = _mirror(KP65)
+
 H36M17 = (
     "pelvis", "r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle", "spine", "thorax",
     "neck_nose", "head", "l_shoulder", "l_elbow", "l_wrist", "r_shoulder", "r_elbow", "r_wrist",

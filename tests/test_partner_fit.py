@@ -288,6 +288,8 @@ def test_stage_writes_fit_terms_report_and_plot(stage_files, tmp_path, scene):
     from artifacts import BodyFit
     from stages.partner_fit import run
 
+    # the annotated palms are 1.5 m apart (a made-up signature): L_G must not drag the
+    # partner there (contact_max_gap_m), and the report names the frames it left alone
     ctx, _ = _stage_ctx(stage_files, tmp_path / "out", stage_files.good)
     run(ctx)
     d = ctx.out.dir
@@ -298,6 +300,9 @@ def test_stage_writes_fit_terms_report_and_plot(stage_files, tmp_path, scene):
     assert list(t["terms"][:3]) == ["L_2d", "L_theta", "L_s"]
     rep = json.loads((d / "report.json").read_text())
     assert rep["frames_valid"] == F_SYN and rep["contact"]["interval"] == [2, 4]
+    ct = rep["contact_terms"]
+    assert ct["terms"] == ["L_D", "L_N"] and ct["frames"] == 2  # video frames 2 and 4
+    assert sorted({f for fs in ct["pairs_too_far"].values() for f in fs}) == [2, 4]
     # contact distance only in the annotated interval (frames 2..4 -> fitted frame 2 = video 4)
     inside = (scene.frames >= 2) & (scene.frames <= 4)
     assert np.isfinite(t["contact_m"][inside]).all() and np.isnan(t["contact_m"][~inside]).all()
