@@ -7,6 +7,7 @@ cases) with::
     GOALS = {"marker_fit.mpjpe_mm": ("<=", 5.0)}      # optional
     LIMITS = {"marker_fit.mpjpe_mm": "what limits it"} # optional: shown under a FAIL
     def report(results: dict) -> str                  # optional: a markdown section
+    SECTION_PREFIXES = ("marker_fit.table.",)         # optional: keys shown only there
 
 Cases run in name order, each with its own work folder ``bench/work/<name>/`` (created, not
 wiped: a case decides what to reuse). A case that raises is recorded as failed
@@ -193,10 +194,12 @@ def all_goals(paths: list[Path], ran: list[CaseResult]) -> dict[str, tuple[str, 
     return goals
 
 
-def case_extras(paths: list[Path]) -> tuple[dict[str, str], list[str]]:
-    """Every case's ``LIMITS`` (merged) and its ``report`` function (in name order)."""
+def case_extras(paths: list[Path]) -> tuple[dict[str, str], list, tuple[str, ...]]:
+    """Every case's ``LIMITS`` (merged), its ``report`` function (in name order) and the key
+    prefixes its section shows instead of the main table (``SECTION_PREFIXES``)."""
     limits: dict[str, str] = {}
     reports = []
+    prefixes: list[str] = []
     for p in paths:
         try:
             mod = load_case(p)
@@ -205,7 +208,8 @@ def case_extras(paths: list[Path]) -> tuple[dict[str, str], list[str]]:
         limits.update(getattr(mod, "LIMITS", {}) or {})
         if callable(getattr(mod, "report", None)):
             reports.append(mod.report)
-    return limits, reports
+        prefixes += list(getattr(mod, "SECTION_PREFIXES", ()) or ())
+    return limits, reports, tuple(prefixes)
 
 
 def merge_measured(measured_file: Path, cases: list[CaseResult], commit: str, code: str) -> dict:
@@ -223,11 +227,13 @@ def merge_measured(measured_file: Path, cases: list[CaseResult], commit: str, co
 
 def render_markdown(results: dict, goals: dict, ran: list[CaseResult], machine: dict,
                     command: str, measured: dict | None = None, code: str | None = None,
-                    limits: dict[str, str] | None = None, reports=()) -> str:
+                    limits: dict[str, str] | None = None, reports=(),
+                    section_prefixes: tuple[str, ...] = ()) -> str:
     """The table. ``measured``/``code``: where each key was measured and the code version
     rendering now; a row whose code differs (or is unknown) gets no pass/FAIL verdict.
     ``limits``: per key what limits it, listed for every FAIL; ``reports``: functions
-    ``results -> markdown`` appended as sections."""
+    ``results -> markdown`` appended as sections; keys starting with one of
+    ``section_prefixes`` are left out of the main table (a section shows them)."""
     now = {k for c in ran for k in c.values}
     measured = measured or {}
     lines = ["# Benchmark results", "",
@@ -236,7 +242,7 @@ def render_markdown(results: dict, goals: dict, ran: list[CaseResult], machine: 
              "older code says so instead.", "",
              "| key | value | goal | pass/fail | measured at |", "|---|---|---|---|---|"]
     for k, v in results.items():
-        if k.endswith(".error"):
+        if k.endswith(".error") or (section_prefixes and k.startswith(section_prefixes)):
             continue
         g = goals.get(k)
         goal_s = f"{g[0]} {g[1]:g}" if g else ""

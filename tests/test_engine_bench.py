@@ -10,11 +10,12 @@ import bench
 OK = '''
 GOALS = {"ok.speed_s": ("<=", 1.0), "ok.acc_mm": (">=", 10.0)}
 LIMITS = {"ok.acc_mm": "the toy detector is blind", "ok.speed_s": "never shown: it passes"}
+SECTION_PREFIXES = ("ok.table.",)
 def report(results):
-    return "## Toy section\\n\\nacc is " + str(results["ok.acc_mm"])
+    return "## Toy section\\n\\nacc is " + str(results["ok.acc_mm"]) + ", t=" + str(results["ok.table.t"])
 def run(work):
     (work / "touched").write_text("x")
-    return {"ok.speed_s": 0.5, "ok.acc_mm": 3.0}
+    return {"ok.speed_s": 0.5, "ok.acc_mm": 3.0, "ok.table.t": 42.0}
 '''
 BAD = '''
 def run(work):
@@ -55,7 +56,8 @@ def test_harness_records_failures_merges_and_renders(tmp_path, monkeypatch):
     # a missed goal says what limits it; a passed one is not listed; the case's own section
     assert "- `ok.acc_mm` = 3 (goal >= 10): FAIL. the toy detector is blind" in md
     assert "never shown" not in md
-    assert "## Toy section\n\nacc is 3.0" in md
+    assert "## Toy section\n\nacc is 3.0, t=42.0" in md
+    assert "`ok.table.t`" not in md  # shown in its section only
     for word in ("- cpu: ", "- cores: ", "- python: ", "- numpy: ", "- date: ",
                  "- command: `python -m bench`"):
         assert word in md

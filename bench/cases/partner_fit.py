@@ -23,6 +23,13 @@ annotated contact frames; ``penetration_p95_mm``: 95th percentile over all valid
 deepest interpenetration of the two fitted bodies (the wearer from marker_fit);
 ``fps_per_core``: fitted frames per CPU-second of the partner fit (build excluded);
 ``frames_valid_fraction``.
+
+Ablation (the paper's Table 3): every variant of ``VARIANTS`` (full method, without ``L_G``,
+without ``L_ic``, without the hand keypoints of ``L_2d``) runs the stage through the engine on
+the same upstream artifacts (hard-linked from the full run's outputs into
+``outputs_<variant>``, so only partner_fit is recomputed); its figures are the keys
+``partner_fit.table3.<variant>.<figure>[_<class>]``, shown in the RESULTS.md section of
+:func:`report` rather than in the main table.
 """
 from __future__ import annotations
 
@@ -73,28 +80,36 @@ def _class(action: str) -> str:
     return action.rsplit(" ", 1)[0].lower().replace(" ", "_")
 
 
-def run(work: Path) -> dict[str, float]:
+VARIANTS = {  # the paper's Table 3 ablation: stage option overrides of each row
+    "full": {},
+    "no_L_G": {"weights": {"L_D": 0.0, "L_N": 0.0}},
+    "no_L_ic": {"weights": {"L_ic": 0.0}},
+    "no_hands": {"use_hands": False},
+}
+TABLE_PREFIX = "partner_fit.table3."
+SECTION_PREFIXES = (TABLE_PREFIX,)
+CLASSES = ("grab", "handshake", "hit", "holding_hands", "hug", "kick", "posing", "push")
+
+
+def _link_upstream(src: Path, dst: Path, keep: str = "partner_fit") -> None:
+    """Hard-link every cached stage artifact of ``src`` except ``keep`` into ``dst`` (the
+    engine's manifests name unit and stage, not paths), so a variant recomputes only ``keep``."""
+    import shutil
+
+    for d in sorted(p for p in src.rglob("manifest.json")):
+        art = d.parent
+        if art.name == keep:
+            continue
+        target = dst / art.relative_to(src)
+        if not target.exists():
+            shutil.copytree(art, target, copy_function=os.link)
+
+
+def _score(recipe, outputs: Path, model, h36) -> tuple[dict, dict, float, int]:
+    """Pooled per-class metrics of the partner fits under ``outputs``."""
     from artifacts import BodyFit
-    from body import forward, load_model
-    from body.joints import regressor
+    from body import forward
     from evaluate import metrics as M
-    from pipeline.cli import main
-    from recipes import load_recipe
-
-    stride = int(os.environ.get("BENCH_PARTNER_STRIDE", STRIDE))
-    path = bench_recipe(work, stride)
-    recipe = load_recipe(path)
-    outputs = work / "outputs"
-    logs: list[str] = []
-    rc = main(["sequence", *recipe.sequences, "--recipe", str(path), "--outputs", str(outputs),
-               "--until", "partner_fit"], log=logs.append)
-    if rc != 0:
-        raise RuntimeError("engine failed:\n" + "\n".join(logs[-30:]))
-    model = load_model("anny")
-    R = regressor(model, "h36m17")
-
-    def h36(V, J):
-        return np.stack([R @ np.concatenate([V[i], J[i]]) for i in range(len(V))])
 
     per_seq, pooled = {}, {}
     cpu, fitted = 0.0, 0
@@ -128,9 +143,13 @@ def run(work: Path) -> dict[str, float]:
         pooled.setdefault((cls, "valid"), []).append(ok)
         per_seq[sid] = {k: float(np.mean(v)) if len(v) else None for k, v in m.items()}
         per_seq[sid].update(frames=int(len(fr)), valid=int(ok.sum()),
-                            not_valid=rep["frames_not_valid"], fps=rep["fps"])
-    (work / "sequences.json").write_text(json.dumps(per_seq, indent=1))
+                            not_valid=rep["frames_not_valid"], fps=rep["fps"],
+                            views_mirrored_back=rep.get("views_mirrored_back"),
+                            views_dropped_as_wearer=rep.get("views_dropped_as_wearer"))
+    return pooled, per_seq, cpu, fitted
 
+
+def _figures(pooled: dict, prefix: str) -> dict[str, float]:
     out: dict[str, float] = {}
     for cls in sorted({c for c, _ in pooled}, key=lambda c: (c != "all", c)):
         suf = "" if cls == "all" else f"_{cls}"
@@ -141,15 +160,89 @@ def run(work: Path) -> dict[str, float]:
         for k in ("mpjpe", "pa_mpjpe", "mpvpe", "transl"):
             v = cat(k)
             if len(v):
-                out[f"partner_fit.{k}_mm{suf}"] = float(v.mean())
+                out[f"{prefix}{k}_mm{suf}"] = float(v.mean())
         c = cat("contact")
         if len(c):
-            out[f"partner_fit.contact_dist_median_mm{suf}"] = float(np.median(c))
-            out[f"partner_fit.contact_dist_mean_mm{suf}"] = float(c.mean())
+            out[f"{prefix}contact_dist_median_mm{suf}"] = float(np.median(c))
+            out[f"{prefix}contact_dist_mean_mm{suf}"] = float(c.mean())
         p = cat("penetration")
         if len(p):
-            out[f"partner_fit.penetration_p95_mm{suf}"] = float(np.percentile(p, 95))
-        out[f"partner_fit.frames_valid_fraction{suf}"] = float(cat("valid").mean())
-    out["partner_fit.fps_per_core"] = float(fitted / max(cpu, 1e-9))
-    out["partner_fit.stride"] = float(stride)
+            out[f"{prefix}penetration_p95_mm{suf}"] = float(np.percentile(p, 95))
+        out[f"{prefix}frames_valid_fraction{suf}"] = float(cat("valid").mean())
     return out
+
+
+def run(work: Path) -> dict[str, float]:
+    import yaml
+
+    from body import load_model
+    from body.joints import regressor
+    from pipeline.cli import main
+    from recipes import load_recipe
+
+    stride = int(os.environ.get("BENCH_PARTNER_STRIDE", STRIDE))
+    path = bench_recipe(work, stride)
+    recipe = load_recipe(path)
+    model = load_model("anny")
+    R = regressor(model, "h36m17")
+
+    def h36(V, J):
+        return np.stack([R @ np.concatenate([V[i], J[i]]) for i in range(len(V))])
+
+    out: dict[str, float] = {}
+    base = yaml.safe_load(path.read_text())
+    for name, over in VARIANTS.items():
+        outputs = work / ("outputs" if name == "full" else f"outputs_{name}")
+        vpath = path
+        if name != "full":
+            _link_upstream(work / "outputs", outputs)
+            rec = json.loads(json.dumps(base))
+            rec["stages"] = {**rec.get("stages", {}), "partner_fit": over}
+            vpath = work / f"recipe_{name}.yaml"
+            vpath.write_text(yaml.safe_dump(rec, sort_keys=False))
+        logs: list[str] = []
+        rc = main(["sequence", *recipe.sequences, "--recipe", str(vpath), "--outputs",
+                   str(outputs), "--until", "partner_fit"], log=logs.append)
+        if rc != 0:
+            raise RuntimeError(f"engine failed ({name}):\n" + "\n".join(logs[-30:]))
+        pooled, per_seq, cpu, fitted = _score(recipe, outputs, model, h36)
+        if name == "full":
+            (work / "sequences.json").write_text(json.dumps(per_seq, indent=1))
+            out.update(_figures(pooled, "partner_fit."))
+            out["partner_fit.fps_per_core"] = float(fitted / max(cpu, 1e-9))
+            out["partner_fit.stride"] = float(stride)
+        out.update(_figures(pooled, f"{TABLE_PREFIX}{name}."))
+    return out
+
+
+ROWS = {"full": "full method", "no_L_G": "without L_G (L_D, L_N)", "no_L_ic": "without L_ic",
+        "no_hands": "without L_2d hands"}
+
+
+def report(results: dict) -> str:
+    """The paper's Table 3 on the bench session: each row a variant, per interaction class
+    MPJPE / translation error / contact distance mean and median / penetration p95 (mm)."""
+    if not any(k.startswith(TABLE_PREFIX) for k in results):
+        return ""
+
+    def cell(v, k, suf):
+        x = results.get(f"{TABLE_PREFIX}{v}.{k}{suf}")
+        return "-" if x is None else f"{x:.1f}"
+
+    lines = ["## partner_fit: ablation (the paper's Table 3)", "",
+             "Each row the stage run through the engine with the variant's options on the "
+             "same upstream artifacts (`bench/cases/partner_fit.py` VARIANTS); mm, CHI3D "
+             "protocol, valid frames. Cells: MPJPE / translation error / contact distance "
+             "mean / median (annotated contact frames) / penetration p95.", ""]
+    cols = ["all", *CLASSES]
+    lines.append("| variant | " + " | ".join(cols) + " |")
+    lines.append("|---" * (len(cols) + 1) + "|")
+    for v, label in ROWS.items():
+        cells = []
+        for c in cols:
+            suf = "" if c == "all" else f"_{c}"
+            cells.append(" / ".join(cell(v, k, suf) for k in (
+                "mpjpe_mm", "transl_mm", "contact_dist_mean_mm", "contact_dist_median_mm",
+                "penetration_p95_mm")))
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
