@@ -32,7 +32,13 @@ from typing import NamedTuple, Sequence
 import numpy as np
 
 from body.model import BodyModel
-from geometry import face_centroids, facet_distances, nearest_surface, winding_number
+from geometry import (
+    face_centroids,
+    facet_distances,
+    nearest_surface,
+    winding_number,
+    winding_number_exact,
+)
 
 # constants
 PROXY_VERTICES = 2000  # default proxy size (the paper: PHUM, ~1-2k vertices)
@@ -253,19 +259,24 @@ def self_collisions(proxy: ProxyMesh, points: np.ndarray, rings: int = SELF_RING
     p = np.asarray(points, dtype=float)
     if p.shape != (proxy.num_vertices, 3):
         raise ValueError(f"points: expected ({proxy.num_vertices}, 3), got {p.shape}")
-    cand = np.flatnonzero((winding_number(p, p, proxy.faces) > SELF_CANDIDATE_WINDING)
-                          & (proxy.vertex_region >= 0))
+    w_all = winding_number(p, p, proxy.faces)
+    cand = np.flatnonzero((w_all > SELF_CANDIDATE_WINDING) & (proxy.vertex_region >= 0))
     if not len(cand):
         return _empty()
     near_r = _neighbours(proxy.region_adjacency, rings)
+    fr = proxy.face_region
     out = []
     for r in np.unique(proxy.vertex_region[cand]):
         pts = cand[proxy.vertex_region[cand] == r]
-        far = np.flatnonzero((proxy.face_region >= 0) & ~near_r[r][np.maximum(proxy.face_region, 0)])
+        kept = (fr >= 0) & ~near_r[r][np.maximum(fr, 0)]
+        far = np.flatnonzero(kept)
         if not len(far):
             continue
         Ffar = proxy.faces[far]
-        hit = pts[winding_number(p[pts], p, Ffar) > INSIDE_WINDING]
+        # winding numbers add up over faces: the kept part's = all - the rest's (exact, in
+        # numpy over the few candidates and the small rest: no hierarchy built per region)
+        w_far = w_all[pts] - winding_number_exact(p[pts], p, proxy.faces[~kept])
+        hit = pts[w_far > INSIDE_WINDING]
         if len(hit):
             out.append(_collisions(p, hit, p, Ffar, margin, face_ids=far))
     if not out:

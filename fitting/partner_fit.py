@@ -59,24 +59,29 @@ from fitting.skinned import point_jacobian, subtree
 from formats.skeletons import KP65, KP65_FLIP
 
 # constants
-# L_2d costs the mean squared pixel error (1/K per keypoint). L_ic / L_sc: 1e4 per m^2 of
-# each penetrating point (1 cm deep = 1 px^2). L_D: 1/P per matched facet pair of a region
-# pair, so a region pair costs 1e5 x its mean squared centre gap: a 1 cm gap = 10 px^2, as
-# much as ~3 px of 2D error on every keypoint. L_N: (1 + n1.n2)^2, 1/P per pair: 15 degrees
-# off opposite cost 1e4 x 1.2e-3 = 12 px^2, about a 1 cm gap.
+# L_2d costs the mean squared pixel error (1/K per keypoint). L_ic: 1e4 per m^2 of each
+# penetrating point (1 cm deep = 1 px^2). L_sc: 10x weaker (the studio's own truth motions
+# put an elbow 15-50 mm into the own belly by the proxy's reckoning: at 1e4 L_sc pushed the
+# fit away from the truth, MPJPE 26 -> 34 mm on Handshake frames). L_D: 1/P per matched facet
+# pair of a region pair, so a region pair costs 1e5 x its mean squared centre gap: a 1 cm
+# gap = 10 px^2, as much as ~3 px of 2D error on every keypoint. L_N: (1 + n1.n2)^2, 1/P per
+# pair, 1e2: 60 degrees off opposite costs 25 px^2 (at 1e4 it overruled the 2D evidence and
+# turned the body: Grab MPJPE 25 -> 84 mm; at 1e2 Grab/Handshake/HoldingHands 26.5/34/26.8 mm,
+# against 25.3/34.4/29.2 without L_N).
 DEFAULT_WEIGHTS = {"L_2d": 1.0, "L_theta": 0.02, "L_s": 0.2, "L_gp": 1e5, "L_ic": 1e4,
-                   "L_sc": 1e4, "L_D": 1e5, "L_N": 1e4}
+                   "L_sc": 1e3, "L_D": 1e5, "L_N": 1e2}
 WIRED = ("L_2d", "L_theta", "L_s", "L_gp", "L_ic", "L_sc", "L_D", "L_N")  # terms evaluated
 CONTACT_SELECTIONS = ("annotated", "all", "uniform")  # psi_D modes (contact_selection)
 # L_G pulls a region pair only when its closest matched facets are nearer than this: a gap of
 # tens of cm in an annotated contact frame means the annotation or the pose is off, and
 # dragging the body there would overrule the 2D evidence (the frame is reported instead)
-CONTACT_MAX_GAP_M = 0.25
+CONTACT_MAX_GAP_M = 0.6
 CONTACT_FACETS_N = 50  # psi_D "uniform": facets drawn per region
 EXTRA_TERMS = ("L_gp", "L_ic", "L_sc", "L_D", "L_N")
 N_BODY = 23  # KP65 body keypoints (COCO-WholeBody order) counted for "enough detections"
 FLIP_MIN_PX = 15.0  # check_views: a view this close to the estimate (median px) is kept as is
 FLIP_RATIO = 0.5  # ... else mirrored / dropped when that fits at least twice as well
+GROUND_BAND_M = 0.01  # L_gp slots: candidates below the plane or within this above it
 GROUND_K = 300  # L_gp candidates: the lowest vertices (both soles; 20 let a foot tilt under)
 # the reasons (artifacts.body_fit.INVALID_REASONS) a frame of the partner fit can be not valid for
 PARTNER_FIT_REASONS = ("too_few_keypoints", "held_before_first_keypoints", "poor_reprojection")
@@ -185,7 +190,10 @@ class Block:
 
     def evaluate(self, skel, u, x, sub=None) -> tuple[np.ndarray, np.ndarray]:
         """(r (m,), J (m, n)) at unknowns x (chain rule through :func:`point_jacobian`)."""
-        pos, Jp = point_jacobian(skel, u, self.H, x, sub)
+        return self.rows(*point_jacobian(skel, u, self.H, x, sub))
+
+    def rows(self, pos: np.ndarray, Jp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(r (m,), J (m, n)) from the points' positions (N, 3) and Jacobian (N, 3, n)."""
         r, dr, point = self.residual(pos)
         if np.ndim(dr) == 2:
             return r, np.einsum("ma,max->mx", dr, Jp[point])
@@ -224,9 +232,9 @@ class ExtraTerm(Protocol):
 
 @dataclass
 class GroundTerm:
-    """``L_gp``: the ``k`` lowest vertices (``fitting.collision.ground_candidates``) as slots,
-    each ``min(0, normal . p - offset)`` (``fitting.terms.L_gp``), only when one of them is
-    below the plane ``normal . x = offset``."""
+    """``L_gp``: of the ``k`` lowest vertices (``fitting.collision.ground_candidates``) those
+    below the plane ``normal . x = offset`` or less than ``GROUND_BAND_M`` above it, as slots,
+    each ``min(0, normal . p - offset)`` (``fitting.terms.L_gp``); only when one is below."""
 
     normal: np.ndarray
     offset: float
@@ -237,8 +245,10 @@ class GroundTerm:
         V = posed.vertices
         n = np.asarray(self.normal, float)
         idx = collision.ground_candidates(V, n, self.offset, self.k)
-        if not np.any(V[idx] @ n - self.offset < 0):
+        d = V[idx] @ n - self.offset
+        if not np.any(d < 0):
             return []
+        idx = idx[d < GROUND_BAND_M]  # below, or near enough to get there within the round
 
         def residual(pos):
             r = terms.L_gp(pos, n, self.offset)
@@ -495,6 +505,8 @@ class Augmented:
         self._flat = np.concatenate([base._flat, (extra[:, None] * self.n_x
                                                   + np.arange(self.n_x)).reshape(-1)])
         self.compiled = base.compiled
+        self._H = np.concatenate([b.H for b in blocks]) if blocks else None  # one FK per call
+        self._at = np.cumsum([0] + [b.points for b in blocks])
 
     def rows(self) -> list[tuple[str, slice]]:
         out, o = [], self.base.n_r
@@ -507,10 +519,12 @@ class Augmented:
         r0, j0 = self.base(x, p)
         t0 = time.perf_counter()
         rs, js = [r0], [j0]
-        for b in self.blocks:
-            r, J = b.evaluate(self.body.skel, self.body.u, x, self.body.sub)
-            rs.append(r)
-            js.append(J.reshape(-1))
+        if self.blocks:
+            pos, Jp = point_jacobian(self.body.skel, self.body.u, self._H, x, self.body.sub)
+            for b, a, e in zip(self.blocks, self._at[:-1], self._at[1:], strict=True):
+                r, J = b.rows(pos[a:e], Jp[a:e])
+                rs.append(r)
+                js.append(J.reshape(-1))
         self.body.jacobian_s += time.perf_counter() - t0
         return np.concatenate(rs), np.concatenate(js)
 

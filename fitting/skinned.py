@@ -201,16 +201,17 @@ def point_jacobian(skel: FitSkeleton, u: np.ndarray, H: np.ndarray, x: np.ndarra
     G, t, axes = _fk_axes(skel, u, x)
     A = (subtree(skel) if sub is None else sub).astype(float)
     Q, N = len(skel.joints), len(H)
-    P = np.matmul(G[None], H[..., :3, None])[..., 0] + H[..., 3:] * t[None]  # (N, Q, 3)
-    pos = P.sum(1)
-    W = H[..., 3]
-    S = np.matmul(A, P) - (W @ A.T)[..., None] * t[None]  # (N, Q, 3)
-    # d p / d rv_i[k] = axes_i[:, k] x S_i = -[S_i]x axes_i[:, k]: (N, Q, 3, 3) [n, i, a, k]
-    Jrot = -np.matmul(skew(S), axes[None])
+    Hq = H.transpose(1, 0, 2)  # (Q, N, 4): one GEMM per joint instead of N x Q tiny ones
+    P = Hq[..., :3] @ G.transpose(0, 2, 1) + Hq[..., 3:] * t[:, None]  # (Q, N, 3)
+    pos = P.sum(0)
+    S = (A @ P.reshape(Q, N * 3)).reshape(Q, N, 3) - (A @ Hq[..., 3])[..., None] * t[:, None]
+    # d p / d rv_i[k] = axes_i[:, k] x S_i, for k = 0, 1, 2: (Q, N, 3 [a], 3 [k])
+    Jrot = np.stack([np.cross(axes[:, None, :, k], S) for k in range(3)], axis=-1)
+    Jrot = Jrot.transpose(1, 2, 0, 3)  # (N, 3 [a], Q, 3 [k])
     J = np.empty((N, 3, 3 * Q + 3))
-    J[:, :, 0:3] = Jrot[:, 0]
-    J[:, :, 3:6] = W.sum(1)[:, None, None] * np.eye(3)[None]
-    J[:, :, 6:] = Jrot[:, 1:].transpose(0, 2, 1, 3).reshape(N, 3, 3 * (Q - 1))
+    J[:, :, 0:3] = Jrot[:, :, 0]
+    J[:, :, 3:6] = Hq[..., 3].sum(0)[:, None, None] * np.eye(3)[None]
+    J[:, :, 6:] = Jrot[:, :, 1:].reshape(N, 3, 3 * (Q - 1))
     return pos, J
 
 

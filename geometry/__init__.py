@@ -3,7 +3,7 @@ libigl, trimesh only; imports no project package).
 
 - ``geometry.mesh``: :func:`face_normals` (the one face-normal function), :func:`face_areas`,
   :func:`face_centroids`, :func:`vertex_normals`, :class:`VertexNormals`.
-- ``geometry.queries``: :func:`winding_number`, :func:`is_inside`, :func:`nearest_surface`,
+- ``geometry.queries``: :func:`winding_number`, :func:`winding_number_exact`, :func:`is_inside`, :func:`nearest_surface`,
   :func:`points_inside`, :func:`penetration_depths`, :func:`inside_points`,
   :func:`deepest_inside`, :func:`interpenetration`, :func:`interpenetration_per_frame`,
   :func:`facet_distances`.
@@ -24,6 +24,7 @@ from geometry.queries import (
     penetration_depths,
     points_inside,
     winding_number,
+    winding_number_exact,
 )
 
 __all__ = [
@@ -31,4 +32,5 @@ __all__ = [
     "face_areas", "face_centroids", "face_normals", "facet_distances", "inside_points",
     "interpenetration", "interpenetration_per_frame", "is_inside", "nearest_surface",
     "penetration_depths", "points_inside", "vertex_normals", "winding_number",
+    "winding_number_exact",
 ]

@@ -46,6 +46,31 @@ def winding_number(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) 
     return np.asarray(igl.fast_winding_number(v, f, p))
 
 
+def winding_number_exact(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                         chunk: int = 200_000) -> np.ndarray:
+    """(N,) exact generalized winding number, in numpy: the sum over the faces of their
+    signed solid angles seen from each point / 4 pi (Van Oosterom and Strackee's formula).
+    O(N x T): meant for a few points against a part of a surface (winding numbers add up over
+    faces, so the part's own number is exact, open or not); :func:`winding_number` (libigl's
+    fast, hierarchical one) for many points."""
+    v, f = _mesh(vertices, faces)
+    p = _points(points)
+    out = np.zeros(len(p))
+    if not len(p) or not len(f):
+        return out
+    step = max(1, chunk // len(f))
+    for s0 in range(0, len(p), step):
+        a = v[f[:, 0]][None] - p[s0:s0 + step, None]  # (n, T, 3)
+        b = v[f[:, 1]][None] - p[s0:s0 + step, None]
+        c = v[f[:, 2]][None] - p[s0:s0 + step, None]
+        la, lb, lc = (np.linalg.norm(x, axis=-1) for x in (a, b, c))
+        det = np.einsum("ntd,ntd->nt", a, np.cross(b, c))
+        den = (la * lb * lc + np.einsum("ntd,ntd->nt", a, b) * lc
+               + np.einsum("ntd,ntd->nt", b, c) * la + np.einsum("ntd,ntd->nt", c, a) * lb)
+        out[s0:s0 + step] = np.arctan2(det, den).sum(1) / (2 * np.pi)
+    return out
+
+
 def is_inside(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(N,) bool: winding number > constants.INSIDE_WINDING (tolerant of holes)."""
     return winding_number(points, vertices, faces) > C.INSIDE_WINDING

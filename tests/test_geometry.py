@@ -90,6 +90,22 @@ def test_winding_number_inside_a_sphere_and_a_box():
     np.testing.assert_array_equal(G.is_inside(q[margin], box.vertices, box.faces), truth[margin])
 
 
+def test_exact_winding_number_agrees_with_libigl_and_adds_over_faces():
+    """The numpy solid-angle sum equals libigl's winding number on a closed mesh and on an
+    open part of it, and the parts' numbers add up to the whole's."""
+    rng = np.random.default_rng(4)
+    V, F = _sphere(3, radius=0.8, centre=(0.2, 0.1, 0.0))
+    p = _random_points(rng, 300, -1.2, 1.2)
+    w = G.winding_number_exact(p, V, F, chunk=5000)  # several chunks
+    import igl
+
+    np.testing.assert_allclose(w, igl.winding_number(V, F, p), atol=1e-9)
+    half = G.face_centroids(V, F)[:, 0] > 0.2
+    w1, w2 = G.winding_number_exact(p, V, F[half]), G.winding_number_exact(p, V, F[~half])
+    np.testing.assert_allclose(w1 + w2, w, atol=1e-9)
+    assert np.abs(w1).max() > 0.3  # an open part has non-integer numbers
+
+
 def test_winding_number_tolerates_a_hole():
     """A sphere with a cap cut off (the faces within 35 degrees of +z): points well inside are
     still inside, points outside still outside, away from the hole."""
