@@ -6,7 +6,10 @@ the sequence's contact signature (``fitting.contact_signature.load_contact``: a 
 here, before anything is computed or written), the partner's own ``shape_fit``
 (``artifacts.ShapeFit``; the sequence reads the shape fits of ``[markers_on, partner]``), the
 ``keypoints`` artifact (person 1; its video frames are the frames fitted) and the wearer's
-``marker_fit`` (``artifacts.BodyFit``: the other body of ``L_ic``). Writes
+``marker_fit`` (``artifacts.BodyFit``: the other body of ``L_ic``). After the first fit, the
+second detection pass (``detect.refine``, option ``second_pass``) runs the detector again in
+tight crops around the fitted partner in the views that lacked it (the videos are raw inputs),
+and the partner is fitted again on the merged keypoints. Writes
 
 - ``fit.npz``: an ``artifacts.BodyFit`` (the layout of marker_fit's, without the marker
   fields): ``valid`` / ``invalid_reason`` (``too_few_keypoints``,
@@ -17,22 +20,39 @@ here, before anything is computed or written), the partner's own ``shape_fit``
   each term was active, ``term_points (F, T)`` offending points of the extra terms, ``terms
   (T,)`` their names, ``penetration_m (F,)``, ``contact_m (F,)``, ``ground_m (F,)``
   (``fitting.partner_fit.contact_figures``), ``frames (F,)``;
+- ``keypoints.npz``: the keypoints the fit used (``artifacts.keypoints.Keypoints2D``, the
+  partner refined by the second pass; only when it ran);
 - ``report.json``: frames valid / not valid and why, initialisations, reprojection medians,
+  ``second_pass`` (views redone / improved, partner detection rates before and after),
   summary figures of penetration, contact distance and ground penetration (mm), speed;
 - ``partner_fit.png``: those curves over the sequence (``drawing.plots.partner_fit_plot``).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from fitting.partner_fit import PartnerFitOptions as Options
+from fitting.partner_fit import PartnerFitOptions
 from pipeline.spec import Stage, StageContext
 from stages import common
 
 READS = ("body_model.kind", "cameras", "ground_plane", "sequence.fps", "sequence.markers_on",
-         "sequence.partner")
+         "sequence.partner", "sequence.has_keypoints")
+
+
+@dataclass(frozen=True)
+class Options(PartnerFitOptions):
+    """The partner fit's options (``fitting.partner_fit.PartnerFitOptions``) and the second
+    detection pass: second_pass : after a first fit, run the detector again in tight crops
+    around the fitted partner in the views that lacked it (``detect.refine``; only for
+    sequences whose keypoints the stage detected itself, not precomputed ones), then fit again
+    on the merged keypoints; pose_min_conf / hand_min_conf : its mediapipe thresholds."""
+
+    second_pass: bool = True
+    pose_min_conf: float = 0.3
+    hand_min_conf: float = 0.3
 
 
 def raw_inputs(recipe, unit: str) -> dict[str, Path]:
@@ -40,10 +60,13 @@ def raw_inputs(recipe, unit: str) -> dict[str, Path]:
     out = {"body_model": common.body_model_file(recipe)}
     for cam in recipe.cameras:
         out[f"calibration:{cam}"] = Path(seq.calibration[cam])
+        out[f"video:{cam}"] = Path(seq.videos[cam])  # the second pass; frame count
     if seq.contact is not None:
         out["contact"] = Path(seq.contact)
-        out["video"] = Path(seq.videos[recipe.cameras[0]])  # frame count for the interval
     return out
+
+
+OUTLINE_POINTS = 240  # projected surface points that keep the partner in its isolated crop
 
 
 def _summary(values_m: np.ndarray) -> dict:
@@ -73,7 +96,8 @@ def run(ctx: StageContext) -> None:
         action = ctx.unit.split("/", 1)[1]
         family = "smplx" if model.name == "smplx" else "anny"
         contact = load_contact(ctx.raw["contact"], action, model,
-                               video_info(ctx.raw["video"]).n_frames, family=family)
+                               video_info(ctx.raw[f"video:{rv.cameras[0]}"]).n_frames,
+                               family=family)
     shape_art = ctx.inputs["shape_fit"]
     partner = rv.sequence.partner
     shape = ShapeFit.load(shape_art[partner] if isinstance(shape_art, dict) else shape_art)
@@ -83,6 +107,15 @@ def run(ctx: StageContext) -> None:
     log = lambda s: ctx.log(f"{ctx.unit}: {s}")  # noqa: E731
     fit, report = fit_partner(model, shape, keypoints, cams, wearer, contact, ground, o,
                               progress=ctx.progress, log=log)
+    second = None
+    if o.second_pass and not rv.sequence.has_keypoints:
+        keypoints, second = _second_pass(ctx, model, cams, keypoints, fit, o)
+        if second["views_improved"]:
+            fit, report = fit_partner(model, shape, keypoints, cams, wearer, contact, ground, o,
+                                      progress=ctx.progress, log=log)
+        keypoints.save(ctx.out)  # the keypoints the fit used (person 1 refined)
+    report["second_pass"] = second or {"run": False, "why_not": (
+        "option second_pass is off" if not o.second_pass else "precomputed keypoints")}
     fig = contact_figures(model, fit, wearer, contact, ground)
     per = report.pop("per_frame")
     fit.save(ctx.out)
@@ -104,6 +137,53 @@ def run(ctx: StageContext) -> None:
                      per["reproj_px"], fig["penetration_m"] * 1000, fig["contact_m"] * 1000,
                      fig["ground_m"] * 1000, fit.valid, f"{ctx.unit}: partner {partner}",
                      views=list(rv.cameras))
+
+
+def _rates(kp) -> dict:
+    """Fractions of the partner's view-frames with its body (>= 12 of 23 keypoints) and each
+    hand (>= 5 of 21) detected."""
+    from detect import layout
+
+    c = kp[..., 2] >= 0.2
+    return {"body": float((c[..., layout.BODY].sum(-1) >= 12).mean()),
+            "hands": float(np.mean([(c[..., sl].sum(-1) >= 5).mean() for sl in layout.HANDS]))}
+
+
+def _second_pass(ctx: StageContext, model, cams, keypoints, fit, o: Options):
+    """The partner's second detection pass around the first fit (``detect.refine``). Returns
+    the keypoints with person 1 refined, and the report entry (views redone and improved,
+    detection rates before and after, detector calls and CPU seconds)."""
+    import dataclasses
+
+    from body import forward
+    from body.joints import regressor
+    from calib import project
+    from detect.mediapipe_detector import MediapipeOptions
+    from detect.refine import refine_partner, views_to_redo
+    from detect.run import VideoSource
+
+    ci = [keypoints.camera(c.name) for c in cams]
+    K = np.asarray(keypoints.kp, float)[ci]  # (C, F, 2, 65, 3), cameras in recipe order
+    frames = np.asarray(keypoints.frames)
+    est = forward(model, np.asarray(fit.betas, float), fit.body_pose, fit.global_orient, fit.transl)
+    R = regressor(model, "kp65")
+    k3 = np.stack([R @ np.concatenate([v, j]) for v, j in zip(est.vertices, est.joints, strict=True)])
+    outline_ids = np.arange(0, model.num_vertices, max(1, model.num_vertices // OUTLINE_POINTS))
+    proj = np.stack([project(c, k3) for c in cams])  # (C, F, 65, 2)
+    outline = np.stack([project(c, est.vertices[:, outline_ids]) for c in cams])
+    proj[:, ~np.asarray(fit.valid)] = np.nan  # no crops from a frame the fit does not trust
+    need = views_to_redo(K[:, :, 1], proj, (cams[0].height, cams[0].width))
+    source = VideoSource(tuple(str(ctx.raw[f"video:{c.name}"]) for c in cams))
+    factory = MediapipeOptions(pose_min_conf=o.pose_min_conf, hand_min_conf=o.hand_min_conf)
+    ref = refine_partner(source, factory, frames, K, proj, outline, need, progress=ctx.progress)
+    kp = np.array(keypoints.kp)
+    kp[ci, :, 1] = ref.kp
+    before, after = _rates(K[:, :, 1]), _rates(ref.kp)
+    out = dataclasses.replace(keypoints, kp=kp.astype(np.float32))
+    return out, {"run": True, "views_redone": int(ref.redone.sum()),
+                 "views_improved": int(ref.improved.sum()), "view_frames": int(need.size),
+                 "detected_before": before, "detected_after": after,
+                 "detector_calls": ref.calls, "cpu_s": round(ref.cpu_s, 2)}
 
 
 def _reason(code) -> str:

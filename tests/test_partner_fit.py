@@ -242,7 +242,8 @@ def stage_files(scene, tmp_path_factory):
     rmap = region_map(scene.model)
     good = _contact_json(rmap)
     body_file = common.body_model_file(SimpleNamespace(body_model=SimpleNamespace(kind="anny", path=None)))
-    raw = {"body_model": body_file, "video": video, **{f"calibration:{c}": p for c, p in cams.items()}}
+    raw = {"body_model": body_file, **{f"calibration:{c}": p for c, p in cams.items()},
+           **{f"video:{c}": video for c in cams}}
     return SimpleNamespace(tmp=tmp, raw=raw, good=good, rmap=rmap, cams=list(cams))
 
 
@@ -253,6 +254,7 @@ def _stage_ctx(files, out: Path, contact: dict, params=None):
     p = out.parent / f"{out.name}_contact.json"
     p.write_text(json.dumps({"take": contact}))
     values = {"body_model.kind": "anny", "cameras": files.cams, "sequence.fps": FPS,
+              "sequence.has_keypoints": True,  # precomputed: no second detection pass
               "ground_plane": {"normal": [0.0, 0.0, 1.0], "offset": -1.0},
               "sequence.markers_on": "s1", "sequence.partner": "s2"}
     view = RecipeView(build_view_tree({k: values[k] for k in stage.STAGE.reads}), "partner_fit")
@@ -300,6 +302,7 @@ def test_stage_writes_fit_terms_report_and_plot(stage_files, tmp_path, scene):
     assert list(t["terms"][:3]) == ["L_2d", "L_theta", "L_s"]
     rep = json.loads((d / "report.json").read_text())
     assert rep["frames_valid"] == F_SYN and rep["contact"]["interval"] == [2, 4]
+    assert rep["second_pass"] == {"run": False, "why_not": "precomputed keypoints"}
     ct = rep["contact_terms"]
     assert ct["terms"] == ["L_D", "L_N"] and ct["frames"] == 2  # video frames 2 and 4
     assert sorted({f for fs in ct["pairs_too_far"].values() for f in fs}) == [2, 4]

@@ -1,0 +1,155 @@
+"""The partner's second detection pass: tight crops around where a first fit puts the partner.
+
+The first pass (:mod:`detect.people`) finds the marker wearer in a crop around its projected
+markers and the partner over the rest of the image. Where the two overlap in a view (one
+behind the other, a hug) the partner is often missed there, or found only in part; from two
+opposite views the depth of a limb is then free and the partner fit goes wrong by decimetres
+(bench, Posing: views 1 and 3 without the partner, the raised arm 0.4 m off).
+
+Once the partner has been fitted from the views that did see it, its body projects into every
+view. This pass runs the detector the way the wearer gets it (``detect.people._find_wearer``):
+in a square crop around the projected first-fit keypoints, first with everything far from the
+partner's projected body painted out, accepting only a person whose keypoints match the
+projection (``people.wearer_check``: position, size, not mirrored) and that is not the wearer
+(its body nearer the wearer's keypoints of that view than the projection: dropped); then the
+hands in crops from the projected forearms, the wearer's hands excluded.
+
+Only the views that need it are redone (``need``: too few body keypoints of the partner, or
+missing hands whose projection lies in the image), so the cost is a fraction of the first pass.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from detect import constants as K
+from detect import layout
+from detect.base import DetectorFactory
+from detect.crops import box_from_points, expand_box, hand_box_from_arm
+from detect.hints import WearerHints
+from detect.people import PeopleOptions, _find_wearer, _hands
+from detect.run import FrameSource
+
+IDX = layout.IDX
+ELBOWS = (IDX["l_elbow"], IDX["r_elbow"])
+WRISTS = (IDX["l_wrist"], IDX["r_wrist"])
+
+
+@dataclass
+class Refined:
+    """kp (C, F, 65, 3) the partner's keypoints after the pass (unchanged where not redone or
+    nothing better was found); redone (C, F) bool views run again; improved (C, F) bool views
+    whose keypoints were replaced; calls: detector calls by kind; cpu_s."""
+
+    kp: np.ndarray
+    redone: np.ndarray
+    improved: np.ndarray
+    calls: dict
+    cpu_s: float
+
+
+def _n_body(kp: np.ndarray, conf: float) -> np.ndarray:
+    return (kp[..., layout.BODY, 2] >= conf).sum(-1)
+
+
+def views_to_redo(kp: np.ndarray, projected: np.ndarray, shape_hw: tuple[int, int],
+                  min_body: int = K.MIN_PARTNER_KP, conf: float = K.MIN_CONF) -> np.ndarray:
+    """(C, F) bool: views where the partner's first-pass keypoints ``kp (C, F, 65, 3)`` have
+    fewer than ``min_body`` body keypoints, or a hand missing whose projected wrist
+    (``projected (C, F, 65, 2)``, the first fit) lies in the image."""
+    h, w = shape_hw
+    few = _n_body(kp, conf) < min_body
+    inside = np.all(np.isfinite(projected), -1) & (projected[..., 0] >= 0) & (projected[..., 0] < w) \
+        & (projected[..., 1] >= 0) & (projected[..., 1] < h)
+    hands = []
+    for s, sl in enumerate(layout.HANDS):
+        missing = (kp[..., sl, 2] >= conf).sum(-1) < 5
+        hands.append(missing & inside[..., WRISTS[s]])
+    body_in = inside[..., layout.BODY].sum(-1) >= min_body
+    return body_in & (few | hands[0] | hands[1])
+
+
+def _hints(uv: np.ndarray, outline: np.ndarray, o: PeopleOptions) -> WearerHints:
+    """Crop hints of one view from the partner's projected keypoints ``uv (65, 2)`` and
+    projected surface points ``outline (P, 2)`` (the isolation mask keeps their
+    neighbourhood)."""
+    body = uv[layout.BODY]
+    box = expand_box(box_from_points(body), o.body_margin, square=True)
+    height = float(box[3] - box[1]) if np.all(np.isfinite(box)) else np.nan
+    hb = np.stack([hand_box_from_arm(uv[ELBOWS[s]], uv[WRISTS[s]], height) for s in (0, 1)])
+    wrists = uv[list(WRISTS)]
+    anchors = np.full((layout.N, 2), np.nan)
+    anchors[layout.BODY] = body
+    return WearerHints(box=box, hand_boxes=hb, wrists=wrists, anchors=anchors, markers=outline)
+
+
+def _is_wearer(cand: np.ndarray, proj: np.ndarray, wearer: np.ndarray, conf: float) -> bool:
+    """The candidate's body lies nearer the wearer's detected body than the projection."""
+    b = layout.BODY
+    ok = (cand[b, 2] >= conf) & (wearer[b, 2] >= conf) & np.all(np.isfinite(proj[b]), -1)
+    if ok.sum() < 4:
+        return False
+    dw = np.median(np.linalg.norm(cand[b][ok, :2] - wearer[b][ok, :2], axis=-1))
+    dp = np.median(np.linalg.norm(cand[b][ok, :2] - proj[b][ok], axis=-1))
+    return bool(dw < dp)
+
+
+def refine_partner(source: FrameSource, factory: DetectorFactory, frames: np.ndarray,
+                   kp: np.ndarray, projected: np.ndarray, outline: np.ndarray,
+                   need: np.ndarray, opts: PeopleOptions | None = None,
+                   progress=lambda it, **_: it) -> Refined:
+    """The second pass over the views ``need (C, F)``.
+
+    frames : (F,) video frames; kp : (C, F, 2, 65, 3) the first pass (both people);
+    projected : (C, F, 65, 2) the partner's first-fit keypoints in each view; outline :
+    (C, F, P, 2) projected points of its surface; opts : the first pass's options.
+    A redone view's keypoints replace the first pass's when they have more confident body
+    keypoints (body), and its hands fill hands the first pass did not find."""
+    import time
+
+    o = PeopleOptions() if opts is None else opts
+    out = np.array(kp[:, :, 1], np.float32)
+    C, F = need.shape
+    redone = np.zeros((C, F), bool)
+    improved = np.zeros((C, F), bool)
+    if not need.any():
+        return Refined(out, redone, improved, {"body": 0, "hands": 0}, 0.0)
+    t0 = time.process_time()
+    det = factory.build()
+    reader = source.open() if det.needs_pixels else None
+    calls = {"body": 0, "hands": 0}
+    conf = o.accept_conf
+    try:
+        todo = [(i, c) for i in range(F) for c in range(C) if need[c, i]]
+        for i, c in progress(todo, total=len(todo), desc="partner crops"):
+            fr = int(frames[i])
+            img = reader.read(c, fr) if reader is not None else None
+            hints = _hints(projected[c, i], outline[c, i], o)
+            if not np.all(np.isfinite(hints.box)):
+                continue
+            redone[c, i] = True
+            first = out[c, i]
+            calls["body"] += 1
+            cand, _ = _find_wearer(img, hints, det, o, c, fr, True)
+            new = first.copy()
+            if _n_body(cand, conf) > _n_body(first, conf) and not _is_wearer(
+                    cand, projected[c, i], kp[c, i, 0], conf):
+                new[layout.BODY] = cand[layout.BODY]
+                improved[c, i] = True
+            if o.hands:
+                before = new.copy()
+                calls["hands"] += 2
+                _hands(img, new, hints.hand_boxes, hints.wrists, det, o, c, fr,
+                       avoid=kp[c, i, 0], avoid_wrists=kp[c, i, 0, list(WRISTS), :2],
+                       radius=o.near_frac * float(hints.box[3] - hints.box[1]))
+                for sl in layout.HANDS:  # keep what the first pass found for a hand
+                    if (before[sl, 2] >= conf).sum() >= 5:
+                        new[sl] = before[sl]
+                improved[c, i] |= not np.array_equal(new, before) or improved[c, i]
+            out[c, i] = new
+    finally:
+        if reader is not None:
+            reader.close()
+        det.close()
+    return Refined(out, redone, improved, calls, time.process_time() - t0)

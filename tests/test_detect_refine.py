@@ -1,0 +1,69 @@
+"""The partner's second detection pass (detect/refine.py) with the painted stand-in detector
+of tests/test_detect_people.py: a partner the first pass missed is found in the crop around
+its projected first fit, the wearer standing in that crop is not taken for it, views that
+had the partner are left alone, and ``views_to_redo`` picks the views that need it."""
+from __future__ import annotations
+
+import numpy as np
+from test_detect_people import Painted, draw, stick
+
+from detect import layout
+from detect.refine import refine_partner, views_to_redo
+from detect.run import ArraySource
+
+SHAPE = (400, 600)
+
+
+def _scene(partner_at, wearer_at=(300.0, 200.0)):
+    w, p = stick(np.array(wearer_at)), stick(np.array(partner_at), 0.95)
+    truth = np.stack([w, p])[None, None]  # (C=1, F=1, 2, 65, 3)
+    img = draw(SHAPE, [w, p])[None, None]
+    return w, p, truth, img
+
+
+def _first_pass(w):
+    kp = np.zeros((1, 1, 2, layout.N, 3))
+    kp[0, 0, 0] = w  # the wearer found, the partner not
+    return kp
+
+
+def test_missed_partner_found_around_its_projected_fit_and_not_the_wearer():
+    w, p, truth, img = _scene(partner_at=(420.0, 210.0))
+    kp = _first_pass(w)
+    proj = (p[:, :2] + [6.0, -4.0])[None, None]  # the first fit, a few pixels off
+    outline = proj.copy()
+    need = views_to_redo(kp[:, :, 1], proj, SHAPE)
+    assert need.all()
+    r = refine_partner(ArraySource(img, (0,)), Painted(truth, (0,)), np.array([0]), kp, proj,
+                       outline, need)
+    got = r.kp[0, 0]
+    assert r.redone.all() and r.improved.all()
+    ok = got[layout.BODY, 2] > 0.5
+    assert ok.sum() >= 15
+    assert np.abs(got[layout.BODY][ok, :2] - p[layout.BODY][ok, :2]).max() < 1e-3  # the partner (float32)
+    assert r.calls["body"] == 1
+
+
+def test_a_crop_that_only_shows_the_wearer_finds_nothing():
+    """The projection lands on the wearer (a wrong first fit): the person found there matches
+    the wearer's own detections better than the projection, so nothing replaces the first
+    pass (a swap is never created)."""
+    w, p, truth, img = _scene(partner_at=(1500.0, 210.0))  # the partner outside the image
+    kp = _first_pass(w)
+    proj = (w[:, :2] + [25.0, 0.0])[None, None]  # off the wearer by a quarter of its width
+    need = np.ones((1, 1), bool)
+    r = refine_partner(ArraySource(img, (0,)), Painted(truth, (0,)), np.array([0]), kp, proj,
+                       proj.copy(), need)
+    assert not r.improved.any()
+    assert (r.kp[0, 0, layout.BODY, 2] == 0).all()
+
+
+def test_views_that_have_the_partner_are_not_redone():
+    w, p, truth, img = _scene(partner_at=(420.0, 210.0))
+    kp = _first_pass(w)
+    kp[0, 0, 1] = p  # the first pass found the whole partner, hands included
+    proj = p[:, :2][None, None]
+    assert not views_to_redo(kp[:, :, 1], proj, SHAPE).any()
+    off = proj + [2000.0, 0.0]  # and a projection outside the image is never a reason
+    kp[0, 0, 1] = 0
+    assert not views_to_redo(kp[:, :, 1], off, SHAPE).any()
