@@ -57,6 +57,7 @@ from fitting.marker_graph import body_joints
 from fitting.reprojection import Reprojection
 from fitting.skinned import point_jacobian, subtree
 from formats.skeletons import KP65, KP65_FLIP
+from geometry import face_normals
 
 # constants
 # L_2d costs the mean squared pixel error (1/K per keypoint). L_ic: 1e4 per m^2 of each
@@ -76,6 +77,7 @@ CONTACT_SELECTIONS = ("annotated", "all", "uniform")  # psi_D modes (contact_sel
 # tens of cm in an annotated contact frame means the annotation or the pose is off, and
 # dragging the body there would overrule the 2D evidence (the frame is reported instead)
 CONTACT_MAX_GAP_M = 0.6
+CONTACT_MARGIN_M = 0.002  # L_D pulls a partner facet centre this far outside the wearer's facet
 CONTACT_FACETS_N = 50  # psi_D "uniform": facets drawn per region
 EXTRA_TERMS = ("L_gp", "L_ic", "L_sc", "L_D", "L_N")
 N_BODY = 23  # KP65 body keypoints (COCO-WholeBody order) counted for "enough detections"
@@ -106,7 +108,8 @@ class PartnerFitOptions:
     reinit_after : after a run of more than this many frames without enough detections the
     next frame starts again from triangulation; max_iters / first_iters : LM iterations per
     round / for a (re)initialised frame; outer_rounds : LM rounds between which the extra
-    terms re-detect their offending points; max_reproj_px : a fitted frame whose median
+    terms re-detect their offending points; ftol : LM stops when a step lowers the cost by
+    less than this fraction; max_reproj_px : a fitted frame whose median
     reprojection error is above this is not valid (``poor_reprojection``); use_hands : fit
     the fingers to the hand keypoints (52 fit joints; else the 22 body joints and the 23 body
     keypoints); ground_k : lowest vertices for L_gp; proxy_vertices : size of the proxy mesh
@@ -119,10 +122,11 @@ class PartnerFitOptions:
     min_keypoints: int = 12
     min_views: int = 2
     reinit_after: int = 10
-    max_iters: int = 15
+    max_iters: int = 10
     first_iters: int = 40
     outer_rounds: int = 3
     max_reproj_px: float = 25.0
+    ftol: float = 1e-4
     use_hands: bool = True
     ground_k: int = GROUND_K
     proxy_vertices: int = 1500
@@ -441,7 +445,12 @@ class ContactTerm:
         F = self.matches.faces
         if self.name == "L_D":
             H = posed.slots(F[fp], np.full((len(fp), 3), 1.0 / 3.0))
-            return [Block(self.name, H, centre_residual(VW[F[fw]].mean(1), w))]
+            # the target: the wearer's facet centre, CONTACT_MARGIN_M out along its normal
+            # (touching, not coincident: a centre pulled onto a curved surface takes the
+            # facets around it through the other body, and L_ic then fights L_D)
+            tri = VW[F[fw]]
+            target = tri.mean(1) + CONTACT_MARGIN_M * face_normals(VW, F[fw])
+            return [Block(self.name, H, centre_residual(target, w))]
         H = posed.slots(F[fp].reshape(-1, 1), np.ones((3 * len(fp), 1)))
         return [Block(self.name, H, normal_residual(VW[F[fw]], w))]
 
@@ -617,7 +626,7 @@ class PartnerSolver:
                 res = lm.solve(fun, self.p, x, row_scale=scale, groups=self.groups(conf, fct),
                                quad=quad, box=self.box,
                                opts=lm.LMOptions(max_iters=self.opts.first_iters if first
-                                                 else self.opts.max_iters, ftol=1e-8))
+                                                 else self.opts.max_iters, ftol=self.opts.ftol))
                 x = res.x
             rounds += 1
             if self.extra:

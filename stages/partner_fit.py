@@ -111,6 +111,8 @@ def run(ctx: StageContext) -> None:
     if o.second_pass and not rv.sequence.has_keypoints:
         keypoints, second = _second_pass(ctx, model, cams, keypoints, fit, o)
         if second["views_improved"]:
+            second["first_fit_cpu_s"] = report["fit_cpu_s"]
+            second["first_fit_frames_valid"] = report["frames_valid"]
             fit, report = fit_partner(model, shape, keypoints, cams, wearer, contact, ground, o,
                                       progress=ctx.progress, log=log)
         keypoints.save(ctx.out)  # the keypoints the fit used (person 1 refined)

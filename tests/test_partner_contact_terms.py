@@ -24,6 +24,7 @@ from fitting import terms as T
 from fitting.contact_signature import ContactAnnotation
 from fitting.marker_graph import body_joints
 from fitting.partner_fit import (
+    CONTACT_MARGIN_M,
     Augmented,
     ContactTerm,
     FacetMatches,
@@ -263,7 +264,7 @@ def test_L_N_turns_a_single_matched_pair_opposite(body, touch):
     for V in (V_d, V_g):
         gap = np.linalg.norm(face_centroids(V, touch.F)[touch.fp0]
                              - face_centroids(touch.VW, touch.F)[touch.fw0])
-        assert gap < 1e-3, gap
+        assert abs(gap - CONTACT_MARGIN_M) < 1e-3, gap  # touching: the margin apart
     c_d, c_g = _contact_figures(body, touch, x_d)[2], _contact_figures(body, touch, x_g)[2]
     assert c_d > 0.5 * c0 and c_g < 1e-3, (c0, c_d, c_g)
 

@@ -21,8 +21,11 @@ Keys (also ``_<class>`` per interaction class, e.g. ``partner_fit.mpjpe_mm_grab`
 annotated region pairs of the smallest facet distance between the two regions) in the
 annotated contact frames; ``penetration_p95_mm``: 95th percentile over all valid frames of the
 deepest interpenetration of the two fitted bodies (the wearer from marker_fit);
-``fps_per_core``: fitted frames per CPU-second of the partner fit (build excluded);
-``frames_valid_fraction``.
+``fps_per_core``: fitted frames per CPU-second of the partner fit (build excluded; both fits
+and the second detection pass counted); ``frames_valid_fraction``;
+``detected_<body|hands>_<before|after>_second_pass``: fraction of the partner's view-frames
+with its body (>= 12 of 23 keypoints) / a hand (>= 5 of 21) detected before and after the
+second detection pass (``detect.refine``).
 
 Ablation (the paper's Table 3): every variant of ``VARIANTS`` (full method, without ``L_G``,
 without ``L_ic``, without the hand keypoints of ``L_2d``) runs the stage through the engine on
@@ -133,6 +136,12 @@ def _score(recipe, outputs: Path, model, h36) -> tuple[dict, dict, float, int]:
             "contact": terms["contact_m"][ok][np.isfinite(terms["contact_m"][ok])] * 1000,
             "penetration": terms["penetration_m"][ok] * 1000,
         }
+        sp = rep.get("second_pass") or {}
+        if sp.get("run"):  # the partner's detection rates before / after the second pass
+            for when in ("before", "after"):
+                for g, v in sp[f"detected_{when}"].items():
+                    m[f"detected_{g}_{when}"] = np.array([v])
+            cpu += float(sp.get("cpu_s", 0.0)) + float(sp.get("first_fit_cpu_s", 0.0))
         cpu += float(rep["fit_cpu_s"])
         fitted += int(np.count_nonzero(terms["term_active"][:, 0]))
         cls = _class(action)
@@ -169,6 +178,11 @@ def _figures(pooled: dict, prefix: str) -> dict[str, float]:
         if len(p):
             out[f"{prefix}penetration_p95_mm{suf}"] = float(np.percentile(p, 95))
         out[f"{prefix}frames_valid_fraction{suf}"] = float(cat("valid").mean())
+        for g in ("body", "hands"):
+            for when in ("before", "after"):
+                v = cat(f"detected_{g}_{when}")
+                if len(v):  # mean over the sequences of the class
+                    out[f"{prefix}detected_{g}_{when}_second_pass{suf}"] = float(v.mean())
     return out
 
 
