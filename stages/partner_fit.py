@@ -180,8 +180,15 @@ def _second_pass(ctx: StageContext, model, cams, keypoints, fit, o: Options):
     ref = refine_partner(source, factory, frames, K, proj, outline, need, progress=ctx.progress)
     kp = np.array(keypoints.kp)
     kp[ci, :, 1] = ref.kp
+    # a replaced view's confidences are the second pass's own, none of them a cross-view outlier
+    raw, outl = np.array(keypoints.conf_raw), np.array(keypoints.cross_view_outlier)
+    idx = np.asarray(ci)
+    for c, f in zip(*np.nonzero(ref.improved), strict=True):
+        raw[idx[c], f, 1] = ref.kp[c, f, :, 2]
+        outl[idx[c], f, 1] = False
     before, after = _rates(K[:, :, 1]), _rates(ref.kp)
-    out = dataclasses.replace(keypoints, kp=kp.astype(np.float32))
+    out = dataclasses.replace(keypoints, kp=kp.astype(np.float32), conf_raw=raw,
+                              cross_view_outlier=outl)
     return out, {"run": True, "views_redone": int(ref.redone.sum()),
                  "views_improved": int(ref.improved.sum()), "view_frames": int(need.size),
                  "detected_before": before, "detected_after": after,
