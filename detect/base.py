@@ -89,9 +89,10 @@ class DetectorFactory(Protocol):
 
 def call_detector(det, image, *, kind: Kind, box=None, cam: int = 0, frame: int = 0,
                   stream=None) -> Detections:
-    """``det.detect(...)``, naming the ``stream`` (the person and view followed from frame to
-    frame, e.g. ``("wearer", cam)``) to detectors that track (``det.streams`` true:
-    mediapipe's video mode); other detectors are called without it."""
+    """``det.detect(...)``, naming the ``stream`` (the person followed from frame to frame in
+    one view, e.g. ``("wearer",)``: :mod:`detect.run` resets the streams when it moves on to
+    another view) to detectors that track (``det.streams`` true: mediapipe's video mode);
+    other detectors are called without it."""
     if stream is not None and getattr(det, "streams", False):
         return det.detect(image, kind=kind, box=box, cam=cam, frame=frame, stream=stream)
     return det.detect(image, kind=kind, box=box, cam=cam, frame=frame)
@@ -102,6 +103,15 @@ def forget_stream(det, stream) -> None:
     track that person on); a no-op for other detectors."""
     if stream is not None and getattr(det, "streams", False):
         det.forget(stream)
+
+
+def reset_streams(det) -> None:
+    """Make a tracking detector forget every stream (its next call on each detects afresh,
+    as a new detector's would: a tracking detector has ``reset()`` as well as
+    ``forget(stream)``); a no-op for other detectors. :mod:`detect.run` calls it at the start
+    of each chunk and view, so no state crosses a chunk whatever ran before it."""
+    if getattr(det, "streams", False):
+        det.reset()
 
 
 @contextlib.contextmanager

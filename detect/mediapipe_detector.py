@@ -12,14 +12,23 @@
   handedness score (the legacy API exposes no per-landmark confidence).
 - Video mode (``MediapipeOptions.video``): a caller that looks at the same person in the same
   view frame after frame (the wearer's crop, the partner's tracked crop) names it with
-  ``stream=``; each stream gets its own ``solutions.pose`` graph in tracking mode
+  ``stream=`` (:mod:`detect.run` runs one view's frames at a time and calls :meth:`reset`
+  between views and chunks, so streams name the person, not the view); each stream gets its own ``solutions.pose`` graph in tracking mode
   (``static_image_mode=False``, no landmark smoothing: the crop moves with the person and
   frames may be strided), which skips the person detector while the previous frame's
   landmarks still hold a person. A tracked call that finds nobody is redone in static mode
   (no detection lost), and :meth:`MediapipeDetector.forget` drops a stream whose result the
   caller rejected (the next call detects afresh: tracking never carries a wrong person on).
-  Streams live as long as the detector, and :mod:`detect.run` builds one per chunk of
-  fixed length, so results still do not depend on the number of workers.
+  After :meth:`reset` every stream detects afresh, as in a new detector (a graph shown a
+  blank image drops what it tracked), so results still do not depend on which chunks a
+  detector ran before, nor on the number of workers.
+  Hand crops that follow one hand (``stream=("hand", person, side)``) likewise get a
+  ``solutions.hands`` graph in tracking mode with ``max_num_hands=1`` (with fewer hands
+  tracked than its maximum the palm detector runs on every frame): while it holds the hand
+  only the landmark model runs (~7 ms against ~14 ms for a static two-hand call). A tracked
+  call that finds nothing is final when the stream held no hand (the palm detector ran) and
+  redone in static mode when it lost one; the caller redoes a call whose one tracked hand it
+  rejects (the other person's, in a handshake) in static mode with ``max_hands``.
 - The native code logs to stderr (TFLite, absl); :func:`detect.base.quiet_native_logs`
   silences it around graph construction and every call (and around whole chunks in
   :mod:`detect.run`, since some lines come from graph threads after a call returns).
@@ -78,10 +87,11 @@ class MediapipeDetector:
 
     name = "mediapipe"
     needs_pixels = True
-    streams = True  # detect() takes stream= (see detect.base.call_detector)
 
     def __init__(self, opts: MediapipeOptions = MediapipeOptions()):
         self.opts = opts
+        #: detect() takes stream= and tracks (see detect.base.call_detector): video mode only
+        self.streams = bool(opts.video)
         with quiet_native_logs():
             from mediapipe.python.solutions import hands as mp_hands
             from mediapipe.python.solutions import pose as mp_pose
@@ -94,24 +104,39 @@ class MediapipeDetector:
                 min_detection_confidence=opts.hand_min_conf)
         self._tracks: dict = {}
         self._stale: set = set()
-        #: tracked pose calls, and those redone in static mode (found nobody)
+        self._had: dict = {}  # stream -> its last call found someone (it is tracking)
+        #: tracked pose calls, and those redone in static mode (found nobody); the same for
+        #: hand calls (redone when a tracked hand was lost)
         self.tracked_calls = 0
         self.static_retries = 0
+        self.tracked_hand_calls = 0
+        self.hand_static_retries = 0
 
-    def _tracker(self, stream):
+    def _tracker(self, stream, kind: Kind = "body"):
         p = self._tracks.get(stream)
         if p is None:
-            from mediapipe.python.solutions import pose as mp_pose
-
             with quiet_native_logs():
-                p = mp_pose.Pose(static_image_mode=False, model_complexity=1,
-                                 smooth_landmarks=False, enable_segmentation=False,
-                                 min_detection_confidence=self.opts.pose_min_conf,
-                                 min_tracking_confidence=self.opts.track_min_conf)
+                if kind == "body":
+                    from mediapipe.python.solutions import pose as mp_pose
+
+                    p = mp_pose.Pose(static_image_mode=False, model_complexity=1,
+                                     smooth_landmarks=False, enable_segmentation=False,
+                                     min_detection_confidence=self.opts.pose_min_conf,
+                                     min_tracking_confidence=self.opts.track_min_conf)
+                else:
+                    from mediapipe.python.solutions import hands as mp_hands
+
+                    # one hand: with fewer hands tracked than max_num_hands the palm detector
+                    # runs on every frame (the caller falls back to a static two-hand call)
+                    p = mp_hands.Hands(static_image_mode=False, max_num_hands=1,
+                                       model_complexity=1,
+                                       min_detection_confidence=self.opts.hand_min_conf,
+                                       min_tracking_confidence=self.opts.track_min_conf)
             self._tracks[stream] = p
         elif stream in self._stale:
             with quiet_native_logs():
                 p.process(_BLANK)  # nobody there: tracking stops, the next call detects
+            self._had.pop(stream, None)
         self._stale.discard(stream)
         return p
 
@@ -123,6 +148,12 @@ class MediapipeDetector:
         if stream in self._tracks:
             self._stale.add(stream)
 
+    def reset(self) -> None:
+        """Forget every stream (:meth:`forget` each): the next call on any detects afresh,
+        as a newly built detector's would, but the graphs (and their prepared models) are
+        kept."""
+        self._stale |= set(self._tracks)
+
     def close(self) -> None:
         with quiet_native_logs():
             self._pose.close()
@@ -131,6 +162,7 @@ class MediapipeDetector:
                 p.close()
         self._tracks = {}
         self._stale = set()
+        self._had = {}
 
     def detect(self, image: np.ndarray | None, *, kind: Kind, box: np.ndarray | None = None,
                cam: int = 0, frame: int = 0, stream=None) -> Detections:  # noqa: ARG002
@@ -154,7 +186,14 @@ class MediapipeDetector:
                 self.static_retries += 1  # the tracker lost the person: detect afresh
             return self._body(crop, win, self._pose)
         if kind == "hands":
-            return self._hand_list(crop, win)
+            if self.opts.video and stream is not None:
+                self.tracked_hand_calls += 1
+                out = self._hand_list(crop, win, self._tracker(stream, "hands"))
+                had, self._had[stream] = self._had.get(stream, False), len(out) > 0
+                if len(out) or not had:
+                    return out  # found, or nothing tracked before: the palm detector ran
+                self.hand_static_retries += 1  # the tracker lost the hand: detect afresh
+            return self._hand_list(crop, win, self._hands)
         raise ValueError(f"MediapipeDetector.detect: kind must be 'body' or 'hands', got {kind!r}")
 
     def _body(self, crop: np.ndarray, win, graph) -> Detections:
@@ -170,9 +209,9 @@ class MediapipeDetector:
         kp[0, dst, 2] = np.clip(xyv[src, 2], 0.0, 1.0)
         return Detections(kp)
 
-    def _hand_list(self, crop: np.ndarray, win) -> Detections:
+    def _hand_list(self, crop: np.ndarray, win, graph) -> Detections:
         with quiet_native_logs():
-            res = self._hands.process(crop)
+            res = graph.process(crop)
         if not res.multi_hand_landmarks:
             return Detections.empty()
         out = []

@@ -204,7 +204,7 @@ def _find_wearer(image, hints: WearerHints, det: Detector, o: PeopleOptions, cam
         return best(call_detector(det, img, kind="body", box=hints.box, cam=cam, frame=frame,
                                   stream=stream))
 
-    stream = ("wearer", cam)  # the crop follows the wearer: a tracking detector follows it
+    stream = ("wearer",)  # the crop follows the wearer (in this view): a tracking detector too
     order = (True, False) if isolated_first else (False, True)
     if not det.needs_pixels:
         order = (False,)
@@ -221,22 +221,19 @@ def _find_wearer(image, hints: WearerHints, det: Detector, o: PeopleOptions, cam
 
 def _hands(image, person_kp: np.ndarray, boxes: np.ndarray, anchors: np.ndarray, det: Detector,
            o: PeopleOptions, cam: int, frame: int, avoid: np.ndarray | None = None,
-           avoid_wrists: np.ndarray | None = None, radius: float = 0.0):
+           avoid_wrists: np.ndarray | None = None, radius: float = 0.0, who: str = "wearer"):
     """Fill person_kp's hand blocks from the hand crops ``boxes`` (2, 4) whose wrists are
     expected at ``anchors`` (2, 2). Hands of the other person are dropped first: those
     matching ``avoid`` (65, 3) by the rule, and those whose wrist lies within ``radius`` of
     one of ``avoid_wrists`` (W, 2) (the wearer's wrists: in a handshake its hand sits in the
-    partner's hand crop)."""
+    partner's hand crop). Each crop follows one hand (``stream=("hand", who, side)``):
+    a tracking detector's one tracked hand that is not the one wanted is looked for again in
+    static mode (all hands in the crop)."""
     aw = None if avoid_wrists is None else np.asarray(avoid_wrists, float).reshape(-1, 2)
     if aw is not None:
         aw = aw[np.all(np.isfinite(aw), axis=1)]
-    for side in (0, 1):
-        box = boxes[side]
-        if not np.all(np.isfinite(box)) or not np.all(np.isfinite(anchors[side])):
-            continue
-        if image is not None and not hand_crop_useful(box, anchors[side], image.shape[:2]):
-            continue
-        cands = det.detect(image, kind="hands", box=box, cam=cam, frame=frame).kp
+
+    def pick(cands, side, box):
         if avoid is not None and len(cands):
             cands = cands[~is_same_person(cands, avoid, radius)]
         if aw is not None and len(aw) and len(cands):
@@ -244,7 +241,21 @@ def _hands(image, person_kp: np.ndarray, boxes: np.ndarray, anchors: np.ndarray,
             d = np.linalg.norm(wr[:, :, None, :2] - aw[None, None], axis=-1).min(axis=-1)
             near = ((wr[..., 2] >= K.MIN_CONF) & (d < radius)).any(axis=1)
             cands = cands[~near]
-        hand = pick_hand(cands, side, anchors[side], o.hand_anchor_frac * _height(box), layout.HANDS)
+        return pick_hand(cands, side, anchors[side], o.hand_anchor_frac * _height(box), layout.HANDS)
+
+    for side in (0, 1):
+        box = boxes[side]
+        if not np.all(np.isfinite(box)) or not np.all(np.isfinite(anchors[side])):
+            continue
+        if image is not None and not hand_crop_useful(box, anchors[side], image.shape[:2]):
+            continue
+        stream = ("hand", who, side)
+        cands = call_detector(det, image, kind="hands", box=box, cam=cam, frame=frame,
+                              stream=stream).kp
+        hand = pick(cands, side, box)
+        if hand is None and len(cands) and getattr(det, "streams", False):
+            forget_stream(det, stream)  # it tracked a hand we do not want: look at all of them
+            hand = pick(det.detect(image, kind="hands", box=box, cam=cam, frame=frame).kp, side, box)
         if hand is not None:
             person_kp[layout.HANDS[side]] = hand
 
@@ -355,7 +366,7 @@ def find_people(image: np.ndarray | None, hints: WearerHints, prev_partner_box: 
         return not np.isfinite(hw) or span >= K.MIN_PARTNER_SPAN_FRAC * hw
 
     partner, mode, used = np.zeros((layout.N, 3), np.float32), 0, variants[0]
-    pstream = ("partner", cam)  # crops around the partner (tracked, refined) follow it
+    pstream = ("partner",)  # crops around the partner (tracked, refined) follow it
     if o.track and prev_partner_box is not None and np.all(np.isfinite(prev_partner_box)):
         sb = expand_box(prev_partner_box, o.track_margin, min_side=K.MIN_BODY_BOX_PX, square=True)
         for masked in variants:
@@ -398,7 +409,7 @@ def find_people(image: np.ndarray | None, hints: WearerHints, prev_partner_box: 
               layout.HANDS[1].start]
         detected = np.where((kp[0, wi, 2] >= K.MIN_CONF)[:, None], kp[0, wi, :2], np.nan)
         wearer_wrists = np.concatenate([hints.wrists, detected])  # markers and detections
-        _hands(image, kp[1], hb, wr, det, o, cam, frame, ref, wearer_wrists, radius)
+        _hands(image, kp[1], hb, wr, det, o, cam, frame, ref, wearer_wrists, radius, who="partner")
     pbox = _person_box(kp[1], o.accept_conf, o.body_margin) if mode else np.full(4, np.nan)
     return ViewPeople(kp, boxes, hand_boxes, pbox, isolated, mode, bool(mode and used))
 

@@ -1,10 +1,15 @@
 """A whole sequence: frames split into contiguous chunks, chunks run in worker processes,
 each with its own detector instance (mediapipe graphs are per process and not picklable).
 
-Within a chunk frames run in order, so the partner's box from the previous frame seeds the
-next search (:func:`detect.people.find_people`); each chunk starts fresh with a whole-image
-search, which costs two extra detections per view per chunk. Chunks have a fixed length, so
-results do not depend on the number of workers.
+Within a chunk each view's frames run in order, so the partner's box from the previous frame
+seeds the next search (:func:`detect.people.find_people`) and a tracking detector follows
+the people; each chunk and each view starts fresh (the detector's streams are reset, then a
+whole-image search, which costs two extra detections per view per chunk). Chunks have a
+fixed length, so results do not depend on the number of workers. A detector is built once
+per pool task (a few consecutive chunks, :func:`task_groups`), or once for the whole
+sequence in this process: building mediapipe's graphs is cheap but each graph's first
+detection costs ~0.2 s (its model's weights are prepared), which per chunk of 32 frames was
+more than the tracking it enables saved.
 """
 from __future__ import annotations
 
@@ -16,10 +21,19 @@ from typing import Any, Callable, Protocol
 import numpy as np
 
 from detect import layout
-from detect.base import DetectorFactory, call_detector, forget_stream, quiet_native_logs
+from detect.base import (
+    DetectorFactory,
+    call_detector,
+    forget_stream,
+    quiet_native_logs,
+    reset_streams,
+)
 from detect.hints import WearerHints
 from detect.people import PeopleOptions, find_people
 from pipeline.procs import process_pool
+
+#: Pool tasks per worker process (see :func:`task_groups`).
+TASKS_PER_WORKER = 3
 
 
 class FrameReader(Protocol):
@@ -79,14 +93,6 @@ class SequenceKeypoints:
     meter: dict
 
 
-def _run_chunk(source: FrameSource, factory: DetectorFactory, hints: WearerHints,
-               frames: np.ndarray, n_cam: int, opts: PeopleOptions) -> tuple[dict, dict]:
-    """Detect one chunk of frames (in a worker). hints cover exactly ``frames``. Returns
-    (arrays of the chunk, meter: detector calls and CPU seconds)."""
-    with quiet_native_logs():  # detector threads may log after a call has returned
-        return _run_chunk_loud(source, factory, hints, frames, n_cam, opts)
-
-
 class _Metered:
     """A detector wrapper counting calls and their CPU seconds per kind (for the report)."""
 
@@ -111,6 +117,9 @@ class _Metered:
     def forget(self, stream):
         forget_stream(self.det, stream)
 
+    def reset(self):
+        reset_streams(self.det)
+
     def counts(self) -> dict:
         """The meter: calls, calls that found nothing, CPU seconds per kind, and the tracking
         detector's tracked calls and static retries (when it has them)."""
@@ -120,47 +129,70 @@ class _Metered:
         for k in ("tracked_calls", "static_retries"):
             if hasattr(self.det, k):
                 out[f"body_{k}"] = getattr(self.det, k)
+        for k in ("tracked_hand_calls", "hand_static_retries"):
+            if hasattr(self.det, k):
+                out[f"hands_{k.replace('hand_', '')}"] = getattr(self.det, k)
         return out
 
     def close(self):
         self.det.close()
 
 
-def _run_chunk_loud(source, factory, hints, frames, n_cam, opts):
-    t0 = time.process_time()
-    det = _Metered(factory.build())
-    reader = source.open() if det.needs_pixels else None
-    setup = time.process_time() - t0  # the detector's import and graphs, the video readers
+def _run_chunks(source: FrameSource, factory: DetectorFactory,
+                parts: list[tuple[WearerHints, np.ndarray]], n_cam: int, opts: PeopleOptions,
+                step: Callable[[int], None] | None = None) -> tuple[list[dict], dict]:
+    """Detect a few chunks of frames (in a worker, or for the whole sequence in this process)
+    with one detector and one set of video readers; ``parts`` = (hints covering exactly the
+    chunk's frames, frames) per chunk; ``step(1)`` after each (progress, in this process).
+    Returns (the arrays of each chunk, meter: detector calls and CPU seconds of all)."""
+    with quiet_native_logs():  # detector threads may log after a call has returned
+        t0 = time.process_time()
+        det = _Metered(factory.build())
+        reader = source.open() if det.needs_pixels else None
+        setup = time.process_time() - t0  # the detector's import and graphs, the video readers
+        out = []
+        try:
+            for hints, frames in parts:
+                out.append(_run_chunk(reader, det, hints, frames, n_cam, opts))
+                if step is not None:
+                    step(1)
+        finally:
+            if reader is not None:
+                reader.close()
+            det.close()
+        meter = det.counts()
+        meter["cpu_s"] = time.process_time() - t0
+        meter["setup_cpu_s"] = setup
+    return out, meter
+
+
+def _run_chunk(reader, det, hints: WearerHints, frames: np.ndarray, n_cam: int,
+               opts: PeopleOptions) -> dict:
+    """One chunk, view after view: each view's frames in order (the partner's box, the
+    wearer's crop variant and the partner's search image carry from frame to frame), the
+    detector's streams reset at the start of every view (a tracking detector then follows
+    one view at a time: its streams name the person, not the view; a chunk's results do not
+    depend on what the detector saw before)."""
     n = len(frames)
     kp = np.zeros((n_cam, n, 2, layout.N, 3), np.float32)
     boxes = np.full((n_cam, n, 2, 4), np.nan)
     hand_boxes = np.full((n_cam, n, 2, 2, 4), np.nan)
     retry = np.zeros((n_cam, n), bool)
     mode = np.zeros((n_cam, n), np.int8)
-    try:
-        prev = [None] * n_cam
-        isolated = [False] * n_cam
-        masked = [True] * n_cam
+    for c in range(n_cam):
+        reset_streams(det)
+        prev, isolated, masked = None, False, True
         for i, fr in enumerate(frames):
-            for c in range(n_cam):
-                img = reader.read(c, int(fr)) if reader is not None else None
-                r = find_people(img, hints.view(c, i), prev[c], det, opts, cam=c, frame=int(fr),
-                                wearer_isolated_first=isolated[c], partner_masked_first=masked[c])
-                isolated[c] = r.wearer_retry
-                if r.partner_mode:
-                    masked[c] = r.partner_masked
-                kp[c, i], boxes[c, i], hand_boxes[c, i] = r.kp, r.boxes, r.hand_boxes
-                retry[c, i], mode[c, i] = r.wearer_retry, r.partner_mode
-                prev[c] = r.partner_box if r.partner_mode else None
-    finally:
-        if reader is not None:
-            reader.close()
-        det.close()
-    out = dict(kp=kp, boxes=boxes, hand_boxes=hand_boxes, wearer_retry=retry, partner_mode=mode)
-    meter = det.counts()
-    meter["cpu_s"] = time.process_time() - t0
-    meter["setup_cpu_s"] = setup
-    return out, meter
+            img = reader.read(c, int(fr)) if reader is not None else None
+            r = find_people(img, hints.view(c, i), prev, det, opts, cam=c, frame=int(fr),
+                            wearer_isolated_first=isolated, partner_masked_first=masked)
+            isolated = r.wearer_retry
+            if r.partner_mode:
+                masked = r.partner_masked
+            kp[c, i], boxes[c, i], hand_boxes[c, i] = r.kp, r.boxes, r.hand_boxes
+            retry[c, i], mode[c, i] = r.wearer_retry, r.partner_mode
+            prev = r.partner_box if r.partner_mode else None
+    return dict(kp=kp, boxes=boxes, hand_boxes=hand_boxes, wearer_retry=retry, partner_mode=mode)
 
 
 def _silence_native_stderr() -> None:
@@ -191,9 +223,11 @@ def detect_sequence(source: FrameSource, factory: DetectorFactory, hints: Wearer
     """Keypoints of both people in every view and frame.
 
     hints : (C, F, ...) for exactly ``frames`` (F,) video frame indices. workers : processes
-    (<= 1: run in this process; > 1: a "spawn" pool, each worker building its own detector
-    from ``factory``). chunk : frames per task; each task starts the partner search afresh.
-    progress : ``progress(iterable, total=, desc=)`` wrapper.
+    (<= 1: run in this process, one detector; > 1: a "spawn" pool, each task (a few
+    consecutive chunks, :func:`task_groups`) building its own detector from ``factory``).
+    chunk : frames per chunk; each chunk starts the partner search and the detector's
+    tracking afresh in every view. progress : ``progress(iterable, total=, desc=)`` wrapper
+    (advanced per chunk, or per task's chunks).
     """
     opts = PeopleOptions() if opts is None else opts
     frames = np.asarray(frames, dtype=np.int64)
@@ -202,24 +236,39 @@ def detect_sequence(source: FrameSource, factory: DetectorFactory, hints: Wearer
         raise ValueError(f"detect_sequence: hints cover {n} frames, got {len(frames)} frame indices")
     parts = chunks(n, chunk)
     t0 = time.perf_counter()
-    results: dict[int, tuple[dict, dict]] = {}
+    results: dict[int, dict] = {}
+    meters: list[dict] = []
+    todo = [(hints.frames(sl), frames[sl]) for sl in parts]
     if workers <= 1:
-        for j, sl in enumerate(progress(parts, total=len(parts), desc="keypoints")):
-            results[j] = _run_chunk(source, factory, hints.frames(sl), frames[sl], n_cam, opts)
+        # one detector for the whole sequence (its warm-up is paid once), chunk after chunk
+        done = _Progress(progress, len(parts))
+        out, meter = _run_chunks(source, factory, todo, n_cam, opts, step=done.step)
+        results.update(enumerate(out))
+        meters.append(meter)
+        done.close()
     else:
-        # workers die with this process (kill -9 included) and are killed, not awaited, when
-        # the block is left by an exception (a failed chunk, SIGTERM during the stage)
+        # a task is a few consecutive chunks run with one detector (each worker pays the
+        # detector's warm-up once per task, not per chunk); workers die with this process
+        # (kill -9 included) and are killed, not awaited, when the block is left by an
+        # exception (a failed chunk, SIGTERM during the stage)
+        groups = task_groups(len(parts), workers)
         with process_pool(workers, initializer=_silence_native_stderr) as pool:
-            futs = {pool.submit(_run_chunk, source, factory, hints.frames(sl), frames[sl], n_cam,
-                                opts): j for j, sl in enumerate(parts)}
-            for fut in progress(cf.as_completed(futs), total=len(futs), desc="keypoints"):
-                results[futs[fut]] = fut.result()
+            futs = {pool.submit(_run_chunks, source, factory, [todo[j] for j in g], n_cam,
+                                opts): g for g in groups}
+            done = _Progress(progress, len(parts))
+            for fut in cf.as_completed(futs):
+                out, meter = fut.result()
+                for j, arrays in zip(futs[fut], out, strict=True):
+                    results[j] = arrays
+                meters.append(meter)
+                done.step(len(futs[fut]))
+            done.close()
     wall = time.perf_counter() - t0
 
     def cat(key, axis=1):
         if not parts:
             return None
-        return np.concatenate([results[j][0][key] for j in range(len(parts))], axis=axis)
+        return np.concatenate([results[j][key] for j in range(len(parts))], axis=axis)
 
     if not parts:
         z = np.zeros((n_cam, 0), bool)
@@ -227,12 +276,40 @@ def detect_sequence(source: FrameSource, factory: DetectorFactory, hints: Wearer
                                  np.zeros((n_cam, 0, 2, 4)), np.zeros((n_cam, 0, 2, 2, 4)),
                                  frames, z, z.astype(np.int8), 0.0, wall, {})
     meter: dict = {}
-    for _, m in results.values():
+    for m in meters:
         for k, v in m.items():
             meter[k] = meter.get(k, 0) + v
     return SequenceKeypoints(cat("kp"), cat("boxes"), cat("hand_boxes"), frames,
                              cat("wearer_retry"), cat("partner_mode"),
                              float(meter.pop("cpu_s")), wall, meter)
+
+
+def task_groups(n_parts: int, workers: int) -> list[list[int]]:
+    """Consecutive chunk indices per pool task: about TASKS_PER_WORKER tasks per worker (a
+    task pays the detector's warm-up once; more tasks balance the load and move the
+    progress bar). Which chunks share a task changes no result: each chunk starts afresh."""
+    if n_parts == 0:
+        return []
+    k = min(n_parts, max(1, workers) * TASKS_PER_WORKER)
+    edges = np.linspace(0, n_parts, k + 1).round().astype(int)
+    return [list(range(a, b)) for a, b in zip(edges[:-1], edges[1:], strict=True) if b > a]
+
+
+class _Progress:
+    """``progress(iterable, total=, desc=)`` driven by hand: ``step(n)`` advances n chunks."""
+
+    def __init__(self, progress, total: int):
+        self._it = iter(progress(range(total), total=total, desc="keypoints"))
+        self._left = total
+
+    def step(self, n: int) -> None:
+        for _ in range(min(n, self._left)):
+            next(self._it, None)
+        self._left -= n
+
+    def close(self) -> None:
+        for _ in self._it:
+            pass
 
 
 @dataclass(frozen=True)

@@ -11,10 +11,14 @@ type by the paper's rule (:mod:`detect.people`); frames run in chunks in worker 
 (:mod:`detect.multiview`) drops observations that disagree with what two other views agree
 on, drops the partner's unconfirmed keypoints in views where the wearer was not found, and
 a final guard drops what is left of the partner in a view where it matches the wearer's
-markers (:func:`detect.people.partner_looks_like_wearer`).
+markers (:func:`detect.people.partner_looks_like_wearer`). Last, each view's detection of
+each person is judged as a whole skeleton (:mod:`detect.identity`): one that is the other
+person's or a mix of both, or that no other view or neighbouring frame agrees with, is
+dropped; the partner's left/right-mirrored detections are relabelled.
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -43,6 +47,8 @@ class SequenceOptions:
     body_margin : wearer crop margin (fraction of the marker box's larger side).
     near_frac : the paper's "close proximity", fraction of the wearer's box height.
     cross_view / cross_view_px : the cross-view check and its RANSAC threshold (pixels).
+    identity : after it, judge each view's detection of each person as a whole
+        (:mod:`detect.identity`: swaps, inconsistent and flipped detections).
     workers : detector processes (>= 1; 1 runs in this process). chunk : frames per task
         (each task starts its partner search afresh; results do not depend on ``workers``).
     """
@@ -54,6 +60,7 @@ class SequenceOptions:
     near_frac: float = K.NEAR_FRAC
     cross_view: bool = True
     cross_view_px: float = K.CROSS_VIEW_PX
+    identity: bool = True
     workers: int = 1
     chunk: int = 32
 
@@ -137,6 +144,43 @@ def cross_view_guard(cams, kp: np.ndarray, hints, opts: SequenceOptions,
     return outlier | gone
 
 
+def identity_guard(cams, kp: np.ndarray, outlier: np.ndarray, hints, frames: np.ndarray,
+                   opts: SequenceOptions):
+    """:func:`detect.identity.identity_check` of ``kp (C, F, 2, 65, 3)`` (the detector's
+    confidences) after :func:`cross_view_guard`'s drops ``outlier (C, F, 2, 65)``, with the
+    wearer's marker anchors of ``hints``; the views agree within ``opts.cross_view_px``.
+    Returns the :class:`detect.identity.IdentityCheck` (its ``outlier`` indexed as relabelled
+    by :func:`relabel_flipped`)."""
+    from detect.identity import IdentityOptions, identity_check
+
+    return identity_check(cams, kp, outlier, hints.anchors, frames,
+                          IdentityOptions(view_px=opts.cross_view_px))
+
+
+def relabel_flipped(flip: np.ndarray, kp: np.ndarray, conf_raw: np.ndarray,
+                    hand_boxes: np.ndarray):
+    """Exchange left and right of the detections ``flip (C, F, 2)`` marks: ``kp (C, F, 2,
+    65, 3)`` and ``conf_raw (C, F, 2, 65)`` by :data:`detect.layout.FLIP`, ``hand_boxes
+    (C, F, 2, 2, 4)`` by side. Returns new arrays (kp, conf_raw, hand_boxes)."""
+    kp, conf_raw, hand_boxes = (a.copy() for a in (kp, conf_raw, hand_boxes))
+    if flip.any():
+        kp[flip] = kp[flip][:, layout.FLIP]
+        conf_raw[flip] = conf_raw[flip][:, layout.FLIP]
+        hand_boxes[flip] = hand_boxes[flip][:, ::-1]
+    return kp, conf_raw, hand_boxes
+
+
+def identity_counts(verdict: np.ndarray | None) -> dict:
+    """The report's view counts per person of each non-ok identity verdict
+    (:data:`detect.identity.VERDICTS`); empty when the check did not run."""
+    from detect.identity import VERDICTS
+
+    if verdict is None:
+        return {}
+    return {who: {v: int((verdict[:, :, p] == i).sum()) for i, v in enumerate(VERDICTS) if i}
+            for p, who in enumerate(("wearer", "partner"))}
+
+
 def leftovers_look_swapped(kp: np.ndarray, outlier: np.ndarray, hints) -> np.ndarray:
     """(C, F, 2) bool: the confident body keypoints of ``kp (C, F, 2, 65, 3)`` left after
     ``outlier (C, F, 2, 65)`` look like the other person's, by the wearer's markers: the
@@ -195,8 +239,11 @@ def detect_keypoints(cams: list, source: FrameSource, marker_xyz: np.ndarray,
         (:class:`detect.mediapipe_detector.MediapipeOptions`,
         :class:`detect.precomputed.PrecomputedDetector`).
     Returns the :class:`Keypoints2D` (cross-view outliers at confidence 0; the detector's own
-    confidences in ``conf_raw``) and the report's facts (workers, markers, detector calls,
-    partner modes, outliers, detection rates, speed).
+    confidences in ``conf_raw``; the partner's left/right-mirrored detections relabelled,
+    ``conf_raw`` with them) and the report's facts (workers, markers, detector calls,
+    partner modes, outliers, identity verdicts per person (:func:`identity_counts`),
+    detection rates, speed: ``cpu_s`` is the detector processes' CPU plus ``guard_cpu_s``,
+    the cross-view and identity checks in this process).
     Raises ValueError when no marker is seen at any frame (the stage checks that first and
     names the C3D)."""
     from detect.hints import head_centre, wearer_hints
@@ -215,14 +262,26 @@ def detect_keypoints(cams: list, source: FrameSource, marker_xyz: np.ndarray,
     res = detect_sequence(source, detector, hints, frames, opts.people(), workers=opts.workers,
                           chunk=opts.chunk, progress=progress)
     kp = res.kp
+    hand_boxes = res.hand_boxes
     conf_raw = kp[..., 2].copy()
     outlier = np.zeros(conf_raw.shape, bool)
+    verdicts = None
+    t_guard, w_guard = time.process_time(), time.perf_counter()
     if opts.cross_view and len(cams) >= 3:
         outlier = cross_view_guard(cams, kp, hints, opts,
                                    head_centre(marker_xyz, list(marker_names)))
         kp[..., 2][outlier] = 0.0
+        if opts.identity:
+            raw = kp.copy()
+            raw[..., 2] = conf_raw
+            ic = identity_guard(cams, raw, outlier, hints, frames, opts)
+            kp, conf_raw, hand_boxes = relabel_flipped(ic.flip, raw, conf_raw, hand_boxes)
+            outlier = ic.outlier
+            kp[..., 2][outlier] = 0.0
+            verdicts = ic.verdict
+    guard_cpu_s, guard_wall_s = time.process_time() - t_guard, time.perf_counter() - w_guard
     out = Keypoints2D(kp=kp.astype(np.float32), boxes=res.boxes.astype(np.float32),
-                      hand_boxes=res.hand_boxes.astype(np.float32), frames=res.frames,
+                      hand_boxes=hand_boxes.astype(np.float32), frames=res.frames,
                       wearer_retry=res.wearer_retry, partner_mode=res.partner_mode,
                       cross_view_outlier=outlier, conf_raw=conf_raw.astype(np.float32),
                       cameras=np.array([c.name for c in cams], dtype=str))
@@ -235,5 +294,7 @@ def detect_keypoints(cams: list, source: FrameSource, marker_xyz: np.ndarray,
                                  for k, v in res.meter.items()},
               "cross_view_outliers": {who: int(outlier[:, :, p].sum())
                                       for p, who in enumerate(("wearer", "partner"))},
-              **summary(kp, res.cpu_s, res.wall_s, len(frames))}
+              "identity": identity_counts(verdicts),
+              "guard_cpu_s": round(guard_cpu_s, 3),
+              **summary(kp, res.cpu_s + guard_cpu_s, res.wall_s + guard_wall_s, len(frames))}
     return out, report

@@ -10,8 +10,11 @@ onto the selected video frames (``fitting.mocap``), calls the domain function, a
   docs/ARCHITECTURE.md, "Keypoints artifact");
 - ``keypoints.mcap``: the keypoints and boxes per camera and frame (Foxglove-viewable);
 - ``overlay_<camera>.png``: one sample frame per view with both people drawn;
-- ``report.json``: detector, frames, detection rates per person and joint group, timings
-  (``fps_per_core``).
+- ``report.json``: detector, frames, detection rates per person and joint group, detector
+  calls, the identity check's verdicts per person (``identity``: views dropped as swapped or
+  inconsistent, the partner's relabelled and the wearer's dropped as mirrored), timings
+  (``fps_per_core``: the detector processes' CPU plus ``guard_cpu_s``, the cross-view and
+  identity checks).
 
 The videos of a sequence must have the same length and the recipe's frame rate
 (:func:`stages.common.check_videos`); ``stride`` keeps every n-th video frame (the detector
@@ -39,19 +42,24 @@ class Options:
         ``mediapipe`` or ``precomputed``.
     stride : keep every ``stride``-th video frame; start / stop : video frame range
         (stop None: to the end).
-    workers : detector processes (0: one per core). chunk : frames per task (each task
-        starts its partner search afresh).
+    workers : detector processes (0: one per core). chunk : frames per chunk (each chunk
+        starts its partner search and tracking afresh; a pool task runs a few chunks with
+        one detector).
     hands : detect hand keypoints. track / mask_wearer : partner search (detect.people).
     body_margin : wearer crop margin (fraction of the marker box's larger side).
     near_frac : the paper's "close proximity", fraction of the wearer's box height.
     pose_min_conf / hand_min_conf : mediapipe detection thresholds.
-    video_mode : mediapipe pose tracks each person per view within a chunk (skips the person
-        detector between frames; detect/mediapipe_detector.py); ``auto``: only when the
-        frames are consecutive (stride 1): across strided frames people move too far for
-        the tracker, and per chunk the 8 tracking graphs cost ~1 s to build.
+    video_mode : mediapipe pose and hands track each person (each hand) within a chunk, one
+        view at a time (skips the person and palm detectors between frames;
+        detect/mediapipe_detector.py); ``auto``: only when the frames are consecutive
+        (stride 1): across strided frames people move farther, and the six tracking graphs'
+        first detections (~0.2 s each) cost more than tracking saves on a short sequence.
     cross_view / cross_view_px : drop observations that disagree with what the other views
         agree on (detect/multiview.py; RANSAC threshold in pixels), and the partner's
         unconfirmed keypoints in views where the wearer was not found.
+    identity : then judge each view's detection of each person as a whole skeleton against
+        the other views and neighbouring frames (detect/identity.py): swapped, inconsistent
+        and the wearer's mirrored detections dropped, the partner's mirrored ones relabelled.
     overlay_frame : video frame drawn in the overlay PNGs (None: the middle one).
     mcap : write keypoints.mcap.
     """
@@ -72,6 +80,7 @@ class Options:
     video_mode: Literal["auto", "on", "off"] = "auto"
     cross_view: bool = True
     cross_view_px: float = DK.CROSS_VIEW_PX
+    identity: bool = True
     overlay_frame: int | None = None
     mcap: bool = True
 
@@ -95,6 +104,7 @@ class Options:
         return SequenceOptions(hands=self.hands, track=self.track, mask_wearer=self.mask_wearer,
                                body_margin=self.body_margin, near_frac=self.near_frac,
                                cross_view=self.cross_view, cross_view_px=self.cross_view_px,
+                               identity=self.identity,
                                workers=self.workers or (os.cpu_count() or 1), chunk=self.chunk)
 
 
