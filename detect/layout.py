@@ -44,9 +44,5 @@ EDGES = np.array([(IDX[a], IDX[b]) for a, b in _BONES], dtype=np.int64)
 TORSO = np.array([IDX[n] for n in ("l_shoulder", "r_shoulder", "r_hip", "l_hip")])
 FACE = np.array([IDX[n] for n in ("nose", "l_eye", "r_eye", "l_ear", "r_ear")])
 
-#: Left/right mirror of KP65 (l_* <-> r_*, the hand blocks swapped).
-FLIP = np.arange(N)
-for _i, _n in enumerate(NAMES):
-    for _a, _b in (("l_", "r_"), ("r_", "l_")):
-        if _n.startswith(_a):
-            FLIP[_i] = IDX[_b + _n[2:]]
+#: Left/right mirror of KP65 (l_* <-> r_*, the hand blocks swapped): formats.skeletons owns it.
+FLIP = np.array(S.KP65_FLIP)

@@ -178,3 +178,16 @@ def test_person_body_and_hand_slices_return_the_named_keypoints():
         a.hands(2)
     with pytest.raises(ValueError, match="side"):
         a.hand(0, "middle")
+
+
+def test_kp65_flip_is_the_left_right_mirror():
+    from formats.skeletons import KP65, KP65_FLIP
+
+    f = np.asarray(KP65_FLIP)
+    assert np.array_equal(f[f], np.arange(len(KP65)))  # an involution
+    for i, n in enumerate(KP65):
+        m = KP65[f[i]]
+        if n.startswith(("l_", "r_")):
+            assert m[2:] == n[2:] and m[:2] != n[:2], (n, m)
+        else:
+            assert m == n, (n, m)
