@@ -12,7 +12,9 @@ cases) with::
 Cases run in name order, each with its own work folder ``bench/work/<name>/`` (created, not
 wiped: a case decides what to reuse). A case that raises is recorded as failed
 (``"<name>.error"`` in the results) and the others still run. Results are merged into
-``bench/results.json`` (flat ``{key: value}``; keys of cases not run this time are kept),
+``bench/results.json`` (flat ``{key: value}``; keys of cases not run this time are kept, and a
+case that ran drops the keys of its own (``<case>.``) it no longer produces, e.g. a class
+without valid frames),
 ``bench/measured.json`` records for every key the commit and the code it was measured on
 (``{key: {"commit", "code", "date"}}``; ``code`` is a hash of the project's source files, so
 a figure measured before a code change is known as such), and ``bench/RESULTS.md`` is
@@ -173,6 +175,9 @@ def merge(results_file: Path, cases: list[CaseResult]) -> dict:
         old = {}
     for c in cases:
         old.pop(f"{c.name}.error", None)
+        if not c.error:  # a case that ran drops its own keys it no longer produces
+            for k in [k for k in old if k.startswith(f"{c.name}.") and k not in c.values]:
+                del old[k]
         old.update(c.values)
         if c.error:
             old[f"{c.name}.error"] = c.error.strip().splitlines()[-1]

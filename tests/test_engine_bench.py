@@ -71,6 +71,14 @@ def test_harness_records_failures_merges_and_renders(tmp_path, monkeypatch):
     assert "| `ok.speed_s` | 0.5 (earlier run) | <= 1 | pass | abc123 |" in md  # same code
 
     assert "command: `python -m bench b_bad`" in md
+    # a case that runs again drops its own keys it no longer produces, not the others'
+    (d / "cases" / "c_later.py").write_text('def run(work):\n    return {"c_later.m": 1}\n')
+    res = json.loads((d / "results.json").read_text())
+    res["c_later.stale"] = 5.0
+    (d / "results.json").write_text(json.dumps(res))
+    assert bench.main(["c_later"], bench_dir=d) == 0
+    res = json.loads((d / "results.json").read_text())
+    assert "c_later.stale" not in res and res["c_later.m"] == 1.0 and res["later.n"] == 7.0
     assert bench.main(["nope"], bench_dir=d) == 2
 
 

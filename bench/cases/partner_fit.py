@@ -118,7 +118,7 @@ VARIANTS = {  # the paper's Table 3 ablation: stage option overrides of each row
 }
 TABLE_PREFIX = "partner_fit.table3."
 SECTION_PREFIXES = (TABLE_PREFIX,)
-CLASSES = ("grab", "handshake", "hit", "holding_hands", "hug", "kick", "posing", "push")
+CLASSES = ("grab", "handshake", "hit", "holdinghands", "hug", "kick", "posing", "push")  # _class()
 
 
 def _link_upstream(src: Path, dst: Path, keep: str = "partner_fit") -> None:
