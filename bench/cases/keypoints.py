@@ -66,9 +66,10 @@ GOALS = {
 LIMITS = {
     "keypoints.fps_per_core_clip": (
         "the detector's own cost, and a noisy clock: the same code measured 2.43, 2.82 and "
-        "2.97 frames per CPU-second in three runs on this 2-core machine (mediapipe's "
-        "inference threads wait busily, and CPU time counts the waiting, more so on an idle "
-        "machine); per 4-view frame about 2 pose calls (40 ms) and 2.4 hand calls (8 ms "
+        "2.97 frames per CPU-second in three runs on this 2-core machine, the highest two "
+        "while other jobs ran (a guess not yet checked: mediapipe's inference threads spin "
+        "while they wait, and CPU time counts the spinning when a core is free); per 4-view "
+        "frame about 2 pose calls (40 ms) and 2.4 hand calls (8 ms "
         "tracked, 16-25 ms static) per view. Left: skip hand crops whose wrist is occluded "
         "(-14 % of the wearer's hand calls for ~5 % of its hands), pin mediapipe to one "
         "thread."),
