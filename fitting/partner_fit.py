@@ -695,35 +695,43 @@ def check_views(cams, pred: np.ndarray, uv: np.ndarray, conf: np.ndarray, flip: 
     return uv, conf, flipped, dropped
 
 
-def wearer_keypoints(model: BodyModel, wearer: BodyFit, frames: np.ndarray, R) -> np.ndarray:
-    """(F, K, 3) the wearer's keypoints (regressor ``R`` (K, V + J)) at video ``frames``; NaN
-    where the wearer's fit has no such frame."""
+def wearer_posed(model: BodyModel, wearer: BodyFit, frames: np.ndarray, chunk: int = 64):
+    """The wearer's posed body at video ``frames``: ``(vertices, joints)``, two lists with per
+    frame (V, 3) / (J, 3) (NaN-free) or None where the wearer's fit has no such frame; posed
+    ``chunk`` frames at a time (a batch's skinning holds V x 12 floats per frame)."""
+    frames = np.asarray(frames)
     wf = np.asarray(wearer.frames)
+    V: list = [None] * len(frames)
+    J: list = [None] * len(frames)
+    if not len(wf):
+        return V, J
     pos = np.searchsorted(wf, frames).clip(0, len(wf) - 1)
-    has = wf[pos] == frames
-    out = np.full((len(frames), R.shape[0], 3), np.nan)
-    if has.any():
-        i = pos[has]
-        o = forward(model, np.asarray(wearer.betas, float), wearer.body_pose[i],
-                    wearer.global_orient[i], wearer.transl[i])
-        out[has] = np.stack([R @ np.concatenate([v, j]) for v, j in zip(o.vertices, o.joints, strict=True)])
+    at = np.flatnonzero(wf[pos] == frames)
+    betas = np.asarray(wearer.betas, float)
+    for s0 in range(0, len(at), chunk):
+        sel = at[s0:s0 + chunk]
+        i = pos[sel]
+        o = forward(model, betas, wearer.body_pose[i], wearer.global_orient[i], wearer.transl[i])
+        for k, f in enumerate(sel):
+            V[f], J[f] = o.vertices[k], o.joints[k]
+    return V, J
+
+
+def wearer_keypoints(posed, R) -> np.ndarray:
+    """(F, K, 3) the wearer's keypoints (regressor ``R`` (K, V + J)) from
+    :func:`wearer_posed`'s ``(vertices, joints)``; NaN where the wearer has no frame."""
+    V, J = posed
+    out = np.full((len(V), R.shape[0], 3), np.nan)
+    for f, (v, j) in enumerate(zip(V, J, strict=True)):
+        if v is not None:
+            out[f] = R @ np.concatenate([v, j])
     return out
 
 
 def wearer_vertices(model: BodyModel, wearer: BodyFit, frames: np.ndarray):
     """(F, V, 3) the wearer's posed mesh at video ``frames`` (NaN-free; frames the wearer's
     fit does not have: None in the returned list)."""
-    wf = np.asarray(wearer.frames)
-    out = []
-    for f in frames:
-        i = np.flatnonzero(wf == f)
-        if not len(i):
-            out.append(None)
-            continue
-        i = int(i[0])
-        out.append(forward(model, np.asarray(wearer.betas, float), wearer.body_pose[i:i + 1],
-                           wearer.global_orient[i:i + 1], wearer.transl[i:i + 1]).vertices[0])
-    return out
+    return wearer_posed(model, wearer, frames)[0]
 
 
 def reprojection_px(cams, pts: np.ndarray, uv: np.ndarray, conf: np.ndarray) -> np.ndarray:
@@ -830,11 +838,13 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
     rest = rest_state(model, betas)
     skel = skinned.fit_skeleton(model, None if opts.use_hands else body_joints(model))
     kidx = np.arange(len(KP65) if opts.use_hands else N_BODY)
-    Hk = skinned.regressed_coeffs(model, rest, skel, regressor(model, "kp65")[kidx])
+    R_kp = regressor(model, "kp65")[kidx]
+    Hk = skinned.regressed_coeffs(model, rest, skel, R_kp)
     uv, conf, kp_raw = _partner_keypoints(keypoints, cams, frames, kidx, opts.min_conf)
     body = _BodyCtx(model, betas, rest, skel)
 
-    WV = None if wearer is None else wearer_vertices(model, wearer, frames)
+    posed = None if wearer is None else wearer_posed(model, wearer, frames)
+    WV = None if posed is None else posed[0]
     extra, contact_info = extra_terms(model, frames, WV, contact, ground, opts)
     t0 = time.perf_counter()
     reproj = Reprojection(skel, body.u, Hk, cams, body.sub)
@@ -844,8 +854,7 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
     names = ["L_2d", "L_theta", "L_s"] + [t.name for t in extra]
 
     flipK = np.asarray(KP65_FLIP)[kidx]
-    WK = None if wearer is None else wearer_keypoints(model, wearer, frames,
-                                                      regressor(model, "kp65")[kidx])
+    WK = None if posed is None else wearer_keypoints(posed, R_kp)
     X = np.zeros((F, skel.n))
     reason = np.zeros(F, np.int8)
     err_px = np.full((F, C), np.nan)
