@@ -19,6 +19,7 @@ missing hands whose projection lies in the image), so the cost is a fraction of 
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,18 +30,21 @@ from detect.base import DetectorFactory
 from detect.crops import box_from_points, expand_box, hand_box_from_arm
 from detect.hints import WearerHints
 from detect.people import PeopleOptions, _find_wearer, _hands
-from detect.run import FrameSource
+from detect.run import FrameSource, _Metered
 
 IDX = layout.IDX
 ELBOWS = (IDX["l_elbow"], IDX["r_elbow"])
 WRISTS = (IDX["l_wrist"], IDX["r_wrist"])
+MIN_HAND_KP = 5  # a hand with fewer confident keypoints is missing
+RATE_BODY_KP = 12  # detection_rates: a body counts as detected with this many of 23
+RATE_CONF = 0.2  # ... keypoints at least this confident (the partner fit's min_conf)
 
 
 @dataclass
 class Refined:
     """kp (C, F, 65, 3) the partner's keypoints after the pass (unchanged where not redone or
     nothing better was found); redone (C, F) bool views run again; improved (C, F) bool views
-    whose keypoints were replaced; calls: detector calls by kind; cpu_s."""
+    whose keypoints were replaced; calls: detector calls by kind; cpu_s: CPU seconds of the whole pass."""
 
     kp: np.ndarray
     redone: np.ndarray
@@ -64,10 +68,20 @@ def views_to_redo(kp: np.ndarray, projected: np.ndarray, shape_hw: tuple[int, in
         & (projected[..., 1] >= 0) & (projected[..., 1] < h)
     hands = []
     for s, sl in enumerate(layout.HANDS):
-        missing = (kp[..., sl, 2] >= conf).sum(-1) < 5
+        missing = (kp[..., sl, 2] >= conf).sum(-1) < MIN_HAND_KP
         hands.append(missing & inside[..., WRISTS[s]])
     body_in = inside[..., layout.BODY].sum(-1) >= min_body
     return body_in & (few | hands[0] | hands[1])
+
+
+def detection_rates(kp: np.ndarray, min_body: int = RATE_BODY_KP, conf: float = RATE_CONF) -> dict:
+    """Fractions of the view-frames of one person's keypoints ``kp (..., 65, 3)`` with its
+    body (``min_body`` of the 23 keypoints at ``conf``) and each hand (``MIN_HAND_KP`` of 21)
+    detected: ``{"body", "hands"}`` (hands: the mean over the two)."""
+    c = np.asarray(kp)[..., 2] >= conf
+    return {"body": float((c[..., layout.BODY].sum(-1) >= min_body).mean()),
+            "hands": float(np.mean([(c[..., sl].sum(-1) >= MIN_HAND_KP).mean()
+                                    for sl in layout.HANDS]))}
 
 
 def _hints(uv: np.ndarray, outline: np.ndarray, o: PeopleOptions) -> WearerHints:
@@ -106,8 +120,6 @@ def refine_partner(source: FrameSource, factory: DetectorFactory, frames: np.nda
     (C, F, P, 2) projected points of its surface; opts : the first pass's options.
     A redone view's keypoints replace the first pass's when they have more confident body
     keypoints (body), and its hands fill hands the first pass did not find."""
-    import time
-
     o = PeopleOptions() if opts is None else opts
     out = np.array(kp[:, :, 1], np.float32)
     C, F = need.shape
@@ -115,10 +127,9 @@ def refine_partner(source: FrameSource, factory: DetectorFactory, frames: np.nda
     improved = np.zeros((C, F), bool)
     if not need.any():
         return Refined(out, redone, improved, {"body": 0, "hands": 0}, 0.0)
-    t0 = time.process_time()
-    det = factory.build()
+    t0 = time.process_time()  # everything: the detector's build, decoding, the calls
+    det = _Metered(factory.build())  # the first pass's meter: calls per kind
     reader = source.open() if det.needs_pixels else None
-    calls = {"body": 0, "hands": 0}
     conf = o.accept_conf
     try:
         todo = [(i, c) for i in range(F) for c in range(C) if need[c, i]]
@@ -130,7 +141,6 @@ def refine_partner(source: FrameSource, factory: DetectorFactory, frames: np.nda
                 continue
             redone[c, i] = True
             first = out[c, i]
-            calls["body"] += 1
             cand, _ = _find_wearer(img, hints, det, o, c, fr, True)
             new = first.copy()
             if _n_body(cand, conf) > _n_body(first, conf) and not _is_wearer(
@@ -139,17 +149,16 @@ def refine_partner(source: FrameSource, factory: DetectorFactory, frames: np.nda
                 improved[c, i] = True
             if o.hands:
                 before = new.copy()
-                calls["hands"] += 2
                 _hands(img, new, hints.hand_boxes, hints.wrists, det, o, c, fr,
                        avoid=kp[c, i, 0], avoid_wrists=kp[c, i, 0, list(WRISTS), :2],
                        radius=o.near_frac * float(hints.box[3] - hints.box[1]))
                 for sl in layout.HANDS:  # keep what the first pass found for a hand
                     if (before[sl, 2] >= conf).sum() >= 5:
                         new[sl] = before[sl]
-                improved[c, i] |= not np.array_equal(new, before) or improved[c, i]
+                improved[c, i] |= not np.array_equal(new, before)
             out[c, i] = new
     finally:
         if reader is not None:
             reader.close()
         det.close()
-    return Refined(out, redone, improved, calls, time.process_time() - t0)
+    return Refined(out, redone, improved, dict(det.calls), time.process_time() - t0)

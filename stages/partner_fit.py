@@ -141,16 +141,6 @@ def run(ctx: StageContext) -> None:
                      views=list(rv.cameras))
 
 
-def _rates(kp) -> dict:
-    """Fractions of the partner's view-frames with its body (>= 12 of 23 keypoints) and each
-    hand (>= 5 of 21) detected."""
-    from detect import layout
-
-    c = kp[..., 2] >= 0.2
-    return {"body": float((c[..., layout.BODY].sum(-1) >= 12).mean()),
-            "hands": float(np.mean([(c[..., sl].sum(-1) >= 5).mean() for sl in layout.HANDS]))}
-
-
 def _second_pass(ctx: StageContext, model, cams, keypoints, fit, o: Options):
     """The partner's second detection pass around the first fit (``detect.refine``). Returns
     the keypoints with person 1 refined, and the report entry (views redone and improved,
@@ -161,7 +151,7 @@ def _second_pass(ctx: StageContext, model, cams, keypoints, fit, o: Options):
     from body.joints import regressor
     from calib import project
     from detect.mediapipe_detector import MediapipeOptions
-    from detect.refine import refine_partner, views_to_redo
+    from detect.refine import detection_rates, refine_partner, views_to_redo
     from detect.run import VideoSource
 
     ci = [keypoints.camera(c.name) for c in cams]
@@ -186,7 +176,7 @@ def _second_pass(ctx: StageContext, model, cams, keypoints, fit, o: Options):
     for c, f in zip(*np.nonzero(ref.improved), strict=True):
         raw[idx[c], f, 1] = ref.kp[c, f, :, 2]
         outl[idx[c], f, 1] = False
-    before, after = _rates(K[:, :, 1]), _rates(ref.kp)
+    before, after = detection_rates(K[:, :, 1]), detection_rates(ref.kp)
     out = dataclasses.replace(keypoints, kp=kp.astype(np.float32), conf_raw=raw,
                               cross_view_outlier=outl)
     return out, {"run": True, "views_redone": int(ref.redone.sum()),

@@ -67,3 +67,13 @@ def test_views_that_have_the_partner_are_not_redone():
     off = proj + [2000.0, 0.0]  # and a projection outside the image is never a reason
     kp[0, 0, 1] = 0
     assert not views_to_redo(kp[:, :, 1], off, SHAPE).any()
+
+
+def test_detection_rates_count_bodies_and_hands():
+    from detect.refine import detection_rates
+
+    w, p, _, _ = _scene(partner_at=(420.0, 210.0))
+    kp = np.stack([p, np.zeros_like(p)])  # two view-frames: all found, nothing found
+    kp[0, layout.HANDS[1], 2] = 0.0  # the right hand missing in the first
+    r = detection_rates(kp)
+    assert r == {"body": 0.5, "hands": 0.25}  # left 1/2, right 0/2
