@@ -276,6 +276,9 @@ def closure(reg: Registry, recipe: Any, targets: list[NodeId]) -> dict[NodeId, d
                 units = [unit]
             else:
                 units = list(reg.upstream_units(recipe, stage, unit, up))
+            units = [u for u in units if applies(reg, recipe, up, u)]
+            if not units and by[up].per == by[stage].per:
+                continue  # e.g. no keypoints for a marker-only sequence: not an input at all
             ups[up] = units
             todo.extend((up, u) for u in units)
         found[nid] = ups
@@ -288,9 +291,17 @@ def targets_for(reg: Registry, recipe: Any, command: str, sequences: list[str] |
     given sequences (their per-subject upstreams follow by closure); ``release``/``status``:
     every stage of every unit."""
     if command in ("release", "status"):
-        return [(s.name, u) for s in reg.stages for u in reg.units(recipe, s.per)]
+        return [(s.name, u) for s in reg.stages for u in reg.units(recipe, s.per)
+                if applies(reg, recipe, s.name, u)]
     seqs = sequences if sequences is not None else list(reg.units(recipe, "sequence"))
-    return [(s.name, q) for q in seqs for s in reg.stages if s.per == "sequence"]
+    return [(s.name, q) for q in seqs for s in reg.stages
+            if s.per == "sequence" and applies(reg, recipe, s.name, q)]
+
+
+def applies(reg: Registry, recipe: Any, stage: str, unit: str) -> bool:
+    """Whether ``stage`` runs for ``unit`` (``Registry.applies``; every stage applies to every
+    unit when the registry does not say)."""
+    return True if reg.applies is None else bool(reg.applies(recipe, stage, unit))
 
 
 def build_plan(reg: Registry, recipe: Any, recipe_path: Path, targets: list[NodeId],

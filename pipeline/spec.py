@@ -76,6 +76,9 @@ class Registry:
         the schema cannot see (e.g. input files that disagree with each other), one message per
         problem naming the file and the field, for the sequences ``units`` about to run (None:
         all). The CLI runs it before any stage and stops with exit code 2 on any message.
+    applies(recipe, stage, unit) -> bool, optional: whether a stage runs for a unit at all (e.g.
+        a video stage on a sequence recorded without video). A stage that does not apply is
+        neither a target nor an input: its downstream stages' ``ctx.inputs`` lack it.
     """
 
     stages: tuple[Stage, ...]
@@ -87,6 +90,7 @@ class Registry:
     prepare: Callable[[Path], None] | None = None
     recipe_view: Callable[[Any, str, str], Any] | None = None
     check: Callable[[Any, Path, list[str] | None], list[str]] | None = None
+    applies: Callable[[Any, str, str], bool] | None = None
 
 
 class UndeclaredRead(LookupError):

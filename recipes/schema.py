@@ -30,13 +30,34 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+class StaticTrial(_Strict):
+    """A capture of the subject used only to place the markers and fit the shape (a static
+    pose or a range-of-motion trial). ``frames``: ``[first, last]`` in the C3D's own frame
+    numbers (1-based and inclusive, as Vicon Nexus shows them), or null for the whole file."""
+
+    c3d: Path
+    frames: tuple[int, int] | None = None
+
+    @field_validator("frames")
+    @classmethod
+    def _range(cls, v):
+        if v is not None and not 1 <= v[0] <= v[1]:
+            raise ValueError(f"expected [first, last] with 1 <= first <= last, got {list(v)}")
+        return v
+
+
 class SubjectSpec(_Strict):
     """One person. ``scan``: mesh or point cloud (PLY/OBJ), or null (shape from markers).
-    ``markerset``: a marker-set JSON path or a built-in name (``plug-in-gait``)."""
+    ``markerset``: a marker-set JSON path or a built-in name (``plug-in-gait``, ``cmu``).
+    ``label_prefix``: the subject name the C3D files put before the marker labels
+    (``Derrick`` for ``Derrick:LFHD``); needed when a file holds several prefixed subjects.
+    ``static``: static or range-of-motion trials for ``shape_fit``."""
 
     scan: Path | None = None
     markerset: str = "plug-in-gait"
     sex: Literal["female", "male", "unknown"] = "unknown"
+    label_prefix: str | None = None
+    static: list[StaticTrial] = Field(default_factory=list)
 
 
 class BodyModelSpec(_Strict):
@@ -74,21 +95,32 @@ class MocapSpec(_Strict):
 
 class SequenceSpec(_Strict):
     """One recording. ``markers_on`` and ``partner`` are subject ids; ``videos`` and
-    ``calibration`` are keyed by camera id; ``contact`` is a CHI3D
+    ``calibration`` are keyed by camera id (a calibration file is a CHI3D camera JSON or a
+    Vicon ``.xcp`` holding that camera); ``contact`` is a CHI3D
     ``interaction_contact_signature.json`` (keyed by action); ``keypoints`` optionally points
-    at precomputed detections (OpenPose/COCO JSON folders keyed by camera)."""
+    at precomputed detections (OpenPose/COCO JSON folders keyed by camera).
+
+    A marker-only sequence has just ``markers_on`` and ``c3d``: no ``partner``, ``videos`` or
+    ``calibration``; it is fitted at the C3D's own rate (or ``mocap.rate_hz``) over its whole
+    length. ``fps``: the video rate; null means the videos' own rate, or the capture's rate
+    for a marker-only sequence."""
 
     markers_on: str
-    partner: str
     c3d: Path
-    videos: dict[str, Path]
-    calibration: dict[str, Path]
+    partner: str | None = None
+    videos: dict[str, Path] = Field(default_factory=dict)
+    calibration: dict[str, Path] = Field(default_factory=dict)
     contact: Path | None = None
     text: str = ""
-    fps: Rate = 50.0
+    fps: Rate | None = None
     mocap: MocapSpec = MocapSpec()
     keypoints: dict[str, Path] | None = None
     keypoints_format: Literal["openpose", "coco"] | None = None
+
+    @property
+    def has_video(self) -> bool:
+        """Recorded with the cameras (videos given): the video stages apply."""
+        return bool(self.videos)
 
 
 def _folder_name(kind: str, name: str) -> str:
@@ -103,7 +135,7 @@ class Session(_Strict):
     """A whole capture session."""
 
     session: str
-    cameras: list[str]
+    cameras: list[str] = Field(default_factory=list)
     subjects: dict[str, SubjectSpec]
     sequences: dict[str, SequenceSpec]
     body_model: BodyModelSpec = BodyModelSpec()
@@ -119,8 +151,6 @@ class Session(_Strict):
     @field_validator("cameras")
     @classmethod
     def _camera_ids(cls, v: list[str]) -> list[str]:
-        if not v:
-            raise ValueError("at least one camera is needed")
         if len(set(v)) != len(v):
             raise ValueError(f"camera ids repeat: {v}")
         return v
@@ -178,16 +208,25 @@ def _check_refs(s: Session, src: Path) -> None:
                               f"({seq.partner!r})")
         for role in ("markers_on", "partner"):
             who = getattr(seq, role)
-            if who not in s.subjects:
+            if who is not None and who not in s.subjects:
                 raise RecipeError(f"{src}: sequences.{sid}.{role}: unknown subject {who!r} "
                                   f"(subjects: {', '.join(s.subjects)})")
+        if seq.partner is not None and not seq.videos:
+            raise RecipeError(f"{src}: sequences.{sid}.partner: the partner is fitted to the "
+                              "videos, and this sequence has none (videos)")
         for field_name in ("videos", "calibration"):
             cams = set(getattr(seq, field_name))
-            if cams != set(s.cameras):
+            if (cams or field_name == "calibration" and seq.videos) and cams != set(s.cameras):
                 raise RecipeError(
                     f"{src}: sequences.{sid}.{field_name}: cameras {sorted(cams)} "
                     f"do not match cameras {sorted(s.cameras)}"
                 )
+        if seq.videos and not s.cameras:
+            raise RecipeError(f"{src}: cameras: a sequence has videos ({sid}) but no camera is "
+                              "named")
+        if seq.keypoints is not None and not seq.videos:
+            raise RecipeError(f"{src}: sequences.{sid}.keypoints: keypoints need the videos "
+                              "and calibration of the cameras")
         if seq.keypoints is not None:
             extra = set(seq.keypoints) - set(s.cameras)
             if extra:
@@ -206,6 +245,8 @@ def input_files(s: Session) -> list[tuple[str, Path]]:
             out.append((f"subjects.{sid}.scan", sub.scan))
         if sub.markerset.endswith(".json"):
             out.append((f"subjects.{sid}.markerset", Path(sub.markerset)))
+        for i, st in enumerate(sub.static):
+            out.append((f"subjects.{sid}.static[{i}].c3d", st.c3d))
     if s.body_model.path is not None:
         out.append(("body_model.path", s.body_model.path))
     for q, seq in s.sequences.items():

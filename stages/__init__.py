@@ -88,16 +88,31 @@ def make_upstream_units(all_stages: tuple[Stage, ...]):
             return ["session"]
         if mine == "sequence":  # theirs == "subject"
             seq = recipe.sequence(unit)
-            return [seq.markers_on, seq.partner]
+            return [seq.markers_on] + ([seq.partner] if seq.partner is not None else [])
         return recipe.sequences_of(unit)  # a subject reading sequences
 
     return upstream_units
 
 
-def _subject_fields(recipe: Session, sid: str) -> dict:
+def _subject_fields(recipe: Session, sid: str | None) -> dict:
+    if sid is None:  # a marker-only sequence has no partner
+        return {"markerset": None, "sex": None, "label_prefix": None}
     sub = recipe.subjects[sid]
     return {"markerset": "file" if sub.markerset.endswith(".json") else sub.markerset,
-            "sex": sub.sex}
+            "sex": sub.sex, "label_prefix": sub.label_prefix}
+
+
+#: stages that need the videos (and for partner_fit the partner) of a sequence
+VIDEO_STAGES = ("keypoints", "partner_fit")
+
+
+def applies(recipe: Session, stage: str, unit: str) -> bool:
+    """Whether ``stage`` runs for ``unit``: the video stages only on sequences recorded with
+    video (``partner_fit`` also needs a partner); everything else always."""
+    if stage not in VIDEO_STAGES or unit not in recipe.sequences:
+        return True
+    seq = recipe.sequences[unit]
+    return seq.has_video and (stage != "partner_fit" or seq.partner is not None)
 
 
 def recipe_view(recipe: Session, unit: str, name: str):
@@ -106,9 +121,11 @@ def recipe_view(recipe: Session, unit: str, name: str):
 
     - ``cameras``: camera ids in recipe order; ``body_model.kind``;
     - per sequence: ``sequence.<fps | mocap | mocap.sync_offset_s | mocap.rate_hz | markers_on |
-      partner | text | keypoints_format | has_keypoints>``, ``wearer.<markerset | sex>`` and
-      ``partner_subject.<markerset | sex>`` (the subjects of ``markers_on`` / ``partner``);
-    - per subject: ``subject.<markerset | sex | has_scan | marker_sequences>``;
+      partner | text | keypoints_format | has_keypoints | has_video>``,
+      ``wearer.<markerset | sex | label_prefix>`` and ``partner_subject.<...>`` (the subjects
+      of ``markers_on`` / ``partner``; all None without a partner);
+    - per subject: ``subject.<markerset | sex | label_prefix | has_scan | marker_sequences |
+      static_frames>`` (``static_frames``: each static trial's ``[first, last]`` or None);
     - ``ground_plane.<normal | offset>`` (or ``ground_plane``).
 
     Files are never part of the view (they are raw inputs, keyed by content): a marker set
@@ -129,7 +146,7 @@ def recipe_view(recipe: Session, unit: str, name: str):
         if head == "sequence":
             tree = {"fps": seq.fps, "markers_on": seq.markers_on, "partner": seq.partner,
                     "text": seq.text, "keypoints_format": seq.keypoints_format,
-                    "has_keypoints": bool(seq.keypoints),
+                    "has_keypoints": bool(seq.keypoints), "has_video": seq.has_video,
                     "mocap": {"sync_offset_s": seq.mocap.sync_offset_s,
                               "rate_hz": seq.mocap.rate_hz}}
         else:
@@ -138,9 +155,12 @@ def recipe_view(recipe: Session, unit: str, name: str):
     if head == "subject":
         if unit not in recipe.subjects:
             raise KeyError(f"{name}: unit {unit!r} is not a subject")
-        tree = {**_subject_fields(recipe, unit), "has_scan": recipe.subjects[unit].scan is not None,
+        sub = recipe.subjects[unit]
+        tree = {**_subject_fields(recipe, unit), "has_scan": sub.scan is not None,
                 "marker_sequences": [q for q in recipe.sequences_of(unit)
-                                     if recipe.sequences[q].markers_on == unit]}
+                                     if recipe.sequences[q].markers_on == unit],
+                "static_frames": [list(t.frames) if t.frames is not None else None
+                                  for t in sub.static]}
         return _pick(tree, rest, name)
     raise KeyError(name)
 
@@ -239,4 +259,4 @@ def registry() -> Registry:
     st = stages()
     return Registry(stages=st, load_recipe=load, session_name=lambda r: r.session, units=units,
                     upstream_units=make_upstream_units(st), stage_params=stage_params,
-                    prepare=prepare, recipe_view=recipe_view, check=check)
+                    prepare=prepare, recipe_view=recipe_view, check=check, applies=applies)

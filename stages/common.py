@@ -42,7 +42,7 @@ def load_body(ctx):
 FPS_TOLERANCE = 1e-4  # relative: 29.97 vs 30000/1001 passes, 30 vs 29.97 (a frame per 1,000) does not
 
 
-def check_videos(paths: list[Path], fps: float) -> list[str]:
+def check_videos(paths: list[Path], fps: float | None) -> list[str]:
     """One message per problem of a sequence's videos (the recipe's camera order): a video that
     can't be read, one with fewer or more frames than the longest (the sequence would silently be
     cut to the shortest), one whose own rate differs from the recipe's ``fps``. Each message
@@ -50,9 +50,10 @@ def check_videos(paths: list[Path], fps: float) -> list[str]:
     return [str(e) for e in video_errors(paths, fps)]
 
 
-def video_errors(paths: list[Path], fps: float) -> list:
+def video_errors(paths: list[Path], fps: float | None) -> list:
     """The problems of :func:`check_videos` as ``formats.errors.InputError`` (file = the video,
-    field ``frames`` / ``fps`` or the reader's), for a stage to raise the first one."""
+    field ``frames`` / ``fps`` or the reader's), for a stage to raise the first one. ``fps``
+    None: the videos must agree with the longest one's rate."""
     from formats.errors import InputError
     from formats.video import video_info
 
@@ -68,6 +69,8 @@ def video_errors(paths: list[Path], fps: float) -> list:
         return out
     longest = max(i.n_frames for i in infos.values())
     ref = next(p for p, i in infos.items() if i.n_frames == longest)
+    if fps is None:  # the recipe leaves the rate to the videos: they must agree with each other
+        fps = infos[ref].fps
     for p, i in infos.items():
         if i.n_frames != longest:
             out.append(InputError(p, "frames", f"{i.n_frames} frames, but {ref} of the same "
@@ -96,3 +99,12 @@ def marker_template(ctx, markerset: str, model):
         return template_placement(model, load_json(ctx.raw["markerset"],
                                                    num_faces=len(model.faces)))
     return template_placement(model, markerset)
+
+
+def sequence_fps(fps: float | None, video: Path) -> float:
+    """The video rate of a sequence: the recipe's ``fps``, else the video's own rate."""
+    if fps is not None:
+        return float(fps)
+    from formats.video import video_info
+
+    return float(video_info(video).fps)

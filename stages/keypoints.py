@@ -34,6 +34,7 @@ from detect import constants as DK
 from detect.sequence import SequenceOptions
 from formats.errors import InputError
 from pipeline.spec import Stage, StageContext
+from stages import common
 
 
 @dataclass(frozen=True)
@@ -193,7 +194,7 @@ def compute(view, raw: dict[str, Path], o: Options, *, unit: str = "", recipe_pa
     from fitting.mocap import VideoClock
     from formats.c3d import read_c3d
     from formats.video import video_info
-    from stages.common import video_errors
+    from stages.common import sequence_fps, video_errors
 
     seq = view.sequence
     cam_names = list(view.cameras)
@@ -202,13 +203,14 @@ def compute(view, raw: dict[str, Path], o: Options, *, unit: str = "", recipe_pa
     problems = video_errors(videos, seq.fps)
     if problems:
         raise problems[0]
+    fps = sequence_fps(seq.fps, videos[0])
     n_video = video_info(videos[0]).n_frames
     frames = frame_indices(n_video, o)
     if len(frames) == 0:
         raise InputError(videos[0], "frames", f"no frame in [{o.start}, {o.stop}) of {n_video}")
 
     markers = read_c3d(raw["c3d"])
-    xyz = markers_on_frames(markers, frames, VideoClock(seq.fps, seq.mocap.sync_offset_s,
+    xyz = markers_on_frames(markers, frames, VideoClock(fps, seq.mocap.sync_offset_s,
                                                         seq.mocap.rate_hz))
     if not np.isfinite(xyz[..., 0]).any():
         raise InputError(raw["c3d"], "markers", "no marker observed at any video frame "
@@ -296,7 +298,9 @@ def run(ctx: StageContext) -> None:
     sample = int(kp.frames[len(kp.frames) // 2]) if o.overlay_frame is None else o.overlay_frame
     report = dict(c.report)
     report["overlays"] = write_overlays(ctx.out, c.source, kp, sample)
-    report["mcap"] = (write_mcap(ctx.out.path("keypoints.mcap"), kp, ctx.recipe.sequence.fps)
+    report["mcap"] = (write_mcap(ctx.out.path("keypoints.mcap"), kp,
+                                 common.sequence_fps(ctx.recipe.sequence.fps,
+                                                     ctx.raw[f"video:{ctx.recipe.cameras[0]}"]))
                       if o.mcap else None)
     ctx.out.save_json("report", report)
     ctx.log(f"keypoints: {report['fps_per_core']} frames/s per core (all {len(kp.cameras)} "

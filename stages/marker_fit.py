@@ -27,17 +27,29 @@ from pipeline.spec import Stage, StageContext
 from stages import common
 
 READS = ("body_model.kind", "cameras", "sequence.fps", "sequence.mocap", "sequence.markers_on",
-         "wearer.markerset")
+         "sequence.has_video", "wearer.markerset", "wearer.label_prefix")
 
 
 def raw_inputs(recipe, unit: str) -> dict[str, Path]:
     seq = recipe.sequence(unit)
     out = {"body_model": common.body_model_file(recipe), "c3d": Path(seq.c3d)}
     out.update(common.markerset_file(recipe.subjects[seq.markers_on]))
-    for cam in recipe.cameras:
+    for cam in seq.calibration:
         out[f"calibration:{cam}"] = Path(seq.calibration[cam])
-    out["video"] = Path(seq.videos[recipe.cameras[0]])  # frame count when no keypoints
+    if seq.videos:
+        out["video"] = Path(seq.videos[recipe.cameras[0]])  # frame count when no keypoints
     return out
+
+
+def capture_frames(markers, rate_hz: float | None):
+    """A marker-only sequence: every sample of the capture, at its own rate (or the recipe's
+    ``mocap.rate_hz``). Returns ``(frames, clock)``: frame ``f`` is the capture's 0-based frame
+    number ``first_frame + i`` of sample ``i`` (C3D frame number ``f + 1``)."""
+    from fitting.mocap import VideoClock
+
+    rate = float(rate_hz or markers.rate_hz)
+    return (markers.first_frame + np.arange(len(markers.xyz), dtype=np.int64),
+            VideoClock(rate, 0.0, rate_hz))
 
 
 def run(ctx: StageContext) -> None:
@@ -57,22 +69,34 @@ def run(ctx: StageContext) -> None:
     shape_art = ctx.inputs["shape_fit"]
     shape = ShapeFit.load(shape_art[subject] if isinstance(shape_art, dict) else shape_art)
     template = common.marker_template(ctx, rv.wearer.markerset, model)
-    markers = read_c3d(ctx.raw["c3d"], markers=list(shape.names), allow_missing=True)
-    cams = [read_chi3d_camera(ctx.raw[f"calibration:{c}"], name=c) for c in rv.cameras]
+    markers = read_c3d(ctx.raw["c3d"], markers=list(shape.names), allow_missing=True,
+                       subject=rv.wearer.label_prefix)
+    cams = [read_chi3d_camera(ctx.raw[f"calibration:{c}"], name=c) for c in rv.cameras
+            if f"calibration:{c}" in ctx.raw]
     kp_art = ctx.inputs.get("keypoints")
     keypoints = Keypoints2D.load(kp_art) if kp_art is not None else None
-    if keypoints is not None:  # the keypoints stage may run with a frame stride: fit its frames
-        frames = np.asarray(keypoints.frames, dtype=np.int64)
+    if rv.sequence.has_video:
+        fps = common.sequence_fps(rv.sequence.fps, ctx.raw["video"])
+        if keypoints is not None:  # the keypoints stage may run with a stride: fit its frames
+            frames = np.asarray(keypoints.frames, dtype=np.int64)
+        else:
+            frames = np.arange(video_info(ctx.raw["video"]).n_frames)
+        clock = VideoClock(fps, rv.sequence.mocap.sync_offset_s, rv.sequence.mocap.rate_hz)
+        timeline = "video frames"
     else:
-        frames = np.arange(video_info(ctx.raw["video"]).n_frames)
-    clock = VideoClock(rv.sequence.fps, rv.sequence.mocap.sync_offset_s,
-                       rv.sequence.mocap.rate_hz)
+        frames, clock = capture_frames(markers, rv.sequence.mocap.rate_hz)
+        fps = clock.fps
+        timeline = "capture frames (0-based: C3D frame number - 1)"
     fit, report = fit_markers(model, shape, template, markers, clock, frames, cams, keypoints,
                               o, progress=ctx.progress,
                               log=lambda s: ctx.log(f"{ctx.unit}: {s}"), source=str(ctx.raw["c3d"]))
     fit.save(ctx.out)
-    ctx.out.save_json("report", {"sequence": ctx.unit, "subject": subject, **report})
-    residual_plot(ctx.out.path("residuals.png"), fit.marker_residual_m * 1000, rv.sequence.fps,
+    report = {"sequence": ctx.unit, "subject": subject, "capture": Path(ctx.raw["c3d"]).name,
+              "capture_rate_hz": float(markers.rate_hz),
+              "capture_first_frame": int(markers.first_frame) + 1, "frames_are": timeline,
+              "fit_rate_hz": float(fps), **report}
+    ctx.out.save_json("report", report)
+    residual_plot(ctx.out.path("residuals.png"), fit.marker_residual_m * 1000, fps,
                   f"{ctx.unit}: marker residuals ({'with' if report['hands'] else 'no'} hand "
                   "keypoints)", frames=fit.frames)
 

@@ -135,7 +135,8 @@ def run(ctx: StageContext) -> None:
             fit.frames[~ok], [_reason(c) for c in fit.invalid_reason[~ok]], strict=True)},
     })
     ctx.out.save_json("report", report)
-    partner_fit_plot(ctx.out.path("partner_fit.png"), fit.frames, rv.sequence.fps,
+    partner_fit_plot(ctx.out.path("partner_fit.png"), fit.frames,
+                     common.sequence_fps(rv.sequence.fps, ctx.raw[f"video:{rv.cameras[0]}"]),
                      per["reproj_px"], fig["penetration_m"] * 1000, fig["contact_m"] * 1000,
                      fig["ground_m"] * 1000, fit.valid, f"{ctx.unit}: partner {partner}",
                      views=list(rv.cameras))

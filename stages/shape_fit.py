@@ -23,7 +23,8 @@ from fitting.shape import ShapeFitOptions as Options
 from pipeline.spec import Stage, StageContext
 from stages import common
 
-READS = ("body_model.kind", "subject.markerset")
+READS = ("body_model.kind", "subject.markerset", "subject.label_prefix",
+         "subject.static_frames")
 
 
 def raw_inputs(recipe, unit: str) -> dict[str, Path]:
@@ -32,6 +33,8 @@ def raw_inputs(recipe, unit: str) -> dict[str, Path]:
     if subj.scan is not None:
         out["scan"] = Path(subj.scan)
     out.update(common.markerset_file(subj))
+    for i, trial in enumerate(subj.static):
+        out[f"static:{i}"] = Path(trial.c3d)
     for sid in recipe.sequences_of(unit):
         seq = recipe.sequences[sid]
         if seq.markers_on == unit:
@@ -39,17 +42,34 @@ def raw_inputs(recipe, unit: str) -> dict[str, Path]:
     return out
 
 
-def read_captures(raw: dict[str, Path], names) -> tuple[list[np.ndarray], list[str]]:
-    """Markers ``names`` of every capture in ``raw`` (keys ``c3d:<sequence>``, in key order):
-    a list of (F_i, M, 3) arrays, metres with NaN gaps, and the sequence ids."""
-    from formats.c3d import read_c3d
+def read_captures(raw: dict[str, Path], names, prefix: str | None = None,
+                  static_frames=()) -> list[tuple[str, object]]:
+    """The subject's captures, static trials first (``static[i]``, cut to their frame range)
+    then the sequences (keys ``c3d:<sequence>``, in key order): ``[(name, formats.c3d.Markers
+    of the markers ``names``, metres, NaN gaps)]``. ``static_frames``: per static trial
+    ``[first, last]`` C3D frame numbers (1-based, inclusive) or None."""
+    from formats.c3d import Markers, read_c3d
+    from formats.errors import InputError
 
-    chunks, used = [], []
+    out = []
+    statics = sorted((int(k.split(":", 1)[1]), p) for k, p in raw.items() if k.startswith("static:"))
+    for i, path in statics:
+        m = read_c3d(path, markers=list(names), allow_missing=True, subject=prefix)
+        rng = static_frames[i] if i < len(static_frames) else None
+        if rng is not None:
+            first = m.first_frame + 1  # the C3D frame number of sample 0
+            a, b = int(rng[0]) - first, int(rng[1]) - first + 1
+            if a < 0 or b > len(m.xyz):
+                raise InputError(path, f"subjects.<id>.static[{i}].frames",
+                                 f"frames {list(rng)} outside the capture's frames {first}.."
+                                 f"{first + len(m.xyz) - 1}")
+            m = Markers(m.names, m.xyz[a:b], m.rate_hz, m.first_frame + a, m.subject)
+        out.append((f"static[{i}] {Path(path).name}", m))
     for key, path in sorted(raw.items()):
         if key.startswith("c3d:"):
-            chunks.append(read_c3d(path, markers=list(names), allow_missing=True).xyz)
-            used.append(key[4:])
-    return chunks, used
+            out.append((key[4:], read_c3d(path, markers=list(names), allow_missing=True,
+                                          subject=prefix)))
+    return out
 
 
 def run(ctx: StageContext) -> None:
@@ -60,11 +80,17 @@ def run(ctx: StageContext) -> None:
     model = common.load_body(ctx)
     template = common.marker_template(ctx, ctx.recipe.subject.markerset, model)
     scan = read_scan(ctx.raw["scan"]) if "scan" in ctx.raw else None
-    captures, seqs = read_captures(ctx.raw, template.names)
+    rv = ctx.recipe.subject
+    named = read_captures(ctx.raw, template.names, rv.label_prefix, rv.static_frames)
+    captures = [m.xyz for _, m in named]
     shape, report = fit_shape(model, template, scan, captures, o, np.random.default_rng(o.seed),
                               log=lambda s: ctx.log(f"{ctx.unit}: {s}"))
     shape.save(ctx.out)
-    ctx.out.save_json("report", {"subject": ctx.unit, "marker_sequences": seqs, **report})
+    ctx.out.save_json("report", {
+        "subject": ctx.unit, "captures": [
+            {"name": n, "first_frame": int(m.first_frame) + 1, "frames": int(len(m.xyz)),
+             "rate_hz": float(m.rate_hz)} for n, m in named],
+        "marker_sequences": [n for n, _ in named if not n.startswith("static[")], **report})
 
 
 STAGE = Stage(name="shape_fit", func=run, per="subject", upstream=(), params=Options,

@@ -44,7 +44,7 @@ def keypoints_artifact(folder: Path, kp: np.ndarray, frames: np.ndarray, cams) -
 
 
 def _session(tmp: Path, model, rng, F=40, fps=50.0, rate=240.0, swap=True, fingers=False,
-             sync=-0.1, hole_frames=()):
+             sync=-0.1, hole_frames=(), first_frame=0):
     """Truth motion, its markers as a Vicon C3D, cameras, and the stage context pieces.
     sync: the recipe's mocap.sync_offset_s (video frame f at mocap time f / fps - sync; > 0
     leaves the first video frames before the capture); hole_frames: video frames at which no
@@ -76,8 +76,8 @@ def _session(tmp: Path, model, rng, F=40, fps=50.0, rate=240.0, swap=True, finge
     t_mocap = np.arange(n_mocap) / rate
     for f in hole_frames:  # the samples around video frame f
         markers[np.abs(t_mocap - (f / fps - sync)) < 1.5 / rate] = np.nan
-    gaps = write_vicon_pig(tmp / "take.c3d", markers, rate, rng, first_frame=0, n_gaps=10,
-                           gap_len=(10, 80))
+    gaps = write_vicon_pig(tmp / "take.c3d", markers, rate, rng, first_frame=first_frame,
+                           n_gaps=10, gap_len=(10, 80))
     assert read_c3d(tmp / "take.c3d", markers=pl.names).rate_hz == rate
     cams = {}
     for k, a in enumerate([0.5, 2.1, 3.7, 5.3]):
@@ -103,14 +103,15 @@ def _session(tmp: Path, model, rng, F=40, fps=50.0, rate=240.0, swap=True, finge
             kp[c, :, 0, 23:65, 2] = 0.9
     values = {"body_model.kind": "anny", "cameras": list(cams), "sequence.fps": fps,
               "sequence.mocap": {"sync_offset_s": sync, "rate_hz": None},
-              "sequence.markers_on": "s1", "wearer.markerset": "plug-in-gait",
+              "sequence.markers_on": "s1", "sequence.has_video": True,
+              "wearer.markerset": "plug-in-gait", "wearer.label_prefix": None,
               "subject.markerset": "plug-in-gait"}
     body_file = common.body_model_file(SimpleNamespace(body_model=SimpleNamespace(kind="anny",
                                                                                   path=None)))
     raw = {"body_model": body_file, "c3d": tmp / "take.c3d",
            **{f"calibration:{c}": p for c, p in cams.items()}}
     truth_video = SimpleNamespace(joints=truth.joints[sample], vertices=truth.vertices[sample],
-                                  skel=skel, gaps=gaps)
+                                  skel=skel, gaps=gaps, mocap_joints=truth.joints)
     return SimpleNamespace(values=values, raw=raw, shape=sf, shape_dir=tmp / "shape_fit",
                            kp=kp, cams=list(cams), truth=truth_video,
                            kp_dir=keypoints_artifact(tmp / "keypoints", kp, np.arange(F), cams))
@@ -256,3 +257,33 @@ def test_stage_options_name_the_bad_field():
         Options(sigma_marker_mm=0)
     assert Options(weights={"L_s": 0.5}).weights == {"L_3d": 1.0, "L_2d": 1e-6, "L_theta": 2e-7,
                                                       "L_s": 0.5}
+
+
+def test_marker_only_sequence_fits_every_sample_at_the_capture_rate(tmp_path, anny):
+    """No videos, no cameras, no keypoints: every sample of the C3D is fitted at its own rate
+    (240 Hz, not a video rate), from its first frame (C3D frame 118, not 1): fit.npz frames are
+    the capture's 0-based frame numbers, and the report says whose frames they are."""
+    from artifacts import BodyFit
+    from body.lbs import forward
+    from formats.c3d import read_c3d
+    from stages.marker_fit import Options, run
+
+    rng = np.random.default_rng(4)
+    s = _session(tmp_path, anny, rng, F=6, swap=False, first_frame=117)
+    mk = read_c3d(s.raw["c3d"], markers=list(s.shape.names))
+    assert mk.first_frame == 117
+    s.values.update({"cameras": [], "sequence.has_video": False, "sequence.fps": None})
+    s.raw = {k: v for k, v in s.raw.items() if not k.startswith("calibration:")}
+    ctx = _ctx(s, tmp_path / "out", Options(compile="interpreted"))
+    ctx.inputs.pop("keypoints")
+    run(ctx)
+    fit = BodyFit.load(ctx.out.dir)
+    rep = json.loads((ctx.out.dir / "report.json").read_text())
+    n = len(mk.xyz)
+    np.testing.assert_array_equal(fit.frames, 117 + np.arange(n))
+    assert rep["frames"] == n and rep["fit_rate_hz"] == 240.0
+    assert rep["capture_first_frame"] == 118 and rep["capture"] == "take.c3d"
+    assert fit.valid.all()
+    est = forward(anny, fit.betas, fit.body_pose, fit.global_orient, fit.transl)
+    jerr = np.linalg.norm(est.joints - s.truth.mocap_joints[:n], axis=2)[:, s.truth.skel.joints]
+    assert jerr.mean() * 1000 < 6.0, jerr.mean() * 1000

@@ -78,8 +78,8 @@ def seq(r: dict) -> dict:
 def test_missing_field(tmp_path):
     msg = bad(tmp_path, lambda r: seq(r).pop("c3d"))
     assert "sequences.s01/Grab 1.c3d: missing required field" in msg
-    msg = bad(tmp_path, lambda r: r.pop("cameras"))
-    assert ": cameras: missing required field" in msg
+    msg = bad(tmp_path, lambda r: r.pop("cameras"))  # optional (marker-only), not with videos
+    assert "videos: cameras ['c1', 'c2'] do not match cameras []" in msg
 
 
 def test_wrong_type(tmp_path):

@@ -1,0 +1,69 @@
+"""Marker-only sessions: a recipe with only a C3D per sequence (and optionally a subject's
+static trials) loads, plans exactly the marker stages, and the bad variants name the field."""
+from __future__ import annotations
+
+import pytest
+import yaml
+
+from recipes import RecipeError, load_recipe
+
+
+def _write(tmp, raw):
+    for name in ("walk.c3d", "static.c3d", "v.mp4", "cal.json"):
+        (tmp / name).write_text(name)
+    p = tmp / "r.yaml"
+    p.write_text(yaml.safe_dump(raw, sort_keys=False))
+    return p
+
+
+def _raw():
+    return {"session": "lab",
+            "subjects": {"s1": {"markerset": "plug-in-gait", "label_prefix": "Derrick",
+                                "static": [{"c3d": "static.c3d", "frames": [10, 200]}]}},
+            "sequences": {"s1/Walk 1": {"markers_on": "s1", "c3d": "walk.c3d"}}}
+
+
+def test_marker_only_recipe_loads_and_plans_only_the_marker_stages(tmp_path):
+    import stages
+    from pipeline.plan import build_plan, targets_for
+
+    p = _write(tmp_path, _raw())
+    r = load_recipe(p)
+    seq = r.sequences["s1/Walk 1"]
+    assert r.cameras == [] and seq.partner is None and seq.fps is None and not seq.has_video
+    assert r.subjects["s1"].static[0].frames == (10, 200)
+    assert r.subjects["s1"].static[0].c3d == (tmp_path / "static.c3d").resolve()
+    reg = stages.registry()
+    for cmd in ("sequence", "release"):
+        ids = {n.id for n in build_plan(reg, r, p, targets_for(reg, r, cmd)).nodes
+               if n.stage.implemented}
+        assert ids == {("shape_fit", "s1"), ("marker_fit", "s1/Walk 1")}, (cmd, ids)
+    plan = build_plan(reg, r, p, targets_for(reg, r, "sequence"))
+    mf = plan.by_id[("marker_fit", "s1/Walk 1")]
+    assert "keypoints" not in mf.upstream and mf.upstream["shape_fit"] == ["s1"]
+    sf = plan.by_id[("shape_fit", "s1")]
+    assert "static:0" in sf.raw and "c3d:s1/Walk 1" in sf.raw
+    assert stages.recipe_view(r, "s1", "subject.static_frames") == [[10, 200]]
+    assert stages.recipe_view(r, "s1/Walk 1", "wearer.label_prefix") == "Derrick"
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda r: r["sequences"]["s1/Walk 1"].update(partner="s1"), "partner: the same subject"),
+    (lambda r: (r["subjects"].update(s2={}), r["sequences"]["s1/Walk 1"].update(partner="s2")),
+     "partner: the partner is fitted to the videos, and this sequence has none"),
+    (lambda r: r["subjects"]["s1"]["static"][0].update(frames=[200, 10]),
+     "subjects.s1.static.0.frames"),
+    (lambda r: r["subjects"]["s1"]["static"][0].update(c3d="nope.c3d"),
+     "subjects.s1.static[0].c3d: file not found"),
+    (lambda r: r["sequences"]["s1/Walk 1"].update(videos={"c1": "v.mp4"}),
+     "sequences.s1/Walk 1.videos: cameras ['c1'] do not match cameras []"),
+    (lambda r: (r.update(cameras=["c1"]),
+                r["sequences"]["s1/Walk 1"].update(videos={"c1": "v.mp4"})),
+     "sequences.s1/Walk 1.calibration: cameras [] do not match cameras ['c1']"),
+])
+def test_bad_marker_only_recipes_name_the_field(tmp_path, edit, message):
+    raw = _raw()
+    edit(raw)
+    with pytest.raises(RecipeError, match=None) as e:
+        load_recipe(_write(tmp_path, raw))
+    assert message in str(e.value), str(e.value)
