@@ -79,6 +79,76 @@ def residual_plot(path: str | Path, res_mm: np.ndarray, fps: float, title: str,
     return fig
 
 
+def marker_residual_plot(path: str | Path, res_mm: np.ndarray, names, title: str,
+                         frames: np.ndarray | None = None, warn_mm: float | None = None):
+    """PNG of each marker's residuals over the sequence on a logarithmic axis: per marker (x)
+    the median (dot), the p90 (bar top) and the max (cross) over its visible frames, with
+    the frame of its max written over the worst markers (``f<frame>``). Markers whose median
+    exceeds ``warn_mm`` are drawn in red, with the threshold as a dashed line: one glance
+    shows a lost arm that a median over all markers hides.
+
+    res_mm: (F, M) mm, NaN where not seen; names: (M,) labels; frames: (F,) frame numbers for
+    the labels (default 0..F-1). Writes ``path``, returns the ``Figure`` (``fig.axes[0]``).
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    res = np.asarray(res_mm, float)
+    names = [str(n) for n in names]
+    if res.ndim != 2 or res.shape[1] != len(names):
+        raise ValueError(f"res_mm: expected (F, {len(names)}), got {res.shape}")
+    F, M = res.shape
+    frames = np.arange(F) if frames is None else np.asarray(frames)
+    if frames.shape != (F,):
+        raise ValueError(f"frames: expected ({F},), got {frames.shape}")
+    seen = np.isfinite(res).any(axis=0)
+    med, p90, mx = (np.full(M, np.nan) for _ in range(3))
+    arg = np.zeros(M, dtype=np.int64)
+    if seen.any():
+        r = res[:, seen]
+        med[seen] = np.nanmedian(r, axis=0)
+        p90[seen] = np.nanpercentile(r, 90, axis=0)
+        mx[seen] = np.nanmax(r, axis=0)
+        arg[seen] = np.nanargmax(r, axis=0)
+    fig = Figure(figsize=(max(C.PLOT_SIZE_IN[0], 0.22 * M), C.PLOT_SIZE_IN[1] + 0.6),
+                 dpi=C.PLOT_DPI)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    x = np.arange(M)
+    bad = np.zeros(M, bool) if warn_mm is None else np.nan_to_num(med) > warn_mm
+    floor = C.RESIDUAL_FLOOR_MM
+    for sel, col in ((~bad, "tab:blue"), (bad, "crimson")):
+        if sel.any():
+            ax.vlines(x[sel], np.maximum(med[sel], floor), np.maximum(p90[sel], floor),
+                      color=col, lw=3, alpha=0.6)
+            ax.plot(x[sel], np.maximum(med[sel], floor), "o", color=col, ms=4)
+            ax.plot(x[sel], np.maximum(mx[sel], floor), "x", color=col, ms=4)
+    if warn_mm is not None:
+        ax.axhline(warn_mm, ls="--", color="crimson", lw=0.8, label=f"warning: median > {warn_mm:g} mm")
+    worst = np.argsort(-np.nan_to_num(mx, nan=-1))[:C.WORST_FRAMES]
+    for m in worst:
+        if np.isfinite(mx[m]):
+            ax.annotate(f"f{frames[arg[m]]}", (m, max(mx[m], floor)), textcoords="offset points",
+                        xytext=(0, 5), ha="center", fontsize=6, color="crimson")
+    for m in np.flatnonzero(~seen):
+        ax.annotate("not seen", (m, floor), rotation=90, fontsize=6, ha="center", va="bottom")
+    ax.set_yscale("log")
+    if np.isfinite(mx).any():
+        ax.set_ylim(floor, C.PLOT_HEADROOM * np.nanmax(np.maximum(mx, floor)))
+    ax.set_xticks(x)
+    ax.set_xticklabels(names, rotation=90, fontsize=7)
+    ax.set_ylabel("residual (mm, log): median, p90, max")
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3, which="both", axis="y")
+    if warn_mm is not None:
+        ax.legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    return fig
+
+
 def partner_fit_plot(path: str | Path, frames: np.ndarray, fps: float, reproj_px: np.ndarray,
                      penetration_mm: np.ndarray, contact_mm: np.ndarray, ground_mm: np.ndarray,
                      valid: np.ndarray, title: str, views: list[str] | None = None):

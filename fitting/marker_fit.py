@@ -53,6 +53,14 @@ COMPILE_MODES = ("auto", "compiled", "interpreted")
 MIN_MARKERS = 3  # a frame with fewer visible markers does not fix the pose (held, not valid)
 HAND_KP65 = slice(LEFT_HAND.start, RIGHT_HAND.stop)  # KP65: left hand 21, right hand 21
 OUTLIER_WEIGHT = 0.1  # a marker-frame whose robust weight is below counts as an outlier
+# the report warns (``warnings``) about: a marker whose median residual exceeds this (a
+# placement or labelling that is wrong: on real data a good fit is ~2-5 mm per marker) ...
+WARN_MARKER_MEDIAN_MM = 15.0
+# ... a marker that is an outlier (robust weight < OUTLIER_WEIGHT) in more of its frames ...
+WARN_OUTLIER_SHARE = 0.05
+# ... an overall p90 above this, and skin weight dropped outside the graph's supports
+WARN_P90_MM = 20.0
+WARN_DROPPED_WEIGHT = 0.01
 
 
 @dataclass(frozen=True)
@@ -385,6 +393,11 @@ def fit_markers(model, shape: ShapeFit, template: Placement, markers, clock: moc
         warnings.simplefilter("ignore", RuntimeWarning)
         per = {n: {"median": float(np.nanmedian(mm[:, i])),
                    "p90": float(np.nanpercentile(mm[:, i], 90)),
+                   "max": float(np.nanmax(mm[:, i])) if vis[:, i].any() else float("nan"),
+                   "worst_frame": int(frames[np.nanargmax(mm[:, i])]) if vis[:, i].any()
+                   else None,
+                   "outlier_share": float(np.mean(wgt[vis[:, i], i] < OUTLIER_WEIGHT))
+                   if vis[:, i].any() else 0.0,
                    "visible": float(vis[:, i].mean())} for i, n in enumerate(pl.names)}
     reasons = out.reasons()
     report = {
@@ -401,8 +414,42 @@ def fit_markers(model, shape: ShapeFit, template: Placement, markers, clock: moc
         "prior": prior.source, "weights": dict(opts.weights),
         "compiled": graph.fun.compiled, "build_s": round(t_build, 3),
         "fit_s": round(t_fit, 3), "fit_cpu_s": c_fit,
-        "fps": round((F - first) / max(t_fit, 1e-9), 1),
+        "fps_per_cpu_s": round((F - first) / max(c_fit, 1e-9), 1),
+        "fps_wall": round((F - first) / max(t_fit, 1e-9), 1),
         "mean_iterations": float(np.mean(fit.iterations)),
         "skin_weight_outside_support": float(graph.dropped_weight),
     }
+    report["warnings"] = report_warnings(report)
     return out, report
+
+
+def report_warnings(report: dict) -> list[str]:
+    """Plain sentences for what a person must look at in a marker-fit report: markers with a
+    large median residual or many outlier frames (naming the marker, its figures and its worst
+    frame), an overall p90 above ``WARN_P90_MM``, skin weight dropped outside the graph's
+    supports, markers never seen, frames not valid. Empty when nothing is off."""
+    out = []
+    for n, m in report["per_marker"].items():
+        if m["visible"] == 0:
+            continue
+        if m["median"] > WARN_MARKER_MEDIAN_MM:
+            out.append(f"marker {n}: median residual {m['median']:.0f} mm (p90 {m['p90']:.0f}, "
+                       f"max {m['max']:.0f} at frame {m['worst_frame']}): its placement or its "
+                       "labels are wrong")
+        elif m["outlier_share"] > WARN_OUTLIER_SHARE:
+            out.append(f"marker {n}: an outlier in {100 * m['outlier_share']:.0f} % of its frames "
+                       f"(max {m['max']:.0f} mm at frame {m['worst_frame']}): label swaps or "
+                       "ghost points")
+    r = report["residual_mm"]
+    if r["p90"] > WARN_P90_MM:
+        out.append(f"residual p90 {r['p90']:.0f} mm over all markers (median {r['median']:.1f}): "
+                   "the median hides it")
+    if report["skin_weight_outside_support"] > WARN_DROPPED_WEIGHT:
+        out.append(f"{100 * report['skin_weight_outside_support']:.1f} % of the markers' skin "
+                   "weight lies outside the fitted joints' supports and was dropped")
+    if report["markers_missing_from_c3d"]:
+        out.append(f"markers never seen in the capture: {', '.join(report['markers_missing_from_c3d'])}")
+    bad = {k: v for k, v in report["frames_not_valid"].items() if v}
+    if bad:
+        out.append("frames not valid: " + ", ".join(f"{v} {k}" for k, v in bad.items()))
+    return out

@@ -72,6 +72,11 @@ def parser() -> argparse.ArgumentParser:
     run.add_argument("--force", action="append", default=[], metavar="STAGE",
                      help="recompute STAGE (and what depends on it) even if cached; repeatable; 'all'")
     run.add_argument("--until", metavar="STAGE", help="run only STAGE and what it needs")
+    run.add_argument("--set", action="append", default=[], metavar="STAGE.KEY=VALUE",
+                     dest="overrides",
+                     help="override a stage option of the recipe for this run (VALUE in YAML, "
+                     "e.g. marker_fit.loo=all); it enters that stage's key like the recipe's "
+                     "own options; repeatable")
 
     p = argparse.ArgumentParser(prog="python -m pipeline", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -95,8 +100,36 @@ def main(argv: list[str] | None = None, log=stderr_log) -> int:
         return 2
 
 
+def overrides(items: list[str]) -> dict[str, dict]:
+    """``["stage.key=value", ...]`` -> ``{stage: {key: value}}`` (values parsed as YAML)."""
+    import yaml
+
+    out: dict[str, dict] = {}
+    for it in items:
+        head, eq, value = it.partition("=")
+        stage, dot, key = head.partition(".")
+        if not (eq and dot and stage and key):
+            raise CliError(f"--set {it}: expected STAGE.KEY=VALUE")
+        try:
+            out.setdefault(stage, {})[key] = yaml.safe_load(value)
+        except yaml.YAMLError as e:
+            raise CliError(f"--set {it}: VALUE is not YAML: {e}") from None
+    return out
+
+
 def _load(args, log, prepare: bool):
     reg = load_registry(args.registry)
+    extra = overrides(getattr(args, "overrides", []) or [])
+    if extra:
+        import dataclasses
+
+        names = {s.name for s in reg.stages}
+        for stage in extra:
+            if stage not in names:
+                raise CliError(f"--set {stage}...: no such stage (known: {', '.join(names)})")
+        base = reg.stage_params
+        reg = dataclasses.replace(reg, stage_params=lambda r, st: {**base(r, st),
+                                                                   **extra.get(st, {})})
     recipe_path = Path(args.recipe)
     if prepare and reg.prepare is not None:
         try:

@@ -51,12 +51,14 @@ class SubjectSpec(_Strict):
     ``markerset``: a marker-set JSON path or a built-in name (``plug-in-gait``, ``cmu``).
     ``label_prefix``: the subject name the C3D files put before the marker labels
     (``Derrick`` for ``Derrick:LFHD``); needed when a file holds several prefixed subjects.
-    ``static``: static or range-of-motion trials for ``shape_fit``."""
+    ``marker_labels``: the lab's label of a marker set's marker where it differs
+    (``{LFRM: LFRA}``: our LFRM is labelled LFRA in the C3D files). ``static``: static or range-of-motion trials for ``shape_fit``."""
 
     scan: Path | None = None
     markerset: str = "plug-in-gait"
     sex: Literal["female", "male", "unknown"] = "unknown"
     label_prefix: str | None = None
+    marker_labels: dict[str, str] = Field(default_factory=dict)
     static: list[StaticTrial] = Field(default_factory=list)
 
 

@@ -96,10 +96,11 @@ def make_upstream_units(all_stages: tuple[Stage, ...]):
 
 def _subject_fields(recipe: Session, sid: str | None) -> dict:
     if sid is None:  # a marker-only sequence has no partner
-        return {"markerset": None, "sex": None, "label_prefix": None}
+        return {"markerset": None, "sex": None, "label_prefix": None, "marker_labels": {}}
     sub = recipe.subjects[sid]
     return {"markerset": "file" if sub.markerset.endswith(".json") else sub.markerset,
-            "sex": sub.sex, "label_prefix": sub.label_prefix}
+            "sex": sub.sex, "label_prefix": sub.label_prefix,
+            "marker_labels": dict(sub.marker_labels)}
 
 
 #: stages that need the videos (and for partner_fit the partner) of a sequence
@@ -122,9 +123,9 @@ def recipe_view(recipe: Session, unit: str, name: str):
     - ``cameras``: camera ids in recipe order; ``body_model.kind``;
     - per sequence: ``sequence.<fps | mocap | mocap.sync_offset_s | mocap.rate_hz | markers_on |
       partner | text | keypoints_format | has_keypoints | has_video>``,
-      ``wearer.<markerset | sex | label_prefix>`` and ``partner_subject.<...>`` (the subjects
+      ``wearer.<markerset | sex | label_prefix | marker_labels>`` and ``partner_subject.<...>`` (the subjects
       of ``markers_on`` / ``partner``; all None without a partner);
-    - per subject: ``subject.<markerset | sex | label_prefix | has_scan | marker_sequences |
+    - per subject: ``subject.<markerset | sex | label_prefix | marker_labels | has_scan | marker_sequences |
       static_frames>`` (``static_frames``: each static trial's ``[first, last]`` or None);
     - ``ground_plane.<normal | offset>`` (or ``ground_plane``).
 

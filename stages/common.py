@@ -108,3 +108,18 @@ def sequence_fps(fps: float | None, video: Path) -> float:
     from formats.video import video_info
 
     return float(video_info(video).fps)
+
+
+def read_subject_markers(path: Path, names, prefix: str | None = None, labels=None):
+    """The markers ``names`` of one subject from a C3D (``formats.c3d.read_c3d``, missing
+    markers all-NaN): ``prefix`` picks the subject's labels (``Derrick:``), ``labels`` maps a
+    marker name to the lab's label where they differ (``{"LFRM": "LFRA"}``). The result is
+    named by ``names``."""
+    import dataclasses
+
+    from formats.c3d import read_c3d
+
+    labels = dict(labels.as_dict() if hasattr(labels, "as_dict") else (labels or {}))
+    m = read_c3d(path, markers=[labels.get(n, n) for n in names], allow_missing=True,
+                 subject=prefix)
+    return dataclasses.replace(m, names=tuple(names)) if labels else m

@@ -14,7 +14,12 @@ every video frame is fitted, without hands). Writes
   not observed), ``marker_weight (F, M)`` (robust weight: small = outlier), ``visible (F, M)``;
 - ``report.json``: residual statistics in mm per marker and overall, ``first_fitted_frame``,
   ``frames_not_valid`` ({reason: count}), speed, prior source, whether hands were used;
-- ``residuals.png``: residual per frame (median, p90, max; ``drawing.plots.residual_plot``).
+- ``residuals.png``: residual per frame (median, p90, max; ``drawing.plots.residual_plot``);
+- ``marker_residuals.png``: residual per marker on a log axis, the markers over the warning
+  threshold in red, the worst frames named (``drawing.plots.marker_residual_plot``).
+
+The report's ``warnings`` say in words what is off (``fitting.marker_fit.report_warnings``);
+each is also logged. Speeds are frames per CPU-second (``fps_per_cpu_s``) and per wall-second.
 """
 from __future__ import annotations
 
@@ -27,7 +32,7 @@ from pipeline.spec import Stage, StageContext
 from stages import common
 
 READS = ("body_model.kind", "cameras", "sequence.fps", "sequence.mocap", "sequence.markers_on",
-         "sequence.has_video", "wearer.markerset", "wearer.label_prefix")
+         "sequence.has_video", "wearer.markerset", "wearer.label_prefix", "wearer.marker_labels")
 
 
 def raw_inputs(recipe, unit: str) -> dict[str, Path]:
@@ -56,10 +61,9 @@ def run(ctx: StageContext) -> None:
     from artifacts import ShapeFit
     from artifacts.keypoints import Keypoints2D
     from calib.io import read_chi3d_camera
-    from drawing.plots import residual_plot
-    from fitting.marker_fit import fit_markers
+    from drawing.plots import marker_residual_plot, residual_plot
+    from fitting.marker_fit import WARN_MARKER_MEDIAN_MM, fit_markers
     from fitting.mocap import VideoClock
-    from formats.c3d import read_c3d
     from formats.video import video_info
 
     o: Options = ctx.params or Options()
@@ -69,8 +73,8 @@ def run(ctx: StageContext) -> None:
     shape_art = ctx.inputs["shape_fit"]
     shape = ShapeFit.load(shape_art[subject] if isinstance(shape_art, dict) else shape_art)
     template = common.marker_template(ctx, rv.wearer.markerset, model)
-    markers = read_c3d(ctx.raw["c3d"], markers=list(shape.names), allow_missing=True,
-                       subject=rv.wearer.label_prefix)
+    markers = common.read_subject_markers(ctx.raw["c3d"], shape.names, rv.wearer.label_prefix,
+                                          rv.wearer.marker_labels)
     cams = [read_chi3d_camera(ctx.raw[f"calibration:{c}"], name=c) for c in rv.cameras
             if f"calibration:{c}" in ctx.raw]
     kp_art = ctx.inputs.get("keypoints")
@@ -99,6 +103,12 @@ def run(ctx: StageContext) -> None:
     residual_plot(ctx.out.path("residuals.png"), fit.marker_residual_m * 1000, fps,
                   f"{ctx.unit}: marker residuals ({'with' if report['hands'] else 'no'} hand "
                   "keypoints)", frames=fit.frames)
+    marker_residual_plot(ctx.out.path("marker_residuals.png"), fit.marker_residual_m * 1000,
+                         fit.marker_names, f"{ctx.unit}: residual per marker "
+                         f"({len(report['warnings'])} warnings)", frames=fit.frames,
+                         warn_mm=WARN_MARKER_MEDIAN_MM)
+    for w in report["warnings"]:
+        ctx.log(f"{ctx.unit}: WARNING {w}")
 
 
 STAGE = Stage(name="marker_fit", func=run, per="sequence", upstream=("shape_fit", "keypoints"),

@@ -24,7 +24,7 @@ from pipeline.spec import Stage, StageContext
 from stages import common
 
 READS = ("body_model.kind", "subject.markerset", "subject.label_prefix",
-         "subject.static_frames")
+         "subject.marker_labels", "subject.static_frames")
 
 
 def raw_inputs(recipe, unit: str) -> dict[str, Path]:
@@ -43,18 +43,19 @@ def raw_inputs(recipe, unit: str) -> dict[str, Path]:
 
 
 def read_captures(raw: dict[str, Path], names, prefix: str | None = None,
-                  static_frames=()) -> list[tuple[str, object]]:
+                  static_frames=(), labels=None) -> list[tuple[str, object]]:
     """The subject's captures, static trials first (``static[i]``, cut to their frame range)
     then the sequences (keys ``c3d:<sequence>``, in key order): ``[(name, formats.c3d.Markers
     of the markers ``names``, metres, NaN gaps)]``. ``static_frames``: per static trial
-    ``[first, last]`` C3D frame numbers (1-based, inclusive) or None."""
-    from formats.c3d import Markers, read_c3d
+    ``[first, last]`` C3D frame numbers (1-based, inclusive) or None; ``prefix``, ``labels``:
+    ``stages.common.read_subject_markers``."""
+    from formats.c3d import Markers
     from formats.errors import InputError
 
     out = []
     statics = sorted((int(k.split(":", 1)[1]), p) for k, p in raw.items() if k.startswith("static:"))
     for i, path in statics:
-        m = read_c3d(path, markers=list(names), allow_missing=True, subject=prefix)
+        m = common.read_subject_markers(path, names, prefix, labels)
         rng = static_frames[i] if i < len(static_frames) else None
         if rng is not None:
             first = m.first_frame + 1  # the C3D frame number of sample 0
@@ -67,8 +68,7 @@ def read_captures(raw: dict[str, Path], names, prefix: str | None = None,
         out.append((f"static[{i}] {Path(path).name}", m))
     for key, path in sorted(raw.items()):
         if key.startswith("c3d:"):
-            out.append((key[4:], read_c3d(path, markers=list(names), allow_missing=True,
-                                          subject=prefix)))
+            out.append((key[4:], common.read_subject_markers(path, names, prefix, labels)))
     return out
 
 
@@ -81,7 +81,8 @@ def run(ctx: StageContext) -> None:
     template = common.marker_template(ctx, ctx.recipe.subject.markerset, model)
     scan = read_scan(ctx.raw["scan"]) if "scan" in ctx.raw else None
     rv = ctx.recipe.subject
-    named = read_captures(ctx.raw, template.names, rv.label_prefix, rv.static_frames)
+    named = read_captures(ctx.raw, template.names, rv.label_prefix, rv.static_frames,
+                          rv.marker_labels)
     captures = [m.xyz for _, m in named]
     shape, report = fit_shape(model, template, scan, captures, o, np.random.default_rng(o.seed),
                               log=lambda s: ctx.log(f"{ctx.unit}: {s}"))

@@ -157,6 +157,10 @@ EDITS = {  # a recipe edit for each field name a stage may declare
                                      ("videos", "calibration", "partner", "contact", "fps")],
     "wearer.label_prefix": lambda r: r["subjects"]["sa"].__setitem__("label_prefix", "A"),
     "subject.label_prefix": lambda r: r["subjects"]["sa"].__setitem__("label_prefix", "A"),
+    "subject.marker_labels": lambda r: r["subjects"]["sa"].__setitem__("marker_labels",
+                                                                       {"LFRM": "LFRA"}),
+    "wearer.marker_labels": lambda r: r["subjects"]["sa"].__setitem__("marker_labels",
+                                                                      {"LFRM": "LFRA"}),
     "subject.static_frames": lambda r: r["subjects"]["sa"].__setitem__(
         "static", [{"c3d": "files/x.c3d", "frames": [1, 2]}]),
     "ground_plane": lambda r: r.__setitem__("ground_plane", {"normal": [0, 0, 1], "offset": 0.02}),

@@ -105,6 +105,7 @@ def _session(tmp: Path, model, rng, F=40, fps=50.0, rate=240.0, swap=True, finge
               "sequence.mocap": {"sync_offset_s": sync, "rate_hz": None},
               "sequence.markers_on": "s1", "sequence.has_video": True,
               "wearer.markerset": "plug-in-gait", "wearer.label_prefix": None,
+              "wearer.marker_labels": {},
               "subject.markerset": "plug-in-gait"}
     body_file = common.body_model_file(SimpleNamespace(body_model=SimpleNamespace(kind="anny",
                                                                                   path=None)))

@@ -67,3 +67,34 @@ def test_bad_marker_only_recipes_name_the_field(tmp_path, edit, message):
     with pytest.raises(RecipeError, match=None) as e:
         load_recipe(_write(tmp_path, raw))
     assert message in str(e.value), str(e.value)
+
+
+def test_a_labs_own_labels_and_prefix_read_as_the_marker_set(tmp_path):
+    """``label_prefix`` picks one subject of a two-subject file; ``marker_labels`` maps a
+    marker to the lab's label (LFRM written as LFRA): the markers come back under the marker
+    set's names, the other subject's never."""
+    import numpy as np
+
+    from formats.c3d import Markers, write_c3d
+    from stages.common import read_subject_markers
+
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=(5, 2, 3)), rng.normal(size=(5, 2, 3)) + 10
+    p = tmp_path / "two.c3d"
+    write_c3d(p, Markers(("Ann:LFHD", "Ann:LFRA", "Bob:LFHD", "Bob:LFRA"),
+                         np.concatenate([a, b], axis=1), 100.0))
+    m = read_subject_markers(p, ("LFHD", "LFRM"), "Ann", {"LFRM": "LFRA"})
+    assert m.names == ("LFHD", "LFRM")
+    np.testing.assert_allclose(m.xyz, a, atol=1e-6)
+    m = read_subject_markers(p, ("LFHD", "LFRM"), "Bob", {"LFRM": "LFRA"})
+    np.testing.assert_allclose(m.xyz, b, atol=1e-6)
+    assert np.isnan(read_subject_markers(p, ("LFHD", "LFRM"), "Ann").xyz[:, 1]).all()
+
+
+def test_cli_set_overrides_a_stage_option_and_names_bad_ones(tmp_path):
+    from pipeline.cli import CliError, overrides
+
+    assert overrides(["marker_fit.max_frames=5", "marker_fit.weights={L_s: 0.5}"]) == {
+        "marker_fit": {"max_frames": 5, "weights": {"L_s": 0.5}}}
+    with pytest.raises(CliError, match="expected STAGE.KEY=VALUE"):
+        overrides(["marker_fit=5"])
