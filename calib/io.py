@@ -79,8 +79,16 @@ def _nested(a) -> list:
 def read_chi3d_camera(path: str | Path, name: str | None = None,
                       size: tuple[int, int] = constants.CHI3D_IMAGE_SIZE) -> Camera:
     """Read one CHI3D camera JSON. name: defaults to the parent folder (the camera serial);
-    size: (width, height) pixels. Returns a ``model="h36m"`` Camera."""
+    size: (width, height) pixels. Returns a ``model="h36m"`` Camera.
+
+    A Vicon ``.xcp`` path is read by :func:`calib.xcp.xcp_camera` instead: ``name`` is the
+    camera's DEVICEID, USERID or NAME (optional for a one-camera file), the size comes from the
+    file, and the Camera is ``model="opencv"``."""
     path = Path(path)
+    if path.suffix.lower() == ".xcp":
+        from calib.xcp import xcp_camera
+
+        return xcp_camera(path, name)
     d = load_json(path)
     if not isinstance(d, dict):
         raise InputError(path, "<json>", f"expected an object, got {type(d).__name__}")

@@ -17,6 +17,10 @@ Reading:
   for captures longer than 65535 frames).
 - A truncated file (fewer frames than the header announces), a corrupt file, or a requested
   marker that is absent raise :class:`formats.errors.InputError` naming the file and field.
+- Processors: Intel and DEC files are read by ezc3d (which converts DEC floats); SGI/MIPS
+  (big-endian) files, which ezc3d 1.7 refuses, by :mod:`formats.c3d_bigendian`.
+- ``Markers.unit`` keeps the declared ``POINT:UNITS``; :mod:`formats.plausibility` checks it
+  against the body size (the stages call it, not this reader).
 
 Writing (:func:`write_c3d`) produces what Vicon exports: mm, float data, residual -1 on gaps,
 ``Subject:`` prefixes, extra non-marker points on request.
@@ -29,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from formats.c3d_bigendian import PROCESSORS, dec_to_ieee, processor_type, read_c3d_dict
 from formats.errors import InputError, expect_shape
 
 _UNITS_TO_M = {"mm": 1e-3, "cm": 1e-2, "m": 1.0, "": 1e-3}
@@ -45,6 +50,9 @@ class Markers:
     first_frame: 0-based index of sample 0 in the capture (sample i is at
         ``(first_frame + i) / rate_hz`` seconds)
     subject: the ``Subject:`` prefix the markers had, or None
+    unit: the unit the file declared (``POINT:UNITS``: ``mm``, ``cm`` or ``m``); ``xyz`` is in
+        metres whatever it says. :mod:`formats.plausibility` names it when the body size
+        suggests the declaration is wrong.
     """
 
     names: tuple[str, ...]
@@ -52,6 +60,7 @@ class Markers:
     rate_hz: float
     first_frame: int = 0
     subject: str | None = None
+    unit: str = "mm"
 
     def __post_init__(self):
         object.__setattr__(self, "names", tuple(self.names))
@@ -74,7 +83,8 @@ class Markers:
         missing = [n for n, i in zip(names, idx, strict=True) if i is None]
         if missing:
             raise KeyError(f"markers not present: {missing}")
-        return Markers(tuple(names), self.xyz[:, idx], self.rate_hz, self.first_frame, self.subject)
+        return Markers(tuple(names), self.xyz[:, idx], self.rate_hz, self.first_frame, self.subject,
+                       self.unit)
 
 
 def _param(c, group: str, name: str):
@@ -107,8 +117,6 @@ def _check_layout(path: Path) -> int:
     """Check the C3D header and section sizes against the file size before ezc3d parses it
     (ezc3d 1.7 loops forever on a file cut inside its parameter section, and silently returns
     fewer frames for one cut in the data). Returns the frame count the header announces."""
-    import struct
-
     size = path.stat().st_size
     with open(path, "rb") as fh:
         head = fh.read(512)
@@ -124,6 +132,17 @@ def _check_layout(path: Path) -> int:
     proc = phead[3]
     if proc not in (84, 85, 86):
         raise InputError(path, "<parameters>", f"corrupt: processor type {proc} (expected 84-86)")
+    try:
+        return _check_sections(path, head, phead, proc, size)
+    except InputError as e:  # name the processor: Intel, DEC or SGI/MIPS
+        raise InputError(e.file, e.field, f"{e.msg} ({PROCESSORS[proc]} processor)", e.frame) from None
+
+
+def _check_sections(path: Path, head: bytes, phead: bytes, proc: int, size: int) -> int:
+    """The parameter records and the data size of :func:`_check_layout`."""
+    import struct
+
+    param_block = head[0]
     endian = ">" if proc == 86 else "<"  # 84 Intel, 85 DEC (little-endian integers), 86 MIPS
     param_end = (param_block - 1 + phead[2]) * 512
     if size < param_end:
@@ -132,7 +151,10 @@ def _check_layout(path: Path) -> int:
         fh.seek((param_block - 1) * 512)
         _check_parameter_records(path, fh.read(param_end - (param_block - 1) * 512), endian)
     n_pts, n_analog, first, last = struct.unpack(endian + "HHHH", head[2:10])
-    scale = struct.unpack(endian + "f", head[12:16])[0]
+    if proc == 85:  # DEC (VAX) float: only its sign matters here
+        scale = float(dec_to_ieee(head[12:16])[0])
+    else:
+        scale = struct.unpack(endian + "f", head[12:16])[0]
     data_start = struct.unpack(endian + "H", head[16:18])[0]
     frames = last - first + 1
     frame_bytes = (4 * n_pts + n_analog) * (4 if scale < 0 else 2)
@@ -173,7 +195,9 @@ def _check_parameter_records(path: Path, sec: bytes, endian: str) -> None:
         end += 1 + (sec[end] if end < n else 0)  # description
         if end > n:
             raise InputError(path, "<parameters>", f"corrupt: record at byte {pos} overruns the section")
-        if nxt == 0:
+        if nxt == 0 or p + nxt + 2 > n:
+            # 0 ends the chain; a link leaving the section follows the last record (the SGI
+            # files of the C3D sample suite store that last link byte-swapped)
             return
         if p + nxt < end:
             raise InputError(path, "<parameters>", f"corrupt: record at byte {pos} links backwards")
@@ -205,10 +229,15 @@ def read_c3d(path: str | Path, markers: Sequence[str] | None = None, subject: st
     if not path.is_file():
         raise InputError(path, "<file>", "missing")
     header_frames = _check_layout(path)
+    proc = processor_type(path)
     try:
-        c = ezc3d.c3d(str(path))
+        # ezc3d 1.7 refuses SGI/MIPS (big-endian) files: parse those ourselves.
+        c = read_c3d_dict(path) if proc == 86 else ezc3d.c3d(str(path))
     except (OSError, RuntimeError, ValueError) as e:
-        raise InputError(path, "<c3d>", f"corrupt or not a C3D file: {e}") from None
+        if isinstance(e, InputError):
+            raise
+        raise InputError(path, "<c3d>", f"corrupt or not a C3D file ({PROCESSORS.get(proc, proc)} "
+                         f"processor): {e}") from None
 
     labels = _labels(c)
     pts = c["data"]["points"]  # (4, N, F) in file units, NaN where ezc3d saw residual < 0
@@ -277,17 +306,26 @@ def read_c3d(path: str | Path, markers: Sequence[str] | None = None, subject: st
         xyz[:, j] = x
     subjects.discard(None)
     subj = subject if subject is not None else (subjects.pop() if len(subjects) == 1 else None)
-    return Markers(tuple(wanted), xyz, rate, first, subj)
+    return Markers(tuple(wanted), xyz, rate, first, subj, unit or "mm")
 
 
 def write_c3d(path: str | Path, markers: Markers, subject: str | None = None,
-              extra_points: Mapping[str, np.ndarray] | None = None, angles: Sequence[str] = ()) -> Path:
+              extra_points: Mapping[str, np.ndarray] | None = None, angles: Sequence[str] = (),
+              analogs: Mapping[str, np.ndarray] | None = None,
+              analog_units: Mapping[str, str] | None = None,
+              parameters: Mapping[str, Mapping[str, object]] | None = None) -> Path:
     """Write ``markers`` as a Vicon-style C3D (mm, float, residual -1 on NaN gaps).
 
     subject: label prefix (``"<subject>:<marker>"``), defaults to ``markers.subject``.
     extra_points: non-marker points ``{label: (F, 3) metres}`` (model outputs, props) written
-    after the markers with the same prefix; labels also listed in ``angles`` are declared under
+    after the markers with the same prefix (labels starting with ``*``, Vicon's unlabelled
+    trajectories, get none); labels also listed in ``angles`` are declared under
     ``POINT:ANGLES`` like Vicon's joint angles (values written as given, not scaled).
+    analogs: analog channels ``{label: (F * n,)}`` sampled at ``n`` (an integer >= 1, the same
+    for all) times the point rate (force plates, EMG), written unscaled (``SCALE`` 1,
+    ``GEN_SCALE`` 1, ``OFFSET`` 0) with ``analog_units`` ``{label: unit}`` (default "V").
+    parameters: extra parameter groups ``{group: {name: value}}`` (e.g. ``FORCE_PLATFORM``);
+    a value is a list of ints, floats or strings, or a float array of any shape.
     """
     import ezc3d
 
@@ -295,12 +333,12 @@ def write_c3d(path: str | Path, markers: Markers, subject: str | None = None,
     subject = subject if subject is not None else markers.subject
     prefix = f"{subject}:" if subject else ""
     F = len(markers.xyz)
-    names = list(markers.names)
+    names = [prefix + n for n in markers.names]
     data = [markers.xyz * 1000.0]
     for label, arr in (extra_points or {}).items():
         a = np.asarray(arr, dtype=np.float64)
         expect_shape(a, f"{F} 3", f"extra_points[{label}]")
-        names.append(label)
+        names.append(label if label.startswith("*") else prefix + label)
         data.append((a if label in angles else a * 1000.0)[:, None, :])
     xyz = np.concatenate(data, axis=1) if data else np.zeros((F, 0, 3))
     gap = ~np.all(np.isfinite(xyz), axis=2)  # (F, N)
@@ -311,7 +349,7 @@ def write_c3d(path: str | Path, markers: Markers, subject: str | None = None,
     c = ezc3d.c3d()
     c["parameters"]["POINT"]["RATE"]["value"] = [float(markers.rate_hz)]
     c["parameters"]["POINT"]["UNITS"]["value"] = ["mm"]
-    c["parameters"]["POINT"]["LABELS"]["value"] = tuple(prefix + n for n in names)
+    c["parameters"]["POINT"]["LABELS"]["value"] = tuple(names)
     c["parameters"]["POINT"]["DESCRIPTIONS"]["value"] = tuple("" for _ in names)
     if angles:
         c.add_parameter("POINT", "ANGLES", [prefix + a for a in angles])
@@ -323,6 +361,24 @@ def write_c3d(path: str | Path, markers: Markers, subject: str | None = None,
         c.add_parameter("TRIAL", "ACTUAL_END_FIELD", [end % 65536, end // 65536])
     c["data"]["points"] = pts
     c["data"]["meta_points"] = {"residuals": res}
+    if analogs:
+        labels = list(analogs)
+        chans = [np.asarray(analogs[k], dtype=np.float64).reshape(-1) for k in labels]
+        n = len(chans[0]) // F if F else 0
+        for k, a in zip(labels, chans, strict=True):
+            if n < 1 or len(a) != n * F:
+                raise InputError(path, f"analogs[{k}]", f"{len(a)} samples: expected {n or 1} x {F} "
+                                 "(an integer multiple of the point frames, the same for every channel)")
+        c["parameters"]["ANALOG"]["RATE"]["value"] = [float(markers.rate_hz) * n]
+        c["parameters"]["ANALOG"]["LABELS"]["value"] = tuple(labels)
+        c["parameters"]["ANALOG"]["DESCRIPTIONS"]["value"] = tuple("" for _ in labels)
+        c["parameters"]["ANALOG"]["UNITS"]["value"] = tuple((analog_units or {}).get(k, "V") for k in labels)
+        c["data"]["analogs"] = np.stack(chans)[None]  # (1, channels, F * n)
+    for group, params in (parameters or {}).items():
+        for name, value in params.items():
+            if isinstance(value, np.ndarray):
+                value = value.astype(np.float64)
+            c.add_parameter(group, name, value)
     path.parent.mkdir(parents=True, exist_ok=True)
     c.write(str(path))
     return path
