@@ -119,7 +119,40 @@ def read_subject_markers(path: Path, names, prefix: str | None = None, labels=No
 
     from formats.c3d import read_c3d
 
+    from formats.plausibility import check_capture_scale
+
     labels = dict(labels.as_dict() if hasattr(labels, "as_dict") else (labels or {}))
     m = read_c3d(path, markers=[labels.get(n, n) for n in names], allow_missing=True,
                  subject=prefix)
+    # a person 1.8 mm or 1.8 km tall is a unit error: an InputError naming the file and the
+    # unit the coordinates seem to be in, before anything is fitted to it
+    check_capture_scale(m.xyz, path, "POINT:UNITS", m.unit)
     return dataclasses.replace(m, names=tuple(names)) if labels else m
+
+
+def marker_timeline(seq, raw: dict, markers, keypoints=None):
+    """The frames a marker stage fits and how capture samples map onto them, from the
+    sequence's view (``fps``, ``mocap``, ``has_video``) and raw inputs (``video``).
+
+    With video: the keypoints' frames (the keypoints stage may run with a stride), else every
+    video frame, on the video clock. Marker-only: every sample of the capture at its own rate
+    (or ``mocap.rate_hz``), frame ``f`` = the capture's 0-based frame number
+    ``first_frame + i`` of sample ``i`` (C3D frame number ``f + 1``).
+    Returns ``(frames (F,), fitting.mocap.VideoClock, what the frames are)``."""
+    import numpy as np
+
+    from fitting.mocap import VideoClock
+
+    if seq.has_video:
+        from formats.video import video_info
+
+        fps = sequence_fps(seq.fps, raw["video"])
+        if keypoints is not None:
+            frames = np.asarray(keypoints.frames, dtype=np.int64)
+        else:
+            frames = np.arange(video_info(raw["video"]).n_frames)
+        return frames, VideoClock(fps, seq.mocap.sync_offset_s, seq.mocap.rate_hz), "video frames"
+    rate = float(seq.mocap.rate_hz or markers.rate_hz)
+    frames = markers.first_frame + np.arange(len(markers.xyz), dtype=np.int64)
+    return (frames, VideoClock(rate, 0.0, seq.mocap.rate_hz),
+            "capture frames (0-based: the C3D frame number - 1)")

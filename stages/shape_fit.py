@@ -74,12 +74,15 @@ def read_captures(raw: dict[str, Path], names, prefix: str | None = None,
 
 def run(ctx: StageContext) -> None:
     from fitting.shape import fit_shape
+    from formats.plausibility import check_scan_scale
     from formats.scan import read_scan
 
     o: Options = ctx.params or Options()
     model = common.load_body(ctx)
     template = common.marker_template(ctx, ctx.recipe.subject.markerset, model)
     scan = read_scan(ctx.raw["scan"]) if "scan" in ctx.raw else None
+    if scan is not None:  # a scan in mm read as metres is a 1.8 km person: an error, not a fit
+        check_scan_scale(scan[0], ctx.raw["scan"], "scan")
     rv = ctx.recipe.subject
     named = read_captures(ctx.raw, template.names, rv.label_prefix, rv.static_frames,
                           rv.marker_labels)
