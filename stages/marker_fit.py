@@ -46,25 +46,12 @@ def raw_inputs(recipe, unit: str) -> dict[str, Path]:
     return out
 
 
-def capture_frames(markers, rate_hz: float | None):
-    """A marker-only sequence: every sample of the capture, at its own rate (or the recipe's
-    ``mocap.rate_hz``). Returns ``(frames, clock)``: frame ``f`` is the capture's 0-based frame
-    number ``first_frame + i`` of sample ``i`` (C3D frame number ``f + 1``)."""
-    from fitting.mocap import VideoClock
-
-    rate = float(rate_hz or markers.rate_hz)
-    return (markers.first_frame + np.arange(len(markers.xyz), dtype=np.int64),
-            VideoClock(rate, 0.0, rate_hz))
-
-
 def run(ctx: StageContext) -> None:
     from artifacts import ShapeFit
     from artifacts.keypoints import Keypoints2D
     from calib.io import read_chi3d_camera
     from drawing.plots import marker_residual_plot, residual_plot
     from fitting.marker_fit import WARN_MARKER_MEDIAN_MM, fit_markers
-    from fitting.mocap import VideoClock
-    from formats.video import video_info
 
     o: Options = ctx.params or Options()
     rv = ctx.recipe
@@ -79,18 +66,8 @@ def run(ctx: StageContext) -> None:
             if f"calibration:{c}" in ctx.raw]
     kp_art = ctx.inputs.get("keypoints")
     keypoints = Keypoints2D.load(kp_art) if kp_art is not None else None
-    if rv.sequence.has_video:
-        fps = common.sequence_fps(rv.sequence.fps, ctx.raw["video"])
-        if keypoints is not None:  # the keypoints stage may run with a stride: fit its frames
-            frames = np.asarray(keypoints.frames, dtype=np.int64)
-        else:
-            frames = np.arange(video_info(ctx.raw["video"]).n_frames)
-        clock = VideoClock(fps, rv.sequence.mocap.sync_offset_s, rv.sequence.mocap.rate_hz)
-        timeline = "video frames"
-    else:
-        frames, clock = capture_frames(markers, rv.sequence.mocap.rate_hz)
-        fps = clock.fps
-        timeline = "capture frames (0-based: C3D frame number - 1)"
+    frames, clock, timeline = common.marker_timeline(rv.sequence, ctx.raw, markers, keypoints)
+    fps = clock.fps
     fit, report = fit_markers(model, shape, template, markers, clock, frames, cams, keypoints,
                               o, progress=ctx.progress,
                               log=lambda s: ctx.log(f"{ctx.unit}: {s}"), source=str(ctx.raw["c3d"]))
