@@ -106,7 +106,8 @@ def _session(tmp: Path, model, rng, F=40, fps=50.0, rate=240.0, swap=True, finge
               "sequence.markers_on": "s1", "sequence.has_video": True,
               "wearer.markerset": "plug-in-gait", "wearer.label_prefix": None,
               "wearer.marker_labels": {},
-              "subject.markerset": "plug-in-gait"}
+              "subject.markerset": "plug-in-gait", "subject.label_prefix": None,
+              "subject.marker_labels": {}, "subject.static_frames": []}
     body_file = common.body_model_file(SimpleNamespace(body_model=SimpleNamespace(kind="anny",
                                                                                   path=None)))
     raw = {"body_model": body_file, "c3d": tmp / "take.c3d",
