@@ -3,6 +3,7 @@ input formats, with exact ground truth kept apart in ``<out>/gt/``.
 
     from studio import ensure_generated
     ensure_generated("recipes/demo.yaml")   # generates data/demo if any file is missing
+    ensure_generated("recipes/markers.yaml")  # the marker-only preset (no cameras, no videos)
 
 See ``studio.plan`` (session layout, presets), ``studio.session`` (what is written).
 """
@@ -22,10 +23,11 @@ def recipe_files(raw: dict, base: Path) -> list[Path]:
     for s in (raw.get("subjects") or {}).values():
         if s.get("scan"):
             files.append(s["scan"])
+        files.extend(t["c3d"] for t in (s.get("static") or []))
     for q in (raw.get("sequences") or {}).values():
         files.append(q["c3d"])
-        files.extend(q["videos"].values())
-        files.extend(q["calibration"].values())
+        files.extend((q.get("videos") or {}).values())
+        files.extend((q.get("calibration") or {}).values())
         if q.get("contact"):
             files.append(q["contact"])
     return [(base / f).resolve() for f in files]

@@ -1,4 +1,8 @@
-"""``python -m studio --out DIR --seed N [--frames N] [--scenarios hug,handshake] [--preset demo|bench]``
+"""``python -m studio --out DIR --seed N [--frames N] [--scenarios hug,handshake] [--preset demo|bench|markers] [--realistic-markers]``
+
+``--preset markers``: the marker-only session (no cameras, videos, scans or partner).
+``--realistic-markers``: a two-person session whose marker capture is realistic
+(``studio.mocap.capture``; the demo and bench presets never use it).
 
 ``python -m studio --recipe-preset demo``: generate the data of ``recipes/demo.yaml`` if any
 file is missing (``studio.ensure_generated``; what ``make demo`` runs).
@@ -21,6 +25,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenarios", default=None,
                     help=f"comma-separated, from: {', '.join(PL.SCENARIOS)}")
     ap.add_argument("--preset", choices=sorted(PL.PRESETS), default=None)
+    ap.add_argument("--realistic-markers", action="store_true",
+                    help="two-person sessions: realistic marker placement and capture")
     ap.add_argument("--write-recipe", default=None, metavar="PATH",
                     help="with --preset: only write the preset's committed recipe to PATH (paths "
                          "relative to it, pointing into --out); generate nothing")
@@ -54,6 +60,12 @@ def main(argv: list[str] | None = None) -> int:
         scen = PL.parse_scenarios(a.scenarios) if a.scenarios else None
         seed = a.seed if a.seed is not None else (PL.PRESETS[a.preset].seed if a.preset else 3)
         plan = PL.make_plan(seed, a.frames, scen, a.preset)
+        if a.realistic_markers:
+            if not isinstance(plan, PL.SessionPlan):
+                raise ValueError("--realistic-markers: the markers preset is always realistic")
+            import dataclasses
+
+            plan = dataclasses.replace(plan, marker_realism=True)
     except ValueError as e:
         print(f"python -m studio: {e}", file=sys.stderr)
         return 2

@@ -128,3 +128,104 @@ IK_SMOOTH_SAMPLES = 1.5
 FAR_M = 0.08
 #: Regions (name suffixes) whose touches a signature skips when there are others (not for kick).
 INCIDENTAL_REGIONS = ("foot_top", "sole", "heel", "toes")
+
+# ------------------------------------------------------------------------------------ realistic markers
+# What a real, uncleaned optical capture looks like (``studio.mocap.RealismOptions``; off for the
+# demo and bench presets, on for the ``markers`` preset). Marker names are classed by their
+# Plug-in Gait stem (the name without its L/R side letter); names not listed are "bony".
+#: Placement by hand: tangential slide of each marker from the template, standard deviation
+#: (metres) per class, and its cap. Della Croce, Cappozzo & Kerrigan 1999 (Med Biol Eng Comput
+#: 37:155) measured the inter-examiner precision of palpated pelvis / lower-limb landmarks at
+#: 13-25 mm RMS; markers placed by eye along a segment (thigh, shank, upper arm, forearm wands,
+#: back, the head band) vary more. The cap keeps a marker within ~2 sd; a slide that would leave
+#: the marker's segment (dominant skinning bone group) is halved until it does not.
+MARKER_PLACE_SLIDE_SD_M = {"bony": 0.015, "head": 0.02, "fleshy": 0.025, "pelvis_thigh": 0.02}
+MARKER_PLACE_SLIDE_MAX_M = 0.05
+MARKER_PLACE_HALVINGS = 5
+#: Class of each Plug-in Gait stem for placement and offsets.
+MARKER_PLACE_CLASS = {
+    "FHD": "head", "BHD": "head",
+    "C7": "bony", "CLAV": "bony", "STRN": "bony", "SHO": "bony", "ELB": "bony", "WRA": "bony",
+    "WRB": "bony", "FIN": "bony", "ASI": "bony", "KNE": "bony", "ANK": "bony", "HEE": "bony",
+    "TOE": "bony",
+    "T10": "fleshy", "BAK": "fleshy", "UPA": "fleshy", "FRM": "fleshy", "TIB": "fleshy",
+    "PSI": "pelvis_thigh", "THI": "pelvis_thigh",
+}  # fmt: skip
+#: Marker centre to skin distance (metres), uniform range per class: a 14 mm marker's radius
+#: (7 mm) plus its base (~2 mm, MoSh/MoSh++ use 9.5 mm for all) plus what lies between base and
+#: skin: the head band, a suit, the soft tissue of the pelvis and thigh (MoSh++ (Mahmood et al.
+#: 2019) learns per-marker offsets for this reason).
+MARKER_PLACE_OFFSET_M = {"head": (0.008, 0.012), "bony": (0.008, 0.014), "fleshy": (0.010, 0.018),
+                         "pelvis_thigh": (0.012, 0.025)}
+#: Soft-tissue artefact (STA): peak displacement (metres) of the joint-angle term per stem, and
+#: the joints (``{s}``: the marker's side) whose local rotations drive it. Leardini et al. 2005
+#: (Gait & Posture 21:212, STA review): thigh markers move 10-30 mm relative to the femur, shank
+#: markers 5-15 mm, largest near the hip/knee in flexion; Cutti et al. 2005 and Hamming et al.
+#: 2012: upper-arm / acromion skin markers 10-20 mm with arm elevation. Stems not listed (head
+#: band, ankles, heels, toes, ASIS, sternum, wrist bar) get no STA.
+MARKER_STA_AMPLITUDE_M = {"THI": 0.015, "TIB": 0.008, "UPA": 0.012, "FRM": 0.006, "PSI": 0.006,
+                          "SHO": 0.008, "KNE": 0.004, "ELB": 0.003, "T10": 0.003, "BAK": 0.005}
+MARKER_STA_JOINTS = {
+    "THI": ("upperleg01.{s}", "lowerleg01.{s}"), "TIB": ("lowerleg01.{s}", "foot.{s}"),
+    "UPA": ("upperarm01.{s}", "lowerarm01.{s}"), "FRM": ("lowerarm01.{s}", "lowerarm02.{s}", "wrist.{s}"),
+    "PSI": ("upperleg01.{s}", "spine05"), "SHO": ("upperarm01.{s}", "clavicle.{s}"),
+    "KNE": ("lowerleg01.{s}",), "ELB": ("lowerarm01.{s}",), "T10": ("spine03", "spine02"),
+    "BAK": ("upperarm01.{s}", "clavicle.{s}"),
+}  # fmt: skip
+#: Joint rotation (radians) at which the joint-angle term reaches ~76 % (tanh 1) of its peak,
+#: and the share of the STA along the surface normal (skin slides more than it lifts).
+MARKER_STA_ANGLE_REF_RAD = 1.0
+MARKER_STA_NORMAL_SHARE = 0.3
+#: Damped wobble after accelerations: a mass-spring-damper of the soft tissue driven by the
+#: marker's acceleration (relative displacement x'' + 2 zeta w x' + w^2 x = -gain a). Wakeling &
+#: Nigg 2001 (J Appl Physiol 90:412): thigh / calf soft-tissue vibration after heel strike at
+#: 10-20 Hz (larger masses lower), damping ratio ~0.2-0.5, displacements of a few mm. gain =
+#: STA amplitude x MARKER_WOBBLE_GAIN_PER_M: a thigh marker (15 mm) swings ~6 mm under a
+#: 100 m/s^2 acceleration (a fast kick).
+MARKER_WOBBLE_HZ = 12.0
+MARKER_WOBBLE_DAMPING = 0.3
+MARKER_WOBBLE_GAIN_PER_M = 22.0
+#: Total STA cap (metres).
+MARKER_STA_MAX_M = 0.03
+#: Labelling faults of an uncleaned Vicon Nexus auto-labelled trial (no published rates; chosen
+#: so a 5 s trial has one or two of each): label swaps of two markers closer than
+#: SWAP_MAX_DIST_M for SWAP_LEN samples, ghosts (a label jumps to a reflection GHOST_DIST_M
+#: away and stays there GHOST_LEN samples), 1-sample spikes of SPIKE_M. Rates per minute.
+MARKER_SWAPS_PER_MIN = 15.0
+MARKER_SWAP_LEN = (5, 20)
+MARKER_SWAP_MAX_DIST_M = 0.15
+MARKER_GHOSTS_PER_MIN = 15.0
+MARKER_GHOST_LEN = (2, 8)
+MARKER_GHOST_DIST_M = (0.1, 1.0)
+MARKER_SPIKES_PER_MIN = 25.0
+MARKER_SPIKE_M = (0.02, 0.08)
+#: Occlusions of a real capture are longer than the demo's (samples at 120 Hz: up to ~0.8 s).
+MARKER_REAL_GAP_LEN = (5, 100)
+#: Unlabelled points (``*12``...) in the file: how many, and the share of samples they show.
+MARKER_UNLABELLED = 3
+MARKER_UNLABELLED_VISIBLE = 0.25
+#: Analog channels at this multiple of the point rate (Vicon: 1000 Hz analog for 100 Hz
+#: points), a 0.6 x 0.4 m force plate (AMTI-sized) with amplifier offsets (N) and noise (N),
+#: EMG noise (V).
+ANALOG_RATIO = 10
+FORCE_PLATE_SIZE_M = (0.6, 0.4)
+FORCE_OFFSET_N = 15.0
+FORCE_NOISE_N = 2.0
+EMG_NOISE_V = 2e-5
+#: Body density (kg / m^3) for the force plate's body weight from the mesh volume.
+BODY_DENSITY = 1010.0
+#: First frame (0-based C3D frame of sample 0) of a capture that was trimmed in Nexus.
+FIRST_FRAME_RANGE = (50, 4000)
+#: Static calibration trial: seconds, arm abduction (radians from hanging), sway amplitude
+#: (radians of tilt about the ankles, ~5 mm at the pelvis) and frequency range (Hz).
+STATIC_S = 2.0
+STATIC_ARM_ABDUCTION_RAD = (0.5, 0.8)
+STATIC_SWAY_RAD = 0.005
+STATIC_SWAY_HZ = (0.15, 0.5)
+#: The marker-only preset: mocap rate (Hz), movement trial length range (s), the rate of the
+#: (never rendered) timeline the motion synthesis checks contact on.
+MARKERS_HZ = 120.0
+MARKERS_TRIAL_S = (4.0, 6.0)
+MARKERS_CHECK_FPS = 30.0
+#: Mocap before the motion's first checked frame (s; a multiple of 1 / MARKERS_HZ).
+MARKERS_LEAD_S = 0.1

@@ -15,6 +15,13 @@ Layout of a generated session folder ``<out>``::
     <group>/interaction_contact_signature.json    contact annotations, keyed by action
     gt/...                                        ground truth (never read by the pipeline)
     previews/<group>_<action>_contact.png         contact sheet of the four views
+
+A marker-only session (preset ``markers``, :class:`MarkerSessionPlan`)::
+
+    recipe.yaml
+    <group>/mocap/<subject>_static.c3d            static trial (standing), per subject
+    <group>/mocap/<action>.c3d                    movement trials (group = subject minus "a")
+    gt/...                                        ground truth (``studio.session.generate_markers``)
 """
 from __future__ import annotations
 
@@ -42,17 +49,23 @@ _ALIASES = {"holding-hands": "holding_hands", "holdinghands": "holding_hands"}
 
 @dataclass(frozen=True)
 class Preset:
-    """A named session configuration (the committed recipes)."""
+    """A named session configuration (the committed recipes). kind: ``interaction`` (two
+    people, cameras, videos: :class:`SessionPlan`) or ``markers`` (marker capture only, one
+    subject per trial: :class:`MarkerSessionPlan`; frames unused, scenarios: the motions of
+    the movement trials, two per subject in order)."""
 
     name: str
     seed: int
     frames: int
     scenarios: tuple[str, ...]
+    kind: str = "interaction"
 
 
 PRESETS = {
     "demo": Preset("demo", seed=3, frames=100, scenarios=("handshake", "push")),
     "bench": Preset("bench", seed=11, frames=120, scenarios=tuple(SCENARIOS)),
+    "markers": Preset("markers", seed=23, frames=0, scenarios=("kick", "grab", "hit", "push"),
+                      kind="markers"),
 }
 DEFAULT_SCENARIOS = ("handshake", "hug", "push", "kick")
 DEFAULT_FRAMES = 100
@@ -94,6 +107,59 @@ class SessionPlan:
     sync_offset_s: float = C.SYNC_OFFSET_S
     fps: float = C.VIDEO_FPS
     mocap_hz: float = C.MOCAP_HZ
+    #: realistic marker capture (``studio.mocap.capture``: hand placement, soft tissue,
+    #: labelling faults, extra points and analogs; first frame kept 0 so the recipe's sync
+    #: offset stays valid). Off for the demo and bench presets; ``plan_dict`` omits it then.
+    marker_realism: bool = False
+
+
+@dataclass(frozen=True)
+class TrialPlan:
+    """One marker-only trial of the ``markers`` preset. kind: ``static`` (standing, for the
+    shape fit) or ``motion``; name: the C3D's stem (``m01a_static``, ``Kick 1``); group: the
+    subject's folder; scenario: the studio scenario whose wearer track is the motion (the
+    other role is played by ``partner``, never captured nor written); samples: mocap samples
+    (the C3D's frames); first_frame: the C3D's 0-based first frame; frames: the never-rendered
+    check timeline's frames (constants.MARKERS_CHECK_FPS) of a motion trial."""
+
+    index: int
+    kind: str
+    subject: str
+    group: str
+    name: str
+    samples: int
+    first_frame: int
+    scenario: str | None = None
+    partner: str | None = None
+    frames: int = 0
+
+    @property
+    def seq_id(self) -> str:
+        return f"{self.group}/{self.name}"
+
+
+@dataclass(frozen=True)
+class MarkerSessionPlan:
+    """The ``markers`` preset: subjects (ids, sexes: person i of ``studio.subjects
+    .make_subjects``), trials (a static and two motion trials per subject), marker capture at
+    ``mocap_hz`` with ``studio.mocap.capture``."""
+
+    session: str
+    seed: int
+    subjects: tuple[str, ...]
+    sexes: tuple[str, ...]
+    trials: tuple[TrialPlan, ...]
+    preset: str | None = None
+    mocap_hz: float = C.MARKERS_HZ
+    fps: float = C.MARKERS_CHECK_FPS
+    sync_offset_s: float = -C.MARKERS_LEAD_S
+
+    @property
+    def motion_trials(self) -> tuple[TrialPlan, ...]:
+        return tuple(t for t in self.trials if t.kind == "motion")
+
+    def static_of(self, subject: str) -> tuple[TrialPlan, ...]:
+        return tuple(t for t in self.trials if t.kind == "static" and t.subject == subject)
 
 
 def parse_scenarios(text: str | None) -> tuple[str, ...]:
@@ -145,6 +211,10 @@ def make_plan(seed: int, frames: int | None = None, scenarios: tuple[str, ...] |
     """The plan of a session. A preset gives defaults for seed-independent options; explicit
     ``frames`` / ``scenarios`` override it."""
     p = PRESETS[preset] if preset else None
+    if p is not None and p.kind == "markers":
+        if frames:
+            raise ValueError(f"--frames: the {preset!r} preset has no video frames")
+        return make_marker_plan(seed, scenarios or p.scenarios, preset)
     frames = frames or (p.frames if p else DEFAULT_FRAMES)
     scenarios = scenarios or (p.scenarios if p else DEFAULT_SCENARIOS)
     if frames < 10:
@@ -165,6 +235,49 @@ def make_plan(seed: int, frames: int | None = None, scenarios: tuple[str, ...] |
     session = f"studio_{preset}" if preset else f"studio_seed{seed}"
     return SessionPlan(session=session, seed=int(seed), group=group, subjects=subjects,
                        cameras=C.CAMERA_NAMES, sequences=tuple(seqs), preset=preset)
+
+
+def make_marker_plan(seed: int, scenarios: tuple[str, ...], preset: str | None = "markers",
+                     n_subjects: int = 2, trial_s: tuple[float, float] = C.MARKERS_TRIAL_S,
+                     static_s: float = C.STATIC_S) -> MarkerSessionPlan:
+    """The plan of a marker-only session: ``n_subjects`` subjects ``m01a``, ``m02a``... (sexes
+    as ``studio.subjects.make_subjects`` draws them: person 0 male, 1 female), each with a
+    static trial (``static_s`` seconds) and ``len(scenarios) // n_subjects`` motion trials
+    (scenarios in order; lengths drawn from ``trial_s`` seconds), every first frame drawn from
+    constants.FIRST_FRAME_RANGE. The other role of a motion's scenario is played by the other
+    subject (by a hidden ``<subject>_partner`` with one subject), never captured."""
+    if n_subjects > 2:
+        raise ValueError("the studio draws at most 2 subjects")
+    per = max(1, len(scenarios) // n_subjects)
+    hz = C.MARKERS_HZ
+    subjects = tuple(f"m{i + 1:02d}a" for i in range(n_subjects))
+    trials = []
+    for i, sid in enumerate(subjects):
+        rng = np.random.default_rng([seed, 3000 + i])
+        group = sid[:-1]
+        trials.append(TrialPlan(len(trials), "static", sid, group, f"{sid}_static",
+                                int(round(static_s * hz)), int(rng.integers(*C.FIRST_FRAME_RANGE))))
+        takes: dict[str, int] = {}
+        for sc in scenarios[i * per:(i + 1) * per]:
+            takes[sc] = takes.get(sc, 0) + 1
+            secs = float(rng.uniform(*trial_s))
+            frames = int(round(secs * C.MARKERS_CHECK_FPS)) + 1
+            samples = _timeline_samples(frames)
+            trials.append(TrialPlan(len(trials), "motion", sid, group, f"{SCENARIOS[sc]} {takes[sc]}",
+                                    samples, int(rng.integers(*C.FIRST_FRAME_RANGE)), sc,
+                                    subjects[(i + 1) % n_subjects] if n_subjects > 1 else f"{sid}_partner",
+                                    frames))
+    session = f"studio_{preset}" if preset else f"studio_markers_seed{seed}"
+    return MarkerSessionPlan(session, int(seed), subjects, tuple("male" if i == 0 else "female"
+                                                                 for i in range(n_subjects)),
+                             tuple(trials), preset)
+
+
+def _timeline_samples(frames: int) -> int:
+    """Mocap samples of the master timeline of a motion trial (``studio.motion.make_timeline``)."""
+    step = int(round(C.MARKERS_HZ / C.MARKERS_CHECK_FPS))
+    m0 = int(round(C.MARKERS_LEAD_S * C.MARKERS_HZ))
+    return m0 + step * (frames - 1) + 1 + int(round(C.MOCAP_TAIL_S * C.MARKERS_HZ))
 
 
 # ------------------------------------------------------------------------------------ layout
@@ -196,8 +309,41 @@ def preview_path(seq: SequencePlan) -> Path:
     return Path("previews") / f"{seq.group}_{seq.action.replace(' ', '_')}_contact.png"
 
 
-def recipe_dict(plan: SessionPlan, prefix: str = "") -> dict:
+def trial_c3d_path(t: TrialPlan) -> Path:
+    return Path(t.group) / "mocap" / f"{t.name}.c3d"
+
+
+def trial_gt_path(t: TrialPlan) -> Path:
+    return Path("gt") / t.group / f"{t.name}.npz"
+
+
+def marker_recipe_dict(plan: MarkerSessionPlan, prefix: str = "") -> dict:
+    """The recipe of a marker-only session (the new recipe schema: no cameras, static trials
+    per subject, sequences without partner, videos or calibration; ``fps: null``: the C3D's
+    own rate). ``frames: null``: the whole static trial."""
+
+    def p(x: Path) -> str:
+        return prefix + x.as_posix()
+
+    return {
+        "session": plan.session,
+        "cameras": [],
+        "subjects": {s: {"markerset": "plug-in-gait", "sex": sex,
+                         "static": [{"c3d": p(trial_c3d_path(t)), "frames": None}
+                                    for t in plan.static_of(s)]}
+                     for s, sex in zip(plan.subjects, plan.sexes, strict=True)},
+        "sequences": {t.seq_id: {"markers_on": t.subject, "c3d": p(trial_c3d_path(t)), "fps": None}
+                      for t in plan.motion_trials},
+        "body_model": {"kind": "anny"},
+        "ground_plane": {"normal": [0.0, 0.0, 1.0], "offset": 0.0},
+        "stages": {},
+    }
+
+
+def recipe_dict(plan: SessionPlan | MarkerSessionPlan, prefix: str = "") -> dict:
     """The recipe (plain dict, YAML-ready) with every path ``prefix + relative path``."""
+    if isinstance(plan, MarkerSessionPlan):
+        return marker_recipe_dict(plan, prefix)
 
     def p(x: Path) -> str:
         return prefix + x.as_posix()

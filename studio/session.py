@@ -20,6 +20,34 @@ Ground truth (``<out>/gt/``, never read by the pipeline):
   ``contact_frame``, ``signature_faces (P, 2)``, ``signature_regions (P, 2)``,
   ``signature_dist (P,)``, ``min_dist (F,)``;
 - ``gt/<group>/joints3d_25/<action>.json``: the same joints in CHI3D's file format.
+
+With ``plan.marker_realism`` the marker placement and capture are those of
+:func:`studio.mocap.capture` and the sequence npz also holds its ground truth (below; first
+frame 0).
+
+A marker-only session (preset ``markers``, :func:`generate_markers`) has no scans, cameras,
+videos or partner; its ground truth:
+
+- ``gt/session.json``: seed, plan, per trial (``<group>/<name>``) its samples, first frame,
+  fault counts, gap share, STA figures, seconds; the frame convention;
+- ``gt/subjects/<id>.npz``: ``betas``, ``phenotypes``, ``local_changes``, ``sex`` and the true
+  placement (:class:`studio.mocap.Placement`: ``marker_names``, ``marker_face``,
+  ``marker_bary``, ``marker_offset`` (M,) metres, ``template_xyz`` / ``placed_xyz`` (M, 3) on
+  the rest mesh, ``slide_m``, ``marker_segment``); ``gt/subjects/<id>_markers.json`` the same
+  placement as a body.markers JSON;
+- ``gt/<group>/<name>.npz`` per trial (static and motion), one row per mocap sample: **gt row
+  i = C3D sample i, i.e. C3D frame number first_frame + 1 + i** (``c3d_frames (N,)``, 1-based;
+  ``first_frame`` 0-based as ``formats.c3d.Markers``): ``subject``, ``kind``, ``betas (S,)``,
+  ``body_pose (N, J, 3)``, ``global_orient (N, 3, 3)``, ``transl (N, 3)``, ``joints (N, J, 3)``,
+  ``vertices (N, V, 3) float32``, ``faces``, ``mocap_hz``; markers: ``marker_names (M,)``,
+  ``markers_true (N, M, 3)`` (rigidly on the skin, no STA, no noise), ``markers_sta (N, M, 3)``
+  (soft-tissue displacement; observed = true + sta + noise outside gaps and faults),
+  ``markers_sta_joint`` (its joint-angle term), ``markers_sta_amplitude (M,)`` (0: bony),
+  ``markers_gap (N, M)``, ``markers_fault (N, M)`` (labels not carrying their own marker),
+  ``fault_swaps (Ns, 4)`` (a, b, start, end), ``fault_ghosts (Ng, 3)`` (m, start, end) with
+  ``fault_ghost_xyz``, ``fault_spikes (Nk, 2)`` (m, sample) with ``fault_spike_offset``
+  (samples 0-based, end exclusive; :class:`studio.mocap.Faults`);
+  ``gt/<group>/<name>_faults.json`` the same faults by name with C3D frame numbers.
 """
 from __future__ import annotations
 
@@ -53,12 +81,12 @@ from studio import constants as C
 from studio import plan as PL
 from studio.contact import annotate, check_motion
 from studio.kin import UP, yaw
-from studio.mocap import observe_markers
+from studio.mocap import RealismOptions, capture, observe_markers, realistic_placement, stem
 from studio.motion import Track, make_timeline, synthesize
-from studio.posture import anatomy
+from studio.posture import anatomy, arm_directions, idle
 from studio.rig import make_rig
 from studio.scan import sample_scan, write_ply
-from studio.scenarios import SCENES, Cast
+from studio.scenarios import SCENES, Cast, place
 from studio.subjects import Subject, make_subjects
 
 STUDIO_DIR = Path(__file__).resolve().parent
@@ -215,10 +243,20 @@ def generate_sequence(out: Path, plan: PL.SessionPlan, seq: PL.SequencePlan, mod
     wear = order[0]
     mv = forward(model, wear.betas, trk[0].pose, trk[0].R, trk[0].T, rest=wear.person.rest).vertices
     ms = markersets[wear.id]
-    m_true = marker_positions(mv, model.faces, ms)
-    m_obs, m_gap = observe_markers(m_true, rng)
     c3d = out / PL.c3d_path(seq)
-    write_c3d(c3d, Markers(ms.names, m_obs, plan.mocap_hz, 0, wear.id))
+    real = {}
+    if plan.marker_realism:
+        full = forward(model, wear.betas, trk[0].pose, trk[0].R, trk[0].T, rest=wear.person.rest)
+        cap = capture(model, ms, full.vertices, full.joints, full.joint_rot, trk[0].pose,
+                      plan.mocap_hz, 0, wear.id, np.random.default_rng([plan.seed, 5000 + seq.index]))
+        cap.write(c3d)
+        m_true, m_gap = cap.rigid_xyz, cap.gap
+        real = {k: v for k, v in cap.gt_arrays().items()
+                if k not in ("marker_names", "markers_true", "markers_gap", "mocap_hz")}
+    else:
+        m_true = marker_positions(mv, model.faces, ms)
+        m_obs, m_gap = observe_markers(m_true, rng)
+        write_c3d(c3d, Markers(ms.names, m_obs, plan.mocap_hz, 0, wear.id))
     write_chi3d_cameras(out / seq.group, seq.action, cams)
     # contact truth and annotation
     hint = tuple(cast.frame_of(h) for h in scene.contact_hint)
@@ -264,6 +302,7 @@ def generate_sequence(out: Path, plan: PL.SessionPlan, seq: PL.SequencePlan, mod
         signature_regions=ct.regions,
         signature_dist=ct.dist,
         min_dist=ct.min_dist,
+        **real,
     )
     write_joints3d_25(out / "gt" / seq.group / "joints3d_25" / f"{seq.action}.json", j25)
     info = {
@@ -343,8 +382,10 @@ def signature_json(seqs, cts, regions) -> dict:
     return d
 
 
-def generate(out: str | Path, plan: PL.SessionPlan) -> Path:
+def generate(out: str | Path, plan: PL.SessionPlan | PL.MarkerSessionPlan) -> Path:
     """Write the whole session into ``out`` (created). Returns the recipe path."""
+    if isinstance(plan, PL.MarkerSessionPlan):
+        return generate_markers(out, plan)
     t0 = time.time()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -358,6 +399,9 @@ def generate(out: str | Path, plan: PL.SessionPlan) -> Path:
     rng_s = np.random.default_rng([plan.seed, 3])
     for s in subjects:
         markersets[s.id] = perturbed_markerset(model, s, base, rng_s)
+        if plan.marker_realism:  # own stream: the scans stay those of the plan without realism
+            markersets[s.id] = realistic_placement(
+                model, rest_vertices(model, s), base, np.random.default_rng([plan.seed, 3, s.index])).markerset
         scan = make_scan(model, s, rng_s, out / PL.scan_path(s.id))
         gdir = out / "gt" / "subjects"
         gdir.mkdir(parents=True, exist_ok=True)
@@ -388,11 +432,162 @@ def generate(out: str | Path, plan: PL.SessionPlan) -> Path:
     return recipe
 
 
-def plan_dict(plan: PL.SessionPlan) -> dict:
-    """The plan as stored in ``gt/session.json`` (JSON types)."""
+def plan_dict(plan: PL.SessionPlan | PL.MarkerSessionPlan) -> dict:
+    """The plan as stored in ``gt/session.json`` (JSON types). ``marker_realism`` only when on
+    (the demo and bench sessions generated before it existed still match their plans)."""
     d = asdict(plan)
-    d["sequences"] = [asdict(s) for s in plan.sequences]
+    if isinstance(plan, PL.SessionPlan):
+        d["sequences"] = [asdict(s) for s in plan.sequences]
+        if not d.get("marker_realism"):
+            d.pop("marker_realism", None)
     return json.loads(json.dumps(d))
+
+
+# ------------------------------------------------------------------------------ marker-only sessions
+def rest_vertices(model, subject: Subject) -> np.ndarray:
+    """(V, 3) the subject's mesh at pose 0 (body frame)."""
+    J = model.num_joints
+    return forward(model, subject.betas, np.zeros((1, J, 3)), np.eye(3)[None], np.zeros((1, 3)),
+                   rest=subject.person.rest).vertices[0]
+
+
+def skinned(model, subject: Subject, track: Track, chunk: int = 64):
+    """The track skinned in chunks (a long sequence's LBS at once needs GBs): vertices
+    (N, V, 3) float32, joints (N, J, 3), joint_rot (N, J, 3, 3)."""
+    outs = [forward(model, subject.betas, track.pose[a:a + chunk], track.R[a:a + chunk],
+                    track.T[a:a + chunk], rest=subject.person.rest)
+            for a in range(0, len(track.pose), chunk)]
+    V = np.concatenate([o.vertices.astype(np.float32) for o in outs])
+    return V, np.concatenate([o.joints for o in outs]), np.concatenate([o.joint_rot for o in outs])
+
+
+def static_track(person, n: int, hz: float, rng: np.random.Generator) -> Track:
+    """A static calibration trial: standing, arms abducted (constants.STATIC_ARM_ABDUCTION_RAD)
+    with slightly bent elbows, breathing and head motion (``studio.posture.idle``, half
+    amplitude) and a slight sway: a tilt about the point between the ankles of
+    constants.STATIC_SWAY_RAD at constants.STATIC_SWAY_HZ, at a random place and heading."""
+    from body.rotations import rodrigues
+    from studio.kin import LEFT, UP
+
+    an = anatomy(person)
+    pose = np.zeros((person.model.num_joints, 3))
+    for s, sgn in (("L", 1.0), ("R", -1.0)):
+        a = rng.uniform(*C.STATIC_ARM_ABDUCTION_RAD)
+        pose = arm_directions(person, an, pose, s, -UP * np.cos(a) + LEFT * sgn * np.sin(a),
+                              rng.uniform(0.1, 0.25))
+    t = np.arange(n) / hz
+    poses = idle(person, pose, t, rng, 0.5)
+    ang = rng.uniform(0, 2 * np.pi)
+    tr = place(person, rng.uniform(-0.3, 0.3, 2), [np.cos(ang), np.sin(ang)], n, poses)
+    joints, _ = person.fk(tr.pose[:1], tr.R[:1], tr.T[:1])
+    c = 0.5 * (joints[0, person.j("foot.L")] + joints[0, person.j("foot.R")])
+    tilt = np.zeros((n, 3))
+    for ax in range(2):
+        f = rng.uniform(*C.STATIC_SWAY_HZ, 2)
+        ph = rng.uniform(0, 2 * np.pi, 2)
+        tilt[:, ax] = C.STATIC_SWAY_RAD * (np.sin(2 * np.pi * f[0] * t + ph[0])
+                                           + 0.5 * np.sin(2 * np.pi * f[1] * t + ph[1])) / 1.5
+    Rs = rodrigues(tilt)
+    h0 = person.rest.joints[0, 0]
+    R = Rs @ tr.R
+    T = np.einsum("nab,nb->na", Rs, tr.T + h0 - c) + c - h0
+    return Track(tr.pose, R, T)
+
+
+def trial_track(plan: PL.MarkerSessionPlan, trial: PL.TrialPlan, by_id: dict) -> Track:
+    """The true motion of a trial on its mocap samples: a static stance, or the wearer's track
+    of the trial's scenario (``sequence_motion``, the other role played by ``trial.partner``;
+    contact not checked: nobody sees the partner)."""
+    if trial.kind == "static":
+        return static_track(by_id[trial.subject].person, trial.samples, plan.mocap_hz,
+                            np.random.default_rng([plan.seed, 4500 + trial.index]))
+    seq = PL.SequencePlan(index=trial.index, scenario=trial.scenario, group=trial.group,
+                          action=trial.name, markers_on=trial.subject, partner=trial.partner,
+                          frames=trial.frames, text="", actor=0)
+    mo = sequence_motion(plan, seq, [by_id[trial.subject], by_id[trial.partner]])
+    tr = mo.tracks[0]
+    if len(tr.pose) != trial.samples:
+        raise RuntimeError(f"{trial.seq_id}: motion has {len(tr.pose)} samples, plan says {trial.samples}")
+    return tr
+
+
+def generate_trial(out: Path, plan: PL.MarkerSessionPlan, trial: PL.TrialPlan, model, by_id: dict,
+                   placements: dict, opts: RealismOptions | None = None) -> dict:
+    """Write one trial's C3D and ground truth; returns its facts for ``gt/session.json``."""
+    opts = opts or RealismOptions()
+    t0 = time.time()
+    subj = by_id[trial.subject]
+    tr = trial_track(plan, trial, by_id)
+    V, Jt, G = skinned(model, subj, tr)
+    ms = placements[trial.subject].markerset
+    cap = capture(model, ms, V, Jt, G, tr.pose, plan.mocap_hz, trial.first_frame, subj.id,
+                  np.random.default_rng([plan.seed, 4000 + trial.index]), opts)
+    cap.write(out / PL.trial_c3d_path(trial))
+    gt = out / PL.trial_gt_path(trial)
+    gt.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(gt, subject=subj.id, kind=trial.kind, betas=subj.betas, body_pose=tr.pose,
+             global_orient=tr.R, transl=tr.T, joints=Jt, vertices=V,
+             faces=np.asarray(model.faces, np.int32), **cap.gt_arrays())
+    names = list(ms.names)
+    (gt.parent / f"{trial.name}_faults.json").write_text(
+        json.dumps(cap.faults.as_json(names, trial.first_frame), indent=1))
+    sta = np.linalg.norm(cap.sta.total, axis=-1)  # (N, M)
+    stems = np.array([stem(n)[0] for n in names])
+    fleshy = cap.sta.amplitude > 0
+    info = {
+        "subject": subj.id, "kind": trial.kind, "scenario": trial.scenario, "samples": trial.samples,
+        "first_frame": trial.first_frame,
+        "c3d_frames": [trial.first_frame + 1, trial.first_frame + trial.samples],
+        "swaps": int(len(cap.faults.swaps)), "ghosts": int(len(cap.faults.ghosts)),
+        "spikes": int(len(cap.faults.spikes)),
+        "gap_share": round(float(cap.gap.mean()), 4),
+        "sta_rms_mm_fleshy": round(1000 * float(np.sqrt((sta[:, fleshy] ** 2).mean())), 2) if fleshy.any() else 0.0,
+        "sta_max_mm": round(1000 * float(sta.max(initial=0.0)), 2),
+        "sta_max_mm_by_stem": {st: round(1000 * float(sta[:, stems == st].max(initial=0.0)), 2)
+                               for st in sorted(set(stems[fleshy]))},
+        "sta_max_mm_bony": round(1000 * float(sta[:, ~fleshy].max(initial=0.0)), 2),
+        "seconds": round(time.time() - t0, 1),
+    }
+    _log(f"{trial.seq_id}: {trial.kind}, {trial.samples} samples from frame {trial.first_frame + 1}, "
+         f"{info['swaps']} swaps, {info['ghosts']} ghosts, {info['spikes']} spikes, "
+         f"STA rms {info['sta_rms_mm_fleshy']} mm, {info['seconds']} s")
+    return info
+
+
+def generate_markers(out: str | Path, plan: PL.MarkerSessionPlan,
+                     opts: RealismOptions | None = None) -> Path:
+    """Write a marker-only session (the ``markers`` preset) into ``out``: per subject its true
+    placement, a static trial and its motion trials (C3D + ground truth, layout in this module's
+    docstring); no rendering. Returns the recipe path."""
+    t0 = time.time()
+    opts = opts or RealismOptions()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    model = load_model("anny")
+    ids = tuple(plan.subjects) if len(plan.subjects) == 2 else (plan.subjects[0], f"{plan.subjects[0]}_partner")
+    subjects = make_subjects(model, ids, np.random.default_rng([plan.seed, 2]))
+    by_id = {s.id: s for s in subjects}
+    base = plug_in_gait(model)
+    gdir = out / "gt" / "subjects"
+    gdir.mkdir(parents=True, exist_ok=True)
+    placements = {}
+    for s, sex in zip(subjects, plan.sexes, strict=False):
+        pl = realistic_placement(model, rest_vertices(model, s), base,
+                                 np.random.default_rng([plan.seed, 3, s.index]), opts)
+        placements[s.id] = pl
+        np.savez(gdir / f"{s.id}.npz", betas=s.betas, phenotypes=s.phenotypes,
+                 local_changes=s.local_changes, sex=sex, **pl.arrays())
+        save_json(pl.markerset, gdir / f"{s.id}_markers.json", model="anny", num_faces=len(model.faces))
+    infos = {t.seq_id: generate_trial(out, plan, t, model, by_id, placements, opts) for t in plan.trials}
+    meta = {"plan": plan_dict(plan), "trials": infos, "studio_source": source_hash(),
+            "frame_convention": "gt row i = C3D sample i = C3D frame number first_frame + 1 + i "
+                                "(first_frame 0-based, as formats.c3d.Markers)",
+            "seconds": round(time.time() - t0, 1)}
+    (out / "gt" / "session.json").write_text(json.dumps(meta, indent=1))
+    recipe = out / "recipe.yaml"
+    write_recipe(recipe, PL.recipe_dict(plan))
+    _log(f"session {plan.session} written to {out} in {time.time() - t0:.0f} s")
+    return recipe
 
 
 def write_recipe(path: Path, recipe: dict, header: str = "") -> Path:
