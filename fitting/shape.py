@@ -8,12 +8,13 @@
    scan point: the robust loss gives them ~0 weight. A Gaussian prior on betas (whitened, unit
    variance) and on the pose keeps unobserved directions put. Damped Gauss-Newton with a
    forward-difference Jacobian of ``body.lbs.forward`` (the full mesh in numpy: ~100 params).
-2. ``refine_placement``: with the shape fixed, alternate (a) the poses of a handful of frames
-   (the compiled marker graph, as in marker_fit) and (b) each marker's rest position, a linear
-   least-squares problem once the poses are fixed, regularised toward the template placement,
-   then re-projected on the surface as (face, barycentric, offset along the normal).
-3. no scan (``fit_betas``): betas are fitted to the markers of those frames too (a third
-   alternation step, forward-difference Gauss-Newton on betas with poses and placement fixed).
+2. ``refine_placement`` (``fitting/placement.py``, MoSh stage I): the captures tracked frame
+   after frame with the template placement, well-spread well-tracked frames chosen (ghosts,
+   glitches and swapped labels excluded), then poses / placement (robust, slide capped at
+   5 cm, offset prior 9.5 mm bounded in [0, 35] mm) / betas alternated from the tracked
+   poses; a marker that leaves its segment is reported and put back on the template.
+3. no scan (``fit_betas``): betas and the frames' poses are fitted jointly in that
+   alternation (robust Levenberg-Marquardt, weak prior, rest posture kept at the mean's).
 
 :func:`fit_shape` is the whole subject (scan fit, else marker-based shape, else the mean;
 then the placement on the captures), returning an ``artifacts.ShapeFit`` and a report;
@@ -26,7 +27,8 @@ blend of its face's vertices (weights interpolated with ``bary``).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+import warnings
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -35,44 +37,27 @@ from body.lbs import forward, rest_state
 from body.model import BodyModel
 from body.rotations import rodrigues
 from fitting import compiled, marker_fit, priors, robust, skinned
-from fitting.marker_graph import (
+from fitting.marker_graph import (  # noqa: F401 - re-exported (bench/fitting_synth.py)
     GraphSpec,
     MarkerGraph,
     Placement,
     body_joints,
-    marker_coeffs,
     marker_rest_points,
     marker_support,
-    marker_weights,
     placement_of,
     to_shape_fit,
+)
+from fitting.placement import (  # noqa: F401 - re-exported
+    PlacementFit,
+    PlacementOptions,
+    project_to_surface,
+    refine_placement,
 )
 from geometry import face_areas, face_normals
 
 # constants
 FD_STEP = 1e-6
 COARSE_BETAS = 10  # scan fit: betas fitted in the first third of the iterations
-SIZE_GRID = (-3.0, -2.0, -1.0, 0.0, 1.0, 2.0, 3.0)  # marker-based shape: start grid (betas 0, 1)
-
-
-# ---------------------------------------------------------------------------- surface helpers
-
-
-def project_to_surface(rest_vertices: np.ndarray, faces: np.ndarray, points: np.ndarray):
-    """Closest surface points of ``points (M, 3)``: (face (M,), bary (M, 3), signed offset (M,)
-    along the face normal)."""
-    import igl
-
-    _, fidx, closest = igl.point_mesh_squared_distance(points, rest_vertices, faces)
-    fidx = np.asarray(fidx, dtype=np.int64)
-    tri = rest_vertices[faces[fidx]]
-    bary = igl.barycentric_coordinates(closest, tri[:, 0].copy(), tri[:, 1].copy(), tri[:, 2].copy())
-    bary = np.clip(np.asarray(bary), 0.0, 1.0)
-    bary /= bary.sum(axis=1, keepdims=True)
-    n = face_normals(rest_vertices, faces[fidx])
-    surf = np.einsum("mk,mkd->md", bary, tri)
-    off = np.einsum("md,md->m", points - surf, n)
-    return fidx, bary, off
 
 
 # ---------------------------------------------------------------------------- scan fit
@@ -351,200 +336,6 @@ def fit_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | None,
     return ScanFit(betas, x, skel.joints, 1000 * np.sqrt(np.asarray(d2)), iters)
 
 
-# ---------------------------------------------------------------------------- placement
-
-
-@dataclass(frozen=True)
-class PlacementOptions:
-    """rounds: alternations; slide_sd_m / offset_sd_m: prior spread of the placement around
-    the template (tangential / along the normal), metres; data_sd_m: expected marker error
-    (noise plus model error) that weighs the data against that prior; pose_iters: LM iterations per pose;
-    num_betas, beta_weight, beta_steps: for the marker-based shape (no scan): coefficients,
-    prior weight, Gauss-Newton steps per round."""
-
-    rounds: int = 4
-    slide_sd_m: float = 0.02
-    offset_sd_m: float = 0.005
-    data_sd_m: float = 0.002
-    pose_iters: int = 30
-    num_betas: int = 20
-    beta_weight: float = 1e-4
-    beta_steps: int = 3
-    beta_sigma_m: float = 0.03
-
-
-def _solve_poses(solver, obs, vis, X=None):
-    out = []
-    for f in range(len(obs)):
-        if X is None:
-            x0 = marker_fit.initial_pose(solver.skel, solver.u, solver.Hm, obs[f], vis[f])
-            r = solver.solve(x0, obs[f], vis[f], first=True)
-        else:
-            r = solver.solve(X[f], obs[f], vis[f])
-        out.append(marker_fit.rewrap(r.x))
-    return np.array(out)
-
-
-def _update_placement(model, rest, skel, u, pl: Placement, X, obs, vis, opts: PlacementOptions
-                      ) -> Placement:
-    """Per marker: the rest point minimising |posed - observed|^2 over frames plus the prior,
-    linear in the rest point once poses and skinning weights are fixed."""
-    faces = np.asarray(model.faces)
-    Wm = marker_weights(model, pl).toarray()  # (M, J)
-    h = rest.joints[0]
-    A = rest.bind_rot[0] if rest.bind_rot is not None else np.broadcast_to(np.eye(3), (len(h), 3, 3))
-    _, s = skinned.reduced_offsets(model, rest, skel)
-    frames = [skinned._fk_np(skel, u, x) for x in X]
-    p0 = marker_rest_points(rest.vertices[0], faces, pl)
-    n0 = face_normals(rest.vertices[0], faces[pl.face])
-    new = np.zeros_like(p0)
-    for m in range(len(p0)):
-        js = np.flatnonzero(Wm[m] > 0)
-        rows_A, rows_b = [], []
-        for f, (G, t) in enumerate(frames):
-            if vis[f, m] <= 0:
-                continue
-            # world = sum_j w_j (G_o A_j (p - h_j) + G_o s_j + t_o), o = owner(j)
-            L = np.zeros((3, 3))
-            c = np.zeros(3)
-            for j in js:
-                o = skel.owner[j]
-                L += Wm[m, j] * G[o] @ A[j]
-                c += Wm[m, j] * (G[o] @ (s[j] - A[j] @ h[j]) + t[o])
-            rows_A.append(L / opts.data_sd_m)
-            rows_b.append((obs[f, m] - c) / opts.data_sd_m)
-        # prior: tangential slide ~ slide_sd, normal offset ~ offset_sd around the template
-        P = np.eye(3) - np.outer(n0[m], n0[m])
-        prior = P / opts.slide_sd_m + np.outer(n0[m], n0[m]) / opts.offset_sd_m
-        rows_A.append(prior)
-        rows_b.append(prior @ p0[m])
-        AA = np.concatenate(rows_A)
-        bb = np.concatenate(rows_b)
-        new[m] = np.linalg.lstsq(AA, bb, rcond=None)[0]
-    face, bary, off = project_to_surface(rest.vertices[0], faces, new)
-    return replace(pl, face=face, bary=bary, offset=off)
-
-
-def _beta_step(model, skel, betas, pl, X, obs, vis, opts):
-    """One damped Gauss-Newton step on betas with poses and placement fixed."""
-    S = len(betas)
-
-    def markers(b):
-        rest = rest_state(model, b)
-        u, _ = skinned.reduced_offsets(model, rest, skel)
-        Hm = marker_coeffs(model, rest, skel, pl)
-        return np.concatenate([Hm.positions(skel, u, x) for x in X])
-
-    ok = (vis > 0).reshape(-1)
-    target = obs.reshape(-1, 3)
-    m0 = markers(betas)
-    e0 = (m0 - target)[ok]
-    r = e0.reshape(-1)
-    # Geman-McClure IRLS weights per marker: poses solved with a wrong shape leave outliers
-    sw = np.repeat(np.sqrt(robust.weight(np.sum(e0 * e0, axis=1), "geman_mcclure",
-                                         opts.beta_sigma_m)), 3)
-    J = np.zeros((len(r), S))
-    for k in range(S):
-        e = np.zeros(S)
-        e[k] = 1e-4
-        J[:, k] = ((markers(betas + e) - target)[ok].reshape(-1) - r) / 1e-4
-    J *= sw[:, None]
-    r = r * sw
-    w = opts.beta_weight * len(r)
-    H = J.T @ J + w * np.eye(S)
-    return betas - np.linalg.solve(H + 1e-3 * np.diag(np.diag(H)), J.T @ r + w * betas)
-
-
-def _size_start(model, skel, betas, pl, obs, vis, make_solver) -> np.ndarray:
-    """Marker-based shape start: the mean body can be far from the subject (anny's mean
-    spans children to adults), and poses fitted with a wrong size fold limbs. Try a grid over
-    the first two betas (the largest size/build modes of the whitened basis) and keep the
-    body whose per-frame pose fits leave the smallest robust marker residual."""
-    best = (np.inf, betas)
-    for b0 in SIZE_GRID:
-        for b1 in SIZE_GRID[::2]:
-            cand = betas.copy()
-            cand[0] = b0
-            if len(cand) > 1:
-                cand[1] = b1
-            rest = rest_state(model, cand)
-            u, _ = skinned.reduced_offsets(model, rest, skel)
-            Hm = marker_coeffs(model, rest, skel, pl)
-            solver = make_solver(rest, skel, u, Hm)
-            cost = sum(solver.solve(marker_fit.initial_pose(skel, u, Hm, o, v), o, v,
-                                    first=True).cost for o, v in zip(obs, vis, strict=True))
-            if cost < best[0]:
-                best = (cost, cand)
-    return best[1]
-
-
-@dataclass
-class PlacementFit:
-    """placement, betas (S,), poses X (K, n) of the frames used, residual_mm (K, M) NaN where
-    not visible, rounds."""
-
-    placement: Placement
-    betas: np.ndarray
-    X: np.ndarray
-    residual_mm: np.ndarray
-
-
-def refine_placement(model: BodyModel, betas: np.ndarray, pl: Placement, obs: np.ndarray,
-                     vis: np.ndarray, make_solver, opts: PlacementOptions = PlacementOptions(),
-                     fit_betas: bool = False, log=None) -> PlacementFit:
-    """MoSh++ stage I: marker placement (and, with ``fit_betas``, shape) from a few frames.
-
-    obs : (K, M, 3) metres, world, of well-spread frames; vis : (K, M).
-    make_solver(rest, skel, u, Hm) -> marker_fit.FrameSolver over the body joints.
-    """
-    betas = np.array(betas, dtype=float)
-    skel = skinned.fit_skeleton(model, body_joints(model))
-    if fit_betas:
-        betas = _size_start(model, skel, betas, pl, obs, vis, make_solver)
-    X = None
-    rounds = 2 * opts.rounds if fit_betas else opts.rounds  # shape, placement, poses: slower
-    for k in range(rounds):
-        rest = rest_state(model, betas)
-        u, _ = skinned.reduced_offsets(model, rest, skel)
-        Hm = marker_coeffs(model, rest, skel, pl)
-        solver = make_solver(rest, skel, u, Hm)
-        X = _solve_poses(solver, obs, vis, X)
-        pl = _update_placement(model, rest, skel, u, pl, X, obs, vis, opts)
-        if fit_betas:
-            for _ in range(opts.beta_steps):
-                betas = _beta_step(model, skel, betas, pl, X, obs, vis, opts)
-        if log:
-            log(f"placement round {k + 1}/{rounds}")
-    rest = rest_state(model, betas)
-    u, _ = skinned.reduced_offsets(model, rest, skel)
-    Hm = marker_coeffs(model, rest, skel, pl)
-    solver = make_solver(rest, skel, u, Hm)
-    X = _solve_poses(solver, obs, vis, X)
-    res = np.stack([np.linalg.norm(Hm.positions(skel, u, x) - np.nan_to_num(o),
-                                   axis=1) for x, o in zip(X, obs, strict=True)])
-    res = np.where(vis > 0, 1000 * res, np.nan)
-    return PlacementFit(pl, betas, X, res)
-
-
-def spread_frames(vis: np.ndarray, obs: np.ndarray, k: int) -> np.ndarray:
-    """Indices of ``k`` well-spread frames: mostly-visible frames chosen by farthest-point
-    sampling on the marker configuration (centred), so poses differ."""
-    F = len(obs)
-    frac = (vis > 0).mean(axis=1)
-    cand = np.flatnonzero(frac >= min(0.9, frac.max()))
-    if len(cand) <= k:
-        return cand
-    feat = np.nan_to_num(obs[cand] - np.nanmean(obs[cand], axis=1, keepdims=True)).reshape(len(cand), -1)
-    chosen = [int(np.argmax(frac[cand]))]
-    d = np.linalg.norm(feat - feat[chosen[0]], axis=1)
-    while len(chosen) < k:
-        i = int(np.argmax(d))
-        chosen.append(i)
-        d = np.minimum(d, np.linalg.norm(feat - feat[i], axis=1))
-    del F
-    return np.sort(cand[chosen])
-
-
 # ---------------------------------------------------------------------------- one subject
 
 
@@ -554,29 +345,34 @@ class ShapeFitOptions:
 
     num_betas : shape coefficients fitted to a scan; marker_num_betas : without a scan;
     scan_iters, scan_points : scan fit iterations and scan points per iteration; frames :
-    well-spread capture frames used to place the markers; rounds : placement alternations;
-    slide_sd_mm / offset_sd_mm : how far a marker may move from the template (prior spread,
-    millimetres); compile : how the residual function runs; seed : sampling of scan points."""
+    well-spread, well-tracked capture frames used to place the markers; rounds : placement
+    alternations; slide_sd_mm / offset_sd_mm : prior spread of a marker's slide from the
+    template and of its skin offset around the nominal 9.5 mm (millimetres); max_slide_mm /
+    max_offset_mm : their hard bounds; track_step : every k-th capture frame is tracked;
+    compile : how the residual function runs; seed : sampling of scan points."""
 
     # defaults stated once, in the options of the functions they feed (metres there)
     num_betas: int = ScanFitOptions.num_betas  # all of anny's
     marker_num_betas: int = PlacementOptions.num_betas
     scan_iters: int = ScanFitOptions.iters
     scan_points: int = ScanFitOptions.n_points
-    frames: int = 8
+    frames: int = PlacementOptions.frames
     rounds: int = PlacementOptions.rounds
     slide_sd_mm: float = PlacementOptions.slide_sd_m * 1000
     offset_sd_mm: float = PlacementOptions.offset_sd_m * 1000
+    max_slide_mm: float = PlacementOptions.max_slide_m * 1000
+    max_offset_mm: float = PlacementOptions.max_offset_m * 1000
+    track_step: int = PlacementOptions.track_step
     compile: Literal["auto", "compiled", "interpreted"] = "auto"
     seed: int = 0
 
     def __post_init__(self):
         problems = []  # every bad field, in one message
         for name in ("num_betas", "marker_num_betas", "scan_iters", "scan_points", "frames",
-                     "rounds"):
+                     "rounds", "track_step"):
             if getattr(self, name) < 1:
                 problems.append(f"{name}: must be >= 1, got {getattr(self, name)}")
-        for name in ("slide_sd_mm", "offset_sd_mm"):
+        for name in ("slide_sd_mm", "offset_sd_mm", "max_slide_mm", "max_offset_mm"):
             if not getattr(self, name) > 0:
                 problems.append(f"{name}: must be > 0, got {getattr(self, name)}")
         if self.compile not in marker_fit.COMPILE_MODES:
@@ -592,12 +388,29 @@ class ShapeFitOptions:
     def placement(self) -> PlacementOptions:
         return PlacementOptions(rounds=self.rounds, slide_sd_m=self.slide_sd_mm / 1000,
                                 offset_sd_m=self.offset_sd_mm / 1000,
-                                num_betas=self.marker_num_betas)
+                                max_slide_m=self.max_slide_mm / 1000,
+                                max_offset_m=self.max_offset_mm / 1000,
+                                num_betas=self.marker_num_betas, frames=self.frames,
+                                track_step=self.track_step)
 
 
 def _mm_stats(d: np.ndarray) -> dict[str, float]:
     return {"median": float(np.median(d)), "p90": float(np.percentile(d, 90)),
             "mean": float(np.mean(d))}
+
+
+def _finite(v) -> float | None:
+    """A report float: None for NaN / inf ("not seen")."""
+    v = float(v)
+    return v if np.isfinite(v) else None
+
+
+def _stats(a: np.ndarray) -> dict[str, float | None]:
+    a = np.asarray(a, float)
+    a = a[np.isfinite(a)]
+    if not len(a):
+        return {"median": None, "p90": None}
+    return {"median": float(np.median(a)), "p90": float(np.percentile(a, 90))}
 
 
 def shape_from_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | None,
@@ -612,18 +425,20 @@ def shape_from_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | 
                       "scan_iterations": sf.iterations}
 
 
-def fit_placement(model: BodyModel, shape, captures, opts: ShapeFitOptions, log=None):
-    """MoSh++ stage I on a subject's captures: ``shape``'s placement (the template) refined,
-    and, when ``shape.shape_source == "markers"``, its betas fitted too.
+def fit_placement(model: BodyModel, shape, captures, opts: ShapeFitOptions, log=None,
+                  names=None):
+    """MoSh stage I on a subject's captures (``fitting.placement.refine_placement``):
+    ``shape``'s placement (the template) refined, and, when ``shape.shape_source ==
+    "markers"``, its betas fitted too.
 
     shape : :class:`artifacts.ShapeFit` to start from; captures : sequence of (F_i, M, 3)
-    marker arrays (metres, NaN gaps, the placement's marker order). Returns
-    ``(ShapeFit with placement_source "refined", report)`` (residuals and moves in mm)."""
+    marker arrays (metres, NaN gaps, the placement's marker order); names : the captures'
+    names in the report (default their index as a string). Returns ``(ShapeFit with
+    placement_source "refined", report)`` (residuals, slides and offsets in mm; every float
+    finite, None where a marker was not seen)."""
     template = placement_of(shape)
-    obs_all = np.concatenate([np.asarray(c, float) for c in captures])
-    vis = np.all(np.isfinite(obs_all), axis=2)
-    idx = spread_frames(vis, obs_all, opts.frames)
-    obs = obs_all[idx]
+    captures = [np.asarray(c, float) for c in captures]
+    names = [str(i) for i in range(len(captures))] if names is None else [str(n) for n in names]
     skel = skinned.fit_skeleton(model, body_joints(model))
     graph = MarkerGraph(GraphSpec(skel.topology, marker_support(model, skel, template)),
                         compiled.CompileOptions(mode=opts.compile), log=log)
@@ -632,45 +447,72 @@ def fit_placement(model: BodyModel, shape, captures, opts: ShapeFitOptions, log=
     def make_solver(_rest, skel_, u, Hm):
         return marker_fit.FrameSolver(graph, skel_, u, Hm, prior, marker_fit.MarkerFitOptions())
 
-    pf = refine_placement(model, shape.betas, template, obs, vis[idx].astype(float),
-                          make_solver, opts.placement(),
-                          fit_betas=str(shape.shape_source) == "markers", log=log)
-    per = np.nanmedian(pf.residual_mm, axis=0)
+    fit_betas = str(shape.shape_source) == "markers"
+    pf = refine_placement(model, shape.betas, template, captures, make_solver,
+                          opts.placement(), fit_betas=fit_betas, log=log)
+    M = len(template.names)
     rest0 = rest_state(model, pf.betas)
     faces = np.asarray(model.faces)
     moved = np.linalg.norm(marker_rest_points(rest0.vertices[0], faces, pf.placement)
                            - marker_rest_points(rest0.vertices[0], faces, template), axis=1) * 1000
+    with warnings.catch_warnings():  # a marker never seen: None, no warning
+        warnings.simplefilter("ignore", RuntimeWarning)
+        per = np.nanmedian(pf.residual_mm, axis=0) if len(pf.residual_mm) else np.full(M, np.nan)
+    tr = (np.concatenate([t.residual_m for t in pf.tracks]) * 1000 if pf.tracks
+          else np.zeros((0, M)))
     report = {
-        "placement_frames": [int(i) for i in idx],
-        "placement_residual_mm": {"median": float(np.nanmedian(pf.residual_mm)),
-                                  "p90": float(np.nanpercentile(pf.residual_mm, 90)),
-                                  "per_marker_median": {n: float(v) for n, v in
+        "placement_frames": [{"capture": names[c], "frame": int(f)} for c, f in pf.frames],
+        "placement_frames_note": "frame: index into that capture's marker samples",
+        "placement_residual_mm": {**_stats(pf.residual_mm),
+                                  "per_marker_median": {n: _finite(v) for n, v in
                                                         zip(template.names, per, strict=True)}},
         "placement_moved_mm": {"median": float(np.median(moved)), "max": float(np.max(moved))},
+        "placement_slide_mm": {n: float(v * 1000) for n, v in
+                               zip(template.names, pf.slide_m, strict=True)},
+        "placement_offset_mm": {n: float(v * 1000) for n, v in
+                                zip(template.names, pf.offset_m, strict=True)},
+        "placement_slide_max_mm": float(np.max(pf.slide_m) * 1000),
+        "placement_offset_max_mm": float(np.max(pf.offset_m) * 1000),
+        "markers_off_segment": list(pf.off_segment),
+        "tracking_residual_mm": {**_stats(tr), "frames": int(len(tr)),
+                                 "step": int(opts.track_step),
+                                 "per_marker": {n: _stats(tr[:, i]) for i, n in
+                                                enumerate(template.names)}},
+        "tracking_outlier_marker_frames": int(pf.outliers),
+        "betas_norm": float(np.linalg.norm(pf.betas)),
     }
     return to_shape_fit(pf.betas, pf.placement, str(shape.shape_source), "refined"), report
 
 
 def fit_shape(model: BodyModel, template: Placement, scan, captures, opts: ShapeFitOptions,
-              rng: np.random.Generator, log=None):
+              rng: np.random.Generator, log=None, static=(), names=None, static_names=None):
     """A subject's shape and marker placement.
 
     template : the marker set's template placement; scan : ``(points (N, 3), normals (N, 3) or
     None)`` metres, or None; captures : sequence of (F_i, M, 3) marker arrays of the
-    sequences the subject wears markers in (template order, NaN gaps), possibly empty.
-    The shape comes from the scan, else from the markers (MoSh++ stage I, less accurate),
+    sequences the subject wears markers in (template order, NaN gaps), possibly empty;
+    static : the same for static trials (used first: listed before the captures);
+    names / static_names : their names in the report (default ``"0"``, ``"1"``, ... and
+    ``"static0"``, ...).
+    The shape comes from the scan, else from the markers (MoSh stage I, less accurate),
     else it is the mean shape; the placement is refined on the captures when there are any.
     Returns ``(artifacts.ShapeFit, report)``.
     """
     report: dict = {"body_model": model.name, "num_markers": len(template.names)}
-    captures = [c for c in captures if len(c)]
+    static = list(static)
+    captures = list(captures)
+    names = [str(i) for i in range(len(captures))] if names is None else list(names)
+    snames = ([f"static{i}" for i in range(len(static))] if static_names is None
+              else list(static_names))
+    pairs = [(c, n) for c, n in zip(static + captures, snames + names, strict=True) if len(c)]
+    captures = [c for c, _ in pairs]
     if scan is not None:
         betas, rep = shape_from_scan(model, scan[0], scan[1], opts, rng, log)
         report.update(rep)
     elif captures:
         report["shape_source"] = "markers"
-        report["note"] = ("no scan: the shape is fitted to the markers of a few well-spread "
-                          "frames (MoSh++ stage I), less accurate than a scan fit")
+        report["note"] = ("no scan: the shape is fitted to the markers of well-spread, "
+                          "well-tracked frames (MoSh stage I), less accurate than a scan fit")
         betas = np.zeros(opts.marker_num_betas)
     else:
         report["shape_source"] = "mean"
@@ -678,7 +520,7 @@ def fit_shape(model: BodyModel, template: Placement, scan, captures, opts: Shape
         betas = np.zeros(opts.num_betas)
     out = to_shape_fit(betas, template, report["shape_source"], "template")
     if captures:
-        out, rep = fit_placement(model, out, captures, opts, log)
+        out, rep = fit_placement(model, out, captures, opts, log, names=[n for _, n in pairs])
         report.update(rep)
     else:
         report["placement"] = "template (no capture to refine it)"

@@ -86,15 +86,26 @@ def run(ctx: StageContext) -> None:
     rv = ctx.recipe.subject
     named = read_captures(ctx.raw, template.names, rv.label_prefix, rv.static_frames,
                           rv.marker_labels)
-    captures = [m.xyz for _, m in named]
-    shape, report = fit_shape(model, template, scan, captures, o, np.random.default_rng(o.seed),
-                              log=lambda s: ctx.log(f"{ctx.unit}: {s}"))
+    cleaned = {}
+    for i, (n, m) in enumerate(named):  # ghosts, spikes, swaps out before frames are chosen
+        m, cleaned[n] = common.clean_capture(m, n, ctx.log)
+        named[i] = (n, m)
+    statics = [(n, m) for n, m in named if n.startswith("static[")]
+    moves = [(n, m) for n, m in named if not n.startswith("static[")]
+    shape, report = fit_shape(model, template, scan, [m.xyz for _, m in moves], o,
+                              np.random.default_rng(o.seed),
+                              log=lambda s: ctx.log(f"{ctx.unit}: {s}"),
+                              static=[m.xyz for _, m in statics], names=[n for n, _ in moves],
+                              static_names=[n for n, _ in statics])
     shape.save(ctx.out)
     ctx.out.save_json("report", {
         "subject": ctx.unit, "captures": [
             {"name": n, "first_frame": int(m.first_frame) + 1, "frames": int(len(m.xyz)),
              "rate_hz": float(m.rate_hz)} for n, m in named],
-        "marker_sequences": [n for n, _ in named if not n.startswith("static[")], **report})
+        "marker_sequences": [n for n, _ in named if not n.startswith("static[")],
+        "cleaned": {n: {k: c[k] for k in ("removed_samples", "removed_fraction",
+                                          "removed_by_reason", "unswapped")}
+                    for n, c in cleaned.items()}, **report})
 
 
 STAGE = Stage(name="shape_fit", func=run, per="subject", upstream=(), params=Options,
