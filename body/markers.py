@@ -8,6 +8,7 @@ serves every shape of a model.
 - ``MarkerSet(names, faces (M,), bary (M, 3), offsets (M,))``, frozen;
 - ``marker_positions(vertices (F, V, 3) or (V, 3), faces (NF, 3), markerset) -> (F, M, 3)``;
 - ``plug_in_gait(model)``: the 39-marker Vicon Plug-in Gait full-body set placed on Anny;
+  ``cmu41(model)``: the CMU mocap database's 41-marker set (``CMU41_NAMES``);
   ``hand_markers(model)``: 5 fingertip-nail markers per hand (optional extra set);
 - JSON format (``save_json`` / ``load_json``)::
 
@@ -40,6 +41,16 @@ PLUG_IN_GAIT_NAMES = (
     "LASI", "RASI", "LPSI", "RPSI",
     "LTHI", "LKNE", "LTIB", "LANK", "LHEE", "LTOE",
     "RTHI", "RKNE", "RTIB", "RANK", "RHEE", "RTOE",
+)  # fmt: skip
+
+#: The CMU mocap database's 41 markers (the order of its C3D files). Waist markers RFWT/LFWT
+#: (front, ~ASIS) and RBWT/LBWT (back, ~PSIS), RBAC ~ Plug-in Gait's RBAK, LSHN/RSHN on the
+#: shin, LMT5/RMT5 on the 5th metatarsal head; the rest as Plug-in Gait.
+CMU41_NAMES = (
+    "RBWT", "LBWT", "RFWT", "LFWT", "RTHI", "LWRB", "LFRM", "LTHI", "RWRA", "LFIN", "RWRB",
+    "RFRM", "LWRA", "RFIN", "LELB", "RELB", "RKNE", "LKNE", "STRN", "T10", "LUPA", "RUPA",
+    "RBAC", "CLAV", "RSHO", "LSHO", "C7", "LSHN", "RBHD", "LBHD", "RANK", "LANK", "LHEE",
+    "LFHD", "RHEE", "RTOE", "RMT5", "RFHD", "LMT5", "LTOE", "RSHN",
 )  # fmt: skip
 
 
@@ -261,6 +272,63 @@ def _anny_pig_rays(model: BodyModel) -> dict[str, tuple[np.ndarray, np.ndarray]]
         toe2 = h(f"toe2-1.{S}")
         rays[f"{s}TOE"] = (toe2 + 0.2 * (ank - toe2) * [1, 1, 0], np.array([0.0, -0.15, 1.0]))
     return rays
+
+
+def _anny_cmu_rays(model: BodyModel) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """(origin, direction) per CMU41 marker on Anny's mean rest mesh: the Plug-in Gait rays
+    where the landmark is the same, new ones for the waist, the shin and the 5th metatarsal."""
+    pig = _anny_pig_rays(model)
+    J = model.joint_template
+
+    def h(n):
+        return J[model.joint_index(n)]
+
+    rays = {n: pig[n] for n in CMU41_NAMES if n in pig}
+    rays["RBAC"] = pig["RBAK"]
+    skull = h("head") + np.array([0.0, 0.01, 0.07])
+    for s, S, sx in (("L", "L", 1.0), ("R", "R", -1.0)):
+        X = np.array([sx, 1.0, 1.0])
+        # CMU's head markers sit wider than Plug-in Gait's (front at the temples: 17 cm
+        # apart in nimble_cmu_02_05.c3d, back 10 cm), its toe marker on the toe, not the MTP
+        rays[f"{s}FHD"] = (skull, np.array([1.0, -1.0, 0.3]) * X)
+        rays[f"{s}BHD"] = (skull, np.array([0.7, 1.0, 0.35]) * X)
+        toe2 = h(f"toe2-1.{S}")
+        rays[f"{s}TOE"] = (toe2 - 0.15 * (h(f"foot.{S}") - toe2) * [1, 1, 0],
+                           np.array([0.0, -0.3, 1.0]))
+        hip, knee, ank = h(f"upperleg01.{S}"), h(f"lowerleg01.{S}"), h(f"foot.{S}")
+        # waist: a belt at the iliac crests, front ~ above the ASIS, back ~ above the PSIS
+        rays[f"{s}FWT"] = (hip * [1.1, 0, 0] + [0, hip[1], hip[2] + 0.08],
+                           np.array([0.3 * sx, -1.0, 0.0]))
+        rays[f"{s}BWT"] = (hip * [0.3, 0, 0] + [0, hip[1], hip[2] + 0.09],
+                           np.array([0.05 * sx, 1.0, 0.0]))
+        # shin: the anterior tibia, a little below mid-shank
+        rays[f"{s}SHN"] = (0.45 * knee + 0.55 * ank,
+                           _perp(np.array([0.1 * sx, -1.0, 0.0]), ank - knee))
+        # 5th metatarsal head: the lateral forefoot, behind the little toe
+        toe = 0.5 * (h(f"toe2-1.{S}") + h(f"toe5-1.{S}"))
+        rays[f"{s}MT5"] = (toe + 0.2 * (ank - toe) * [1, 1, 0], np.array([sx, 0.1, 0.1]))
+    return rays
+
+
+def cmu41(model: BodyModel, offset: float = DEFAULT_OFFSET_M) -> MarkerSet:
+    """The CMU mocap database's 41-marker set (``CMU41_NAMES``) placed on ``model`` by rays
+    like :func:`plug_in_gait` (see ``_anny_cmu_rays``). Implemented for Anny."""
+    if model.name != "anny":
+        raise ValueError(f"CMU marker placement is defined for anny, not {model.name}")
+    return _place_by_rays(model, _anny_cmu_rays(model), CMU41_NAMES, offset, "cmu41")
+
+
+def _place_by_rays(model, rays, names, offset, what) -> MarkerSet:
+    v = model.v_template
+    faces, bary = [], []
+    for n in names:
+        o, d = rays[n]
+        hit = ray_surface(v, model.faces, np.asarray(o, float), np.asarray(d, float))
+        if hit is None:
+            raise RuntimeError(f"{what}: no surface hit for {n}")
+        faces.append(hit[0])
+        bary.append(hit[1])
+    return make_markerset(names, faces, bary, offset)
 
 
 def plug_in_gait(model: BodyModel, offset: float = DEFAULT_OFFSET_M) -> MarkerSet:

@@ -109,17 +109,32 @@ def marker_support(model: BodyModel, skel: skinned.FitSkeleton, template: Placem
     return skinned.neighbourhood_support(model, rest0, skel, pts, radius)
 
 
+def placement_support(model: BodyModel, skel: skinned.FitSkeleton, template: Placement,
+                      Hm: skinned.SkinnedPoints,
+                      radius: float = SUPPORT_RADIUS_M) -> tuple[tuple[int, ...], ...]:
+    """Graph support of a subject's markers: the template's (:func:`marker_support`) joined
+    with the joints that actually skin each marker of the subject's placement ``Hm``
+    (``skinned.points_support``): a marker slid 10-20 cm from its template (real labs) skins
+    exactly, nothing is dropped. The spec then depends on the placement (one compile per
+    subject, cached on disk by its generated source)."""
+    base = marker_support(model, skel, template, radius)
+    exact = skinned.points_support(Hm)
+    return tuple(tuple(sorted(set(a) | set(b))) for a, b in zip(base, exact, strict=True))
+
+
 def template_placement(model: BodyModel, markerset) -> Placement:
     """The template placement of a marker set on ``model``: ``"plug-in-gait"`` (the built-in
-    set, ``body.markers.plug_in_gait``) or a ``body.markers.MarkerSet`` (read from its JSON
-    file by the caller)."""
+    set, ``body.markers.plug_in_gait``), ``"cmu"`` (``body.markers.cmu41``) or a
+    ``body.markers.MarkerSet`` (read from its JSON file by the caller)."""
     if isinstance(markerset, body_markers.MarkerSet):
         ms = markerset
     elif markerset == "plug-in-gait":
         ms = body_markers.plug_in_gait(model)
+    elif markerset == "cmu":
+        ms = body_markers.cmu41(model)
     else:
-        raise ValueError(f"markerset: expected 'plug-in-gait' or a MarkerSet read from its "
-                         f".json file, got {markerset!r}")
+        raise ValueError(f"markerset: expected 'plug-in-gait', 'cmu' or a MarkerSet read from "
+                         f"its .json file, got {markerset!r}")
     return Placement(tuple(ms.names), np.asarray(ms.faces, np.int64), np.asarray(ms.bary, float),
                      np.asarray(ms.offsets, float))
 
