@@ -9,10 +9,12 @@ OUT ?= data/studio
 SEED ?= 3
 FRAMES ?=
 SCENARIOS ?=
+MARKERS ?=
+STRIDE ?=
 export PYTHONPATH := $(CURDIR)
 export ANNY_CACHE_DIR ?= $(CURDIR)/assets/cache/anny
 
-.PHONY: setup demo test test-fast sequence release status bench studio lint clean
+.PHONY: setup demo test test-fast sequence loo release status bench studio lint clean
 
 setup:
 	@bash scripts/setup.sh
@@ -23,6 +25,10 @@ demo: setup
 sequence: setup
 	@test -n "$(SEQ)" || { echo "usage: make sequence SEQ=<subject>/<action> [RECIPE=...]"; exit 2; }
 	@$(PY) -m pipeline sequence "$(SEQ)" --recipe $(RECIPE) $(if $(STAGE),--until $(STAGE),) $(foreach f,$(FORCE),--force $(f))
+
+loo: setup
+	@test -n "$(SEQ)" || { echo "usage: make loo SEQ=<group>/<action> [RECIPE=...] [MARKERS=RELB,RWRA] [STRIDE=4]"; exit 2; }
+	@$(PY) -m pipeline sequence "$(SEQ)" --recipe $(RECIPE) --until marker_loo $(if $(MARKERS),--set "marker_loo.markers=[$(MARKERS)]",) $(if $(STRIDE),--set marker_loo.stride=$(STRIDE),) $(foreach f,$(FORCE),--force $(f))
 
 release: setup
 	@$(PY) -m pipeline release --recipe $(RECIPE) $(if $(STAGE),--until $(STAGE),) $(foreach f,$(FORCE),--force $(f))

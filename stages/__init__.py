@@ -29,6 +29,8 @@ PLANNED: tuple[tuple[str, Granularity, tuple[str, ...], str], ...] = (
     ("shape_fit", "subject", (), "body shape and marker placement per subject"),
     ("keypoints", "sequence", (), "2D body and hand keypoints per camera and frame"),
     ("marker_fit", "sequence", ("shape_fit", "keypoints"), "pose of the subject wearing markers"),
+    ("marker_loo", "sequence", ("shape_fit", "marker_fit"),
+     "leave-one-out check of the marker fit"),
     ("partner_fit", "sequence", ("shape_fit", "keypoints", "marker_fit"),
      "pose of the unmarked partner (2D keypoints, contact, collisions)"),
     ("convert", "sequence", ("marker_fit", "partner_fit"), "SMPL-X parameters of both"),

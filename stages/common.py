@@ -118,7 +118,6 @@ def read_subject_markers(path: Path, names, prefix: str | None = None, labels=No
     import dataclasses
 
     from formats.c3d import read_c3d
-
     from formats.plausibility import check_capture_scale
 
     labels = dict(labels.as_dict() if hasattr(labels, "as_dict") else (labels or {}))
@@ -156,3 +155,18 @@ def marker_timeline(seq, raw: dict, markers, keypoints=None):
     frames = markers.first_frame + np.arange(len(markers.xyz), dtype=np.int64)
     return (frames, VideoClock(rate, 0.0, seq.mocap.rate_hz),
             "capture frames (0-based: the C3D frame number - 1)")
+
+
+def clean_capture(markers, source, log=None):
+    """``fitting.marker_clean.clean_markers`` on a subject's capture: ghost points, spikes,
+    implausible speeds and label swaps removed (or un-swapped) before anything is fitted to
+    them. Returns ``(cleaned Markers, the cleaning report as JSON)``; logs a line naming
+    ``source`` when samples were removed."""
+    from fitting.marker_clean import clean_markers
+
+    out, rep = clean_markers(markers)
+    js = rep.to_json()
+    if log and js["removed_samples"]:
+        log(f"{source}: {js['removed_samples']} marker samples removed before fitting "
+            f"({', '.join(f'{n} {r}' for r, n in js['removed_by_reason'].items() if n)})")
+    return out, js

@@ -25,8 +25,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from fitting.marker_fit import MarkerFitOptions as Options
 from pipeline.spec import Stage, StageContext
 from stages import common
@@ -62,6 +60,7 @@ def run(ctx: StageContext) -> None:
     template = common.marker_template(ctx, rv.wearer.markerset, model)
     markers = common.read_subject_markers(ctx.raw["c3d"], shape.names, rv.wearer.label_prefix,
                                           rv.wearer.marker_labels)
+    markers, cleaned = common.clean_capture(markers, ctx.raw["c3d"], ctx.log)
     cams = [read_chi3d_camera(ctx.raw[f"calibration:{c}"], name=c) for c in rv.cameras
             if f"calibration:{c}" in ctx.raw]
     kp_art = ctx.inputs.get("keypoints")
@@ -75,7 +74,12 @@ def run(ctx: StageContext) -> None:
     report = {"sequence": ctx.unit, "subject": subject, "capture": Path(ctx.raw["c3d"]).name,
               "capture_rate_hz": float(markers.rate_hz),
               "capture_first_frame": int(markers.first_frame) + 1, "frames_are": timeline,
-              "fit_rate_hz": float(fps), **report}
+              "fit_rate_hz": float(fps), "cleaned": cleaned, **report}
+    if cleaned["removed_samples"]:
+        report["warnings"].append(
+            f"{cleaned['removed_samples']} marker samples removed before the fit as "
+            + ", ".join(f"{n} {r}" for r, n in cleaned["removed_by_reason"].items() if n)
+            + " (report: cleaned.runs)")
     ctx.out.save_json("report", report)
     residual_plot(ctx.out.path("residuals.png"), fit.marker_residual_m * 1000, fps,
                   f"{ctx.unit}: marker residuals ({'with' if report['hands'] else 'no'} hand "
