@@ -37,8 +37,8 @@ from fitting.marker_graph import (
     Placement,
     body_joints,
     marker_coeffs,
-    marker_support,
     placement_of,
+    placement_support,
 )
 from fitting.priors import PosePrior
 from fitting.skinned import FitSkeleton, SkinnedPoints
@@ -312,8 +312,9 @@ def fit_markers(model, shape: ShapeFit, template: Placement, markers, clock: moc
     """The marker-wearing subject's motion over a sequence's video frames.
 
     model : BodyModel; shape : the subject's :class:`artifacts.ShapeFit` (betas and marker
-    placement); template : the marker set's template placement (fixes the compiled graph's
-    supports, so one graph serves every subject); markers : ``formats.c3d.Markers`` of the
+    placement); template : the marker set's template placement (the compiled graph's supports
+    are its supports joined with the joints skinning the subject's placement,
+    ``marker_graph.placement_support``: one compile per subject, cached on disk); markers : ``formats.c3d.Markers`` of the
     subject (names of ``shape``; gaps NaN); clock : how mocap samples map to video frames;
     frames : (F,) video frame indices to fit (``opts.max_frames`` keeps the first N);
     cams : ``calib.Camera`` per view, in the order of the keypoints' cameras they name (only
@@ -357,7 +358,7 @@ def fit_markers(model, shape: ShapeFit, template: Placement, markers, clock: moc
     skel = skel_full if hands is not None else skinned.fit_skeleton(model, body_joints(model))
     u, _ = skinned.reduced_offsets(model, rest, skel)
     Hm = marker_coeffs(model, rest, skel, pl)
-    spec = GraphSpec(skel.topology, marker_support(model, skel, template),
+    spec = GraphSpec(skel.topology, placement_support(model, skel, template, Hm),
                      skinned.support_of(hands[0]) if hands else (), len(cams) if hands else 0,
                      cams[0].model if hands else "h36m")
     t0 = time.perf_counter()

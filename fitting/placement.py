@@ -31,7 +31,7 @@ Placement: ``face (M,)``, ``bary (M, 3)``, ``offset (M,)`` metres along the rest
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -54,6 +54,9 @@ OUTLIER_MIN_MM = 30.0  # marker-frame outlier: tracked residual > marker median 
 OUTLIER_MADS = 6.0  # ... and > median + this many robust spreads (1.4826 MAD)
 SIZE_TRIM = 0.9  # size start score: mean of the markers' median residuals, best 90 % of them
 SIZE_GRID = np.linspace(-0.8, 0.8, 9)  # size start: values tried for beta 0 (and 1, every other)
+WAND_MIN_MM = 10.0  # a marker at the offset bound with a median residual in this range ...
+WAND_MAX_MM = 60.0  # ... is on a wand (larger: misplaced, not on a wand)
+BEYOND_CAP_M = 0.05  # a marker held at its slide cap with a larger median error is out of reach
 MIN_VISIBLE = 0.9  # a placement frame sees at least this share of the markers (or the max)
 
 
@@ -149,7 +152,9 @@ class PlacementOptions:
     Geman-McClure scale of the placement and betas IRLS; irls_iters: reweightings per
     placement update; num_betas, beta_sd, posture_sd_rad, beta_steps: the marker-based shape
     (coefficients, prior spread of the whitened betas, of the rest posture's bind rotations,
-    Levenberg-Marquardt steps per round); track_step: every
+    Levenberg-Marquardt steps per round); wand_offset_m: the offset bound of a marker left at
+    ``max_offset_m`` with a median residual above ``WAND_MIN_MM`` (a marker on a wand, e.g.
+    Plug-in Gait's thigh and tibia wands: refitted with this bound); track_step: every
     k-th frame of a capture is tracked; frames: placement frames."""
 
     rounds: int = 6
@@ -160,6 +165,7 @@ class PlacementOptions:
     nominal_offset_m: float = DEFAULT_OFFSET_M
     min_offset_m: float = 0.0
     max_offset_m: float = 0.035
+    wand_offset_m: float = 0.08
     data_sd_m: float = 0.005
     robust_sigma_m: float = 0.015
     irls_iters: int = 4
@@ -295,17 +301,22 @@ def _capped_solve(H: np.ndarray, g: np.ndarray, cap: float) -> np.ndarray:
 def update_placement(model: BodyModel, rest, skel, u, pl: Placement, template: Placement,
                      X: np.ndarray, obs: np.ndarray, vis: np.ndarray,
                      opts: PlacementOptions, caps: np.ndarray | None = None,
-                     groups=None) -> tuple[Placement, np.ndarray]:
+                     groups=None, max_offsets: np.ndarray | None = None
+                     ) -> tuple[Placement, np.ndarray]:
     """Per marker: the skin point (tangential slide ``t`` from the template's skin point) and
     offset ``o`` minimising the robust (Geman-McClure IRLS) marker error over frames plus the
-    priors, with ``|t| <= caps[m]`` (default ``max_slide_m``) and ``o`` in the bounds.
+    priors, with ``|t| <= caps[m]`` (default ``max_slide_m``) and ``o`` in the bounds
+    (``[min_offset_m, max_offsets[m]]``, default ``max_offset_m``). The slide is linearised at
+    the current skin point (its tangent plane and face normal), so rounds can carry a marker
+    around a curved limb.
     The robust scale of a marker is the larger of ``robust_sigma_m`` and its median error
     over the frames (a marker whose template is 10 cm off in every frame is moved, not
     ignored; a frame far from the marker's consensus is). Skinning weights and poses are
     those of the current placement (linearised); the point is then put on the surface, and
     kept on its template's body segment or an adjacent one (:func:`segment_groups`: the slide
     is shortened until it is). Returns (placement, left (M,) bool: the markers whose solution
-    lay on another segment and were held back)."""
+    lay on another segment and were held back, or that sit at their cap with a median error
+    above ``BEYOND_CAP_M``)."""
     faces = np.asarray(model.faces)
     rv = rest.vertices[0]
     groups = groups if groups is not None else segment_groups(skel)
@@ -315,15 +326,22 @@ def update_placement(model: BodyModel, rest, skel, u, pl: Placement, template: P
     _, s = skinned.reduced_offsets(model, rest, skel)
     frames = [skinned._fk_np(skel, u, x) for x in X]
     s0 = surface_points(rv, faces, template)
-    n0 = face_normals(rv, faces[template.face])
     M = len(s0)
     caps = np.full(M, opts.max_slide_m) if caps is None else np.asarray(caps, float)
+    omax = (np.full(M, opts.max_offset_m) if max_offsets is None
+            else np.asarray(max_offsets, float))
     slide = np.zeros((M, 3))
+    beyond = np.zeros(M, bool)
     offset = np.array(pl.offset, float)
     cur = surface_points(rv, faces, pl)
+    n_cur = face_normals(rv, faces[pl.face])
     for m in range(M):
         js = np.flatnonzero(Wm[m] > 0)
-        B = np.concatenate([_tangent_basis(n0[m]), n0[m][:, None]], 1)  # (3, 3): t1 t2 n
+        # linearised at the current skin point: its tangent plane and face normal (a marker
+        # slid 8 cm around a knee has another normal than its template's); the slide z[:2]
+        # is measured from the template's skin point projected on that plane
+        B = np.concatenate([_tangent_basis(n_cur[m]), n_cur[m][:, None]], 1)  # (3, 3): t1 t2 n
+        origin = cur[m] + B[:, :2] @ (B[:, :2].T @ (s0[m] - cur[m]))
         Ls, cs = [], []
         for f, (G, t) in enumerate(frames):
             if vis[f, m] <= 0:
@@ -336,8 +354,8 @@ def update_placement(model: BodyModel, rest, skel, u, pl: Placement, template: P
                 L += Wm[m, j] * G[o] @ A[j]
                 c += Wm[m, j] * (G[o] @ (s[j] - A[j] @ h[j]) + t[o])
             Ls.append(L @ B)
-            cs.append(L @ s0[m] + c - obs[f, m])
-        z = np.append(B[:, :2].T @ (cur[m] - s0[m]), offset[m])
+            cs.append(L @ origin + c - obs[f, m])
+        z = np.append(B[:, :2].T @ (cur[m] - origin), offset[m])
         prior = np.diag([1 / opts.slide_sd_m ** 2] * 2 + [1 / opts.offset_sd_m ** 2])
         ptarget = np.array([0.0, 0.0, opts.nominal_offset_m])
         if Ls:
@@ -352,9 +370,14 @@ def update_placement(model: BodyModel, rest, skel, u, pl: Placement, template: P
                 H = np.einsum("k,kab,kac->bc", w, LB, LB) + prior
                 g = -np.einsum("k,kab,ka->b", w, LB, C) + prior @ ptarget
                 z = _capped_solve(H, g, caps[m])
-                z[2] = np.clip(z[2], opts.min_offset_m, opts.max_offset_m)
-        slide[m] = B[:, :2] @ z[:2]
-        offset[m] = np.clip(z[2], opts.min_offset_m, opts.max_offset_m)
+                z[2] = np.clip(z[2], opts.min_offset_m, omax[m])
+            e = np.einsum("kab,b->ka", LB, z) + C
+            # held at its cap and still far in most frames: the marker's data lie out of
+            # reach (a template on the wrong body part), reported like a marker off segment
+            beyond[m] = (np.linalg.norm(z[:2]) >= 0.999 * caps[m]
+                         and float(np.median(np.linalg.norm(e, axis=1))) > BEYOND_CAP_M)
+        slide[m] = origin + B[:, :2] @ z[:2] - s0[m]
+        offset[m] = np.clip(z[2], opts.min_offset_m, omax[m])
     face, bary, _ = project_to_surface(rv, faces, s0 + slide)
     face, bary = face.copy(), bary.copy()
     seg0 = marker_segments(model, skel, template, groups)
@@ -370,12 +393,12 @@ def update_placement(model: BodyModel, rest, skel, u, pl: Placement, template: P
         seg = marker_segments(model, skel, one, groups)
         return d <= caps[m] * 1.001, bool(same_or_adjacent(groups[1], seg, seg0[m:m + 1])[0])
 
-    left = np.zeros(M, bool)
+    left = beyond.copy()
     for m in range(M):
         under, on = ok(m, face[m], bary[m])
         if under and on:
             continue
-        left[m] = not on
+        left[m] |= not on
         lo, hi = 0.0, 1.0
         for _ in range(10):
             mid = 0.5 * (lo + hi)
@@ -545,6 +568,7 @@ class PlacementFit:
     slide_m: np.ndarray
     offset_m: np.ndarray
     outliers: int
+    on_wand: list[str] = field(default_factory=list)
 
 
 def refine_placement(model: BodyModel, betas: np.ndarray, template: Placement, captures,
@@ -619,13 +643,13 @@ def size_start(model, skel, betas, template, X, obs, vis, make_solver, opts: Pla
 
 
 def _stage_one(model, skel, betas, pl, template, X, obs, vis, make_solver, opts, fit_betas,
-               rounds, caps, groups, say):
+               rounds, caps, groups, say, max_offsets=None):
     left = np.zeros(len(template.names), bool)
     for k in range(rounds):
         rest, u, solver = _solver(model, skel, betas, pl, make_solver)
         X = _poses(solver, X, obs, vis)
         pl, left = update_placement(model, rest, skel, u, pl, template, X, obs, vis, opts,
-                                    caps=caps, groups=groups)
+                                    caps=caps, groups=groups, max_offsets=max_offsets)
         if fit_betas:
             betas, X = fit_shape_and_poses(model, skel, betas, pl, X, obs, vis, opts,
                                            solver.quad_prior, solver.box, iters=opts.beta_steps)
@@ -669,11 +693,26 @@ def _refine(model, betas, template, captures, make_solver, opts, fit_betas, log)
         say(f"off their segment (refitted from the template, slide <= "
             f"{1000 * opts.tight_slide_m:.0f} mm): "
             f"{', '.join(n for n, b in zip(template.names, left, strict=True) if b)}")
+    caps = np.where(left, opts.tight_slide_m, opts.max_slide_m)
     _, _, solver = _solver(model, skel, betas, pl, make_solver)
     X = _poses(solver, X, obs, vis)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med = np.nanmedian(_residual_mm(solver, X, obs, vis), axis=0)
+    wand = ((pl.offset >= opts.max_offset_m - 1e-6) & (np.nan_to_num(med) > WAND_MIN_MM)
+            & (np.nan_to_num(med) < WAND_MAX_MM) & ~left)
+    on_wand = [n for n, b in zip(template.names, wand, strict=True) if b]
+    if wand.any():  # on a wand: refitted with the wand's offset bound, shape kept
+        _, pl, X, _ = _stage_one(model, skel, betas, pl, template, X, obs, vis, make_solver,
+                                 opts, False, 2, caps, groups, say,
+                                 np.where(wand, opts.wand_offset_m, opts.max_offset_m))
+        say(f"on a wand (offset bound {1000 * opts.wand_offset_m:.0f} mm): "
+            f"{', '.join(n for n, b in zip(template.names, wand, strict=True) if b)}")
+        _, _, solver = _solver(model, skel, betas, pl, make_solver)
+        X = _poses(solver, X, obs, vis)
     res = _residual_mm(solver, X, obs, vis)
     final = [track(solver, c, opts.track_step) for c in captures]
     slide, offset = slides_and_offsets(model, betas, pl, template)
     return PlacementFit(pl, betas, frames, X, res,
                         [n for n, b in zip(template.names, left, strict=True) if b], final,
-                        slide, offset, n_out)
+                        slide, offset, n_out, on_wand)

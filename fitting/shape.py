@@ -474,6 +474,7 @@ def fit_placement(model: BodyModel, shape, captures, opts: ShapeFitOptions, log=
         "placement_slide_max_mm": float(np.max(pf.slide_m) * 1000),
         "placement_offset_max_mm": float(np.max(pf.offset_m) * 1000),
         "markers_off_segment": list(pf.off_segment),
+        "markers_on_wand": list(pf.on_wand),
         "tracking_residual_mm": {**_stats(tr), "frames": int(len(tr)),
                                  "step": int(opts.track_step),
                                  "per_marker": {n: _stats(tr[:, i]) for i, n in

@@ -76,8 +76,9 @@ def hard_fit(anny):
 
 
 def test_shape_and_placement_from_a_hard_capture(anny, hard_fit):
-    """Measured (seed 0, 240 frames, ~22 s on a shared core): v2v 20.4 mm (the mean body:
-    16.4 -- the marker-based shape does not beat the mean here: the size grid picks beta 0 and
+    """Measured (seed 0, 240 frames, ~22 s on a shared core): v2v 17.1 mm (20.4 before the
+    placement update was linearised at the current skin point; the mean body: 16.4 -- the
+    marker-based shape does not beat the mean here: the size grid picks beta 0 and
     1 by the placement-frame residual and the free placement absorbs part of the size),
     placement error 25.5 mm mean against the template's 27.1, residual median 3.4 mm, largest
     slide 60 mm (the true slides are 20-30 mm; the cap is 200 mm, held on the segment); the
@@ -91,7 +92,7 @@ def test_shape_and_placement_from_a_hard_capture(anny, hard_fit):
     out, rep, betas, pl, tpl = hard_fit
     json.dumps(rep, allow_nan=False)  # every float finite
     assert rep["shape_source"] == "markers" and len(out.betas) == 30
-    assert _v2v(anny, betas, out.betas) < 22.0
+    assert _v2v(anny, betas, out.betas) < 19.0
     rest = rest_state(anny, betas).vertices[0]
     faces = np.asarray(anny.faces)
     p_true = shape.marker_rest_points(rest, faces, pl)
