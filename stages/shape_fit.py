@@ -105,7 +105,42 @@ def run(ctx: StageContext) -> None:
         "marker_sequences": [n for n, _ in named if not n.startswith("static[")],
         "cleaned": {n: {k: c[k] for k in ("removed_samples", "removed_fraction",
                                           "removed_by_reason", "unswapped")}
-                    for n, c in cleaned.items()}, **report})
+                    for n, c in cleaned.items()}, **report, "warnings": shape_warnings(report)})
+    for w in shape_warnings(report):
+        ctx.log(f"{ctx.unit}: WARNING {w}")
+
+
+# the shape_fit report warns about a marker slid further than this from the template (a lab's
+# placement can differ by ~10 cm, beyond it the marker may sit on another landmark) ...
+WARN_SLIDE_MM = 100.0
+# ... a skin offset this close to the 35 mm bound, and a placement residual above this
+WARN_OFFSET_MM = 30.0
+WARN_PLACEMENT_MM = 15.0
+
+
+def shape_warnings(report: dict) -> list[str]:
+    """Sentences for what a person must look at in a shape_fit report: markers that left their
+    body segment (flagged by the placement and refitted), slid far or sit far off the skin,
+    markers the placement frames could not fit, a mean shape standing in for a subject."""
+    out = []
+    off = report.get("markers_off_segment") or []
+    if off:
+        out.append(f"markers off their body segment (refitted near the template, check their "
+                   f"labels and placement): {', '.join(off)}")
+    for n, v in (report.get("placement_slide_mm") or {}).items():
+        if v is not None and v > WARN_SLIDE_MM:
+            out.append(f"marker {n}: placed {v:.0f} mm from the marker set's template position")
+    for n, v in (report.get("placement_offset_mm") or {}).items():
+        if v is not None and v > WARN_OFFSET_MM:
+            out.append(f"marker {n}: {v:.0f} mm off the skin (skin offset near its bound)")
+    per = (report.get("placement_residual_mm") or {}).get("per_marker_median") or {}
+    for n, v in per.items():
+        if v is not None and v > WARN_PLACEMENT_MM:
+            out.append(f"marker {n}: {v:.0f} mm median residual in the placement frames "
+                       f"({', '.join(str(f['capture']) + ' sample ' + str(f['frame']) for f in (report.get('placement_frames') or [])[:3])}...)")
+    if report.get("shape_source") == "mean":
+        out.append("no scan and no marker capture: the subject has the mean shape")
+    return out
 
 
 STAGE = Stage(name="shape_fit", func=run, per="subject", upstream=(), params=Options,

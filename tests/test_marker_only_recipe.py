@@ -101,3 +101,22 @@ def test_cli_set_overrides_a_stage_option_and_names_bad_ones(tmp_path):
         "marker_fit": {"max_frames": 5, "weights": {"L_s": 0.5}}}
     with pytest.raises(CliError, match="expected STAGE.KEY=VALUE"):
         overrides(["marker_fit=5"])
+
+
+def test_shape_fit_warnings_name_the_marker():
+    """A placement that left its segment, slid 160 mm, sits 33 mm off the skin or fits its
+    placement frames 40 mm off is a warning naming the marker; a clean report has none."""
+    from stages.shape_fit import shape_warnings
+
+    clean = {"shape_source": "markers", "markers_off_segment": [],
+             "placement_slide_mm": {"LTIB": 20.0}, "placement_offset_mm": {"LTIB": 10.0},
+             "placement_residual_mm": {"per_marker_median": {"LTIB": 2.0}}}
+    assert shape_warnings(clean) == []
+    bad = {**clean, "markers_off_segment": ["RELB"], "placement_slide_mm": {"LTIB": 160.0},
+           "placement_offset_mm": {"STRN": 33.0},
+           "placement_residual_mm": {"per_marker_median": {"C7": 40.0}},
+           "placement_frames": [{"capture": "s1/Walk 1", "frame": 12}]}
+    w = "\n".join(shape_warnings(bad))
+    for s in ("RELB", "LTIB: placed 160 mm", "STRN: 33 mm off the skin", "C7: 40 mm",
+              "s1/Walk 1 sample 12"):
+        assert s in w, w
