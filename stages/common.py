@@ -145,7 +145,7 @@ def marker_timeline(seq, raw: dict, markers, keypoints=None):
     if seq.has_video:
         from formats.video import video_info
 
-        fps = sequence_fps(seq.fps, raw["video"])
+        fps = sequence_fps(seq.fps, raw.get("video"))
         if keypoints is not None:
             frames = np.asarray(keypoints.frames, dtype=np.int64)
         else:
