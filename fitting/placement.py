@@ -53,7 +53,11 @@ FAR_M = 1.5  # a marker this far from its frame's median marker is a ghost (a bo
 OUTLIER_MIN_MM = 30.0  # marker-frame outlier: tracked residual > marker median + this ...
 OUTLIER_MADS = 6.0  # ... and > median + this many robust spreads (1.4826 MAD)
 SIZE_TRIM = 0.9  # size start score: mean of the markers' median residuals, best 90 % of them
-SIZE_GRID = np.linspace(-0.8, 0.8, 9)  # size start: values tried for beta 0 (and 1, every other)
+# size start: values tried for beta 0 (and 1, every other), then halving steps around the best
+# down to SIZE_STEP_MIN (the studio draws people of 1.4-2.0 m: beta 0 of -1 to +1 and beyond;
+# a grid of +-0.8 left a 1.46 m subject 15 cm too tall, v2v 40 mm)
+SIZE_GRID = np.linspace(-3.0, 3.0, 13)
+SIZE_STEP_MIN = 0.1
 WAND_MIN_MM = 10.0  # a marker at the offset bound with a median residual in this range ...
 WAND_MAX_MM = 60.0  # ... is on a wand (larger: misplaced, not on a wand)
 BEYOND_CAP_M = 0.05  # a marker held at its slide cap with a larger median error is out of reach
@@ -628,14 +632,20 @@ def size_start(model, skel, betas, template, X, obs, vis, make_solver, opts: Pla
     best = (*score(betas, X), np.array(betas, float))
     for k in range(min(2, len(betas))):
         base = best[2].copy()
-        for v in SIZE_GRID if k == 0 else SIZE_GRID[::2]:
-            cand = base.copy()
-            cand[k] = v
-            if np.allclose(cand, base):
-                continue
-            r, XX = score(cand, X)
-            if r < best[0]:
-                best = (r, XX, cand)
+        grid = list(SIZE_GRID if k == 0 else SIZE_GRID[::2])
+        step = float(SIZE_GRID[1] - SIZE_GRID[0]) * (1 if k == 0 else 2)
+        while grid:  # the grid, then halving steps around the best value (coarse to fine)
+            for v in grid:
+                cand = base.copy()
+                cand[k] = v
+                if np.allclose(cand, base):
+                    continue
+                r, XX = score(cand, X)
+                if r < best[0]:
+                    best = (r, XX, cand)
+            step /= 2
+            base = best[2].copy()
+            grid = [base[k] - step, base[k] + step] if step >= SIZE_STEP_MIN else []
         if log:
             log(f"size start: beta {k} = {best[2][k]:+.2f} (placement-frame marker medians "
                 f"{best[0]:.2f} mm)")
