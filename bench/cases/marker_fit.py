@@ -1,18 +1,18 @@
-"""marker_fit accuracy and speed on a synthetic marker capture with exact ground truth.
-
-Data (bench/fitting_synth.py): an Anny subject drawn like the studio's, Plug-in Gait
-markers slid from their template, 150 frames at 50 fps of a smooth motion of the 22 fitted
-body joints, markers with 1 mm noise and occlusion gaps on 30 % of them. The fit is given the
-subject's true shape and marker placement (what shape_fit estimates is scored by the
-shape_fit case), so these figures isolate the per-frame fit.
+"""marker_fit on the realistic marker studio, through the stage chain (``_markers_chain``):
+the shape and the marker placement are what shape_fit estimated from the markers, never the
+truth; the capture has soft tissue, swaps, ghosts and spikes. Scored on the studio's exact
+ground truth (gt row i = C3D sample i).
 
 Keys:
-- ``marker_fit.mpjpe_mm``: mean joint position error over frames and the fitted body joints;
-- ``marker_fit.mpvpe_mm``: mean vertex error over frames and all vertices;
-- ``marker_fit.fps_per_core``: frames per CPU-second of the compiled fit (one thread; CPU time,
-  so other work on the machine does not count); ``marker_fit.fps_wall``: per wall-second;
-- ``marker_fit.residual_median_mm``: median marker residual (noise floor ~0.8 mm);
-- ``marker_fit.compile_s``: building the compiled function (0 when cached).
+- ``marker_fit.mpjpe_mm``: mean joint position error over the valid frames and the fitted
+  body joints (no fingers: Plug-in Gait has no finger markers);
+- ``marker_fit.mpvpe_mm``: mean vertex error over the valid frames and all vertices;
+- ``marker_fit.residual_median_mm`` / ``residual_p90_mm``: marker residuals (against the
+  recorded markers, soft tissue and faults included);
+- ``marker_fit.loo_median_mm`` / ``loo_p90_mm``: leave-one-out error (``marker_loo``);
+- ``marker_fit.fps_per_core``: frames per CPU-second of the fit (report ``fps_per_cpu_s``);
+- ``marker_fit.frames_valid_share``: valid frames / C3D samples;
+- ``marker_fit.warnings``: warnings in the reports (``marker_fit`` and ``marker_loo``).
 """
 from __future__ import annotations
 
@@ -25,87 +25,58 @@ GOALS = {
     "marker_fit.mpvpe_mm": ("<=", 8.0),
     "marker_fit.fps_per_core": (">=", 100.0),
 }
-FRAMES, FPS, SEED = 150, 50.0, 11
+_SHAPE = ("the shape and the placement come from the markers (no scan): on this studio the "
+          "fitted bodies are 14-20 mm v2v off the true ones in pose 0 (shape_fit.v2v_markers_mm) "
+          "and the placements slid 1.5-2.5 cm with 8-25 mm skin offsets are recovered to "
+          "shape_fit.placement_mm; the markers are fitted to ~1.4 mm, so the body is in the "
+          "right place on the outside while its joints (hips, spine: 30-50 mm) sit where the "
+          "wrong shape puts them. With the true shape and placement the same fit reached "
+          "0.9 mm (earlier bench). MoSh++ reports similar joint errors without a scan.")
+LIMITS = {"marker_fit.mpjpe_mm": _SHAPE, "marker_fit.mpvpe_mm": _SHAPE}
 
 
-def run(work: Path) -> dict[str, float]:  # noqa: ARG001 - nothing written to disk
-    from bench import fitting_synth as S
-
-    studio = S.studio_session()
-    if studio is not None:
-        return _run_studio(*studio)
-
-    from body import load_model
-    from body.lbs import forward, rest_state
-    from fitting import marker_fit, mocap, shape, skinned
-    from formats.c3d import Markers
-
-    rng = np.random.default_rng(SEED)
-    model = load_model("anny")
-    betas = S.subject_betas(model, rng)
-    tpl, _ = S.template(model)
-    pl = S.slide(model, tpl, rng)
-    skel = skinned.fit_skeleton(model, shape.body_joints(model))
-    X = S.motion(skel, FRAMES, FPS, rng)
-    rest = rest_state(model, betas)
-    truth = S.posed(model, betas, skel, X, rest)
-    obs, _ = S.observe(S.true_markers(model, truth.vertices, pl), rng)
-
-    # the capture sampled at the video frames (gaps NaN), the true shape and placement
-    capture = Markers(pl.names, obs, FPS)
-    fit, rep = marker_fit.fit_markers(model, shape.to_shape_fit(betas, pl, "given", "given"), tpl,
-                                      capture, mocap.VideoClock(FPS), np.arange(FRAMES),
-                                      opts=marker_fit.MarkerFitOptions(compile="compiled"))
-    est = forward(model, betas, fit.body_pose, fit.global_orient, fit.transl, rest=rest)
-    jerr = np.linalg.norm(est.joints - truth.joints, axis=2)[:, skel.joints] * 1000
-    verr = np.linalg.norm(est.vertices - truth.vertices, axis=2) * 1000
-    fitted = FRAMES - rep["first_fitted_frame"]
-    return {
-        "marker_fit.mpjpe_mm": float(jerr.mean()),
-        "marker_fit.mpvpe_mm": float(verr.mean()),
-        "marker_fit.fps_per_core": float(fitted / rep["fit_cpu_s"]),
-        "marker_fit.fps_wall": float(fitted / rep["fit_s"]),
-        "marker_fit.residual_median_mm": float(rep["residual_mm"]["median"]),
-        "marker_fit.compile_s": float(rep["build_s"]),
-    }
-
-
-def _run_studio(recipe, gt: Path) -> dict[str, float]:
-    """Every sequence of a generated studio session: the marker wearer's C3D resampled to the
-    video frames, fitted with the subject's true shape and marker placement (gt), scored on
-    the true joints (all 52 fit joints, fingers included: they are not observed without hand
-    keypoints) and vertices of the valid frames."""
+def run(work: Path) -> dict[str, float]:  # noqa: ARG001 - the chain has its own work folder
+    from artifacts import BodyFit
+    from bench.cases._markers_chain import report_json, run_chain
     from body import load_model
     from body.lbs import forward
-    from body.markers import load_json
-    from fitting import marker_fit, mocap, shape, skinned
-    from fitting.marker_graph import template_placement
-    from formats.c3d import read_c3d
+    from fitting import shape, skinned
 
+    recipe, out, gt = run_chain()
     model = load_model("anny")
     skel = skinned.fit_skeleton(model, shape.body_joints(model))
-    tpl = template_placement(model, "plug-in-gait")
-    opts = marker_fit.MarkerFitOptions(compile="compiled")
-    jerr, verr, frames, t_fit = [], [], 0, 0.0
-    for sid, seq in recipe.sequences.items():
-        g = dict(np.load(gt / sid.split("/")[0] / f"{sid.split('/')[1]}.npz"))
-        betas = g["betas"][0]
-        given = shape.to_shape_fit(betas, template_placement(
-            model, load_json(gt / "subjects" / f"{seq.markers_on}_markers.json")), "given", "given")
-        mk = read_c3d(seq.c3d, markers=list(given.names), allow_missing=True)
-        F = len(g["frames"])
-        fit, rep = marker_fit.fit_markers(
-            model, given, tpl, mk, mocap.VideoClock(seq.fps, seq.mocap.sync_offset_s),
-            np.arange(F), opts=opts, source=str(seq.c3d))
-        t_fit += rep["fit_cpu_s"]
-        est = forward(model, betas, fit.body_pose, fit.global_orient, fit.transl)
+    jerr, verr, res, loo, cpu, frames, valid, total, warn = [], [], [], [], 0.0, 0, 0, 0, 0
+    for sid in recipe.sequences:
+        g, a = sid.split("/")
+        truth = np.load(gt / g / f"{a}.npz")
+        fit = BodyFit.load(out / g / a / "marker_fit")
+        rep = report_json(out / g / a / "marker_fit" / "report.json")
+        rows = np.asarray(fit.frames) - int(truth["first_frame"])
         ok = fit.valid
-        jerr.append(np.linalg.norm(est.joints - g["joints"][0], axis=2)[ok][:, skel.joints])
-        verr.append(np.linalg.norm(est.vertices - g["vertices"][0], axis=2)[ok])
-        frames += int(ok.sum())
-    return {
-        "marker_fit.mpjpe_mm": float(np.concatenate(jerr).mean() * 1000),
-        "marker_fit.mpvpe_mm": float(np.concatenate(verr).mean() * 1000),
-        "marker_fit.fps_per_core": float(frames / t_fit),
-        "marker_fit.studio_frames": float(frames),
-    }
+        est = forward(model, fit.betas, fit.body_pose[ok], fit.global_orient[ok], fit.transl[ok])
+        jerr.append(np.linalg.norm(est.joints - truth["joints"][rows[ok]], axis=2)[:, skel.joints])
+        verr.append(np.linalg.norm(est.vertices - truth["vertices"][rows[ok]], axis=2).mean(1))
+        res.append(fit.marker_residual_m[ok].reshape(-1))
+        cpu += rep["fit_cpu_s"]
+        frames += len(fit.frames) - rep["first_fitted_frame"]
+        valid += int(ok.sum())
+        total += len(fit.frames)
+        warn += len(rep["warnings"])
+        lp = out / g / a / "marker_loo" / "report.json"
+        if lp.is_file():
+            lr = report_json(lp)
+            warn += len(lr["warnings"])
+            loo.append(np.load(out / g / a / "marker_loo" / "loo.npz")["error_mm"].reshape(-1))
+    r = np.concatenate(res) * 1000
+    o = {"marker_fit.mpjpe_mm": float(np.concatenate(jerr).mean() * 1000),
+         "marker_fit.mpvpe_mm": float(np.concatenate(verr).mean() * 1000),
+         "marker_fit.residual_median_mm": float(np.nanmedian(r)),
+         "marker_fit.residual_p90_mm": float(np.nanpercentile(r, 90)),
+         "marker_fit.fps_per_core": float(frames / max(cpu, 1e-9)),
+         "marker_fit.frames_valid_share": float(valid / max(total, 1)),
+         "marker_fit.warnings": float(warn)}
+    if loo:
+        e = np.concatenate(loo)
+        o["marker_fit.loo_median_mm"] = float(np.nanmedian(e))
+        o["marker_fit.loo_p90_mm"] = float(np.nanpercentile(e, 90))
+    return o

@@ -10,8 +10,11 @@ Keys:
   pose (pose 0, both centred on their mean vertex), scan-based shape;
 - ``shape_fit.scan_to_model_mm``: median distance of the scan points to the fitted surface;
 - ``shape_fit.placement_mm``: mean distance between refined and true marker positions on the
-  true body's rest pose, after MoSh++-style refinement from the slid template;
-- ``shape_fit.v2v_markers_mm``: like ``v2v_mm`` for the marker-based shape (no scan);
+  true body's rest pose, on the realistic marker studio through the stage chain
+  (``_markers_chain``: no scan, shape and placement from the markers);
+  ``placement_template_mm`` the template's;
+- ``shape_fit.v2v_markers_mm``: like ``v2v_mm`` for the marker-based shape of that chain
+  (``v2v_mean_body_mm``: the mean body's, for scale);
 - ``shape_fit.scan_fit_s``: wall time of the scan fit.
 """
 from __future__ import annotations
@@ -21,7 +24,15 @@ from pathlib import Path
 
 import numpy as np
 
-GOALS = {"shape_fit.v2v_mm": ("<=", 5.0)}
+GOALS = {"shape_fit.v2v_mm": ("<=", 5.0), "shape_fit.v2v_markers_mm": ("<=", 10.0)}
+LIMITS = {"shape_fit.v2v_markers_mm": (
+    "markers fix the body's outside where they sit, not its shape: with slides of 2-3 cm and "
+    "skin offsets of 8-25 mm allowed, shape and placement trade off (a body 1 cm thicker with "
+    "markers 1 cm closer fits as well), and Anny's rest posture (bind rotations) changes with "
+    "the shape, which free poses absorb: even with the true placement and clean markers the "
+    "joint betas and poses fit reached 13-16 mm v2v (helper measurement, "
+    "tests/test_shape_markers.py). The size grid over beta 0 (-3..3, refined) fixed the worst "
+    "case (a 1.46 m subject fitted 15 cm too tall: 40 -> 14.5 mm).")}
 SEED = 5
 PLACEMENT_FRAMES = 8
 
@@ -38,10 +49,9 @@ def run(work: Path) -> dict[str, float]:  # noqa: ARG001 - nothing written to di
 
     studio = S.studio_session()
     if studio is not None:
-        return _run_studio(*studio)
+        return {**_run_studio(*studio), **_markers_chain()}
 
     from body import load_model
-    from body.lbs import rest_state
     from fitting import shape, skinned
     from studio.scan import sample_scan
 
@@ -54,7 +64,6 @@ def run(work: Path) -> dict[str, float]:  # noqa: ARG001 - nothing written to di
     x[:3] = [0.0, 0.0, rng.uniform(-np.pi, np.pi)]
     v = S.posed(model, betas, skel, x[None]).vertices[0]
     v[:, 2] -= v[:, 2].min()
-    rest = rest_state(model, betas)
     armpits = S.posed(model, betas, skel, x[None]).joints[0][
         [model.joint_index("upperarm01.L"), model.joint_index("upperarm01.R")]]
     armpits[:, 2] -= S.posed(model, betas, skel, x[None]).vertices[0][:, 2].min()
@@ -66,26 +75,45 @@ def run(work: Path) -> dict[str, float]:  # noqa: ARG001 - nothing written to di
            "shape_fit.scan_to_model_mm": rep["scan_to_model_mm"]["median"],
            "shape_fit.scan_fit_s": float(t_scan)}
 
-    # marker placement (true shape known up to the scan fit) and the marker-based shape
-    tpl, _ = S.template(model)
-    pl = S.slide(model, tpl, rng)
-    X = S.motion(skel, 200, 50.0, rng)
-    obs, _ = S.observe(S.true_markers(model, S.posed(model, betas, skel, X, rest).vertices, pl),
-                       rng)
-    placed, _ = shape.fit_placement(model, shape.to_shape_fit(scan_betas, tpl, "scan", "template"),
-                                    [obs], opts)
-    faces = np.asarray(model.faces)
-    p_true = shape.marker_rest_points(rest.vertices[0], faces, pl)
-    p_fit = shape.marker_rest_points(rest.vertices[0], faces, shape.placement_of(placed))
-    p_tpl = shape.marker_rest_points(rest.vertices[0], faces, tpl)
-    out["shape_fit.placement_mm"] = float(np.linalg.norm(p_fit - p_true, axis=1).mean() * 1000)
-    out["shape_fit.placement_template_mm"] = float(
-        np.linalg.norm(p_tpl - p_true, axis=1).mean() * 1000)
-    from_markers, _ = shape.fit_placement(
-        model, shape.to_shape_fit(np.zeros(opts.marker_num_betas), tpl, "markers", "template"),
-        [obs], opts)
-    out["shape_fit.v2v_markers_mm"] = _v2v(model, betas, from_markers.betas)
+    out.update(_markers_chain())
     return out
+
+
+def _markers_chain() -> dict[str, float]:
+    """Shape and placement from markers only, on the realistic marker studio through the
+    stage chain (``_markers_chain``): per subject the fitted betas against the true ones
+    (v2v in pose 0, centred) and the fitted placement against the true one (both on the true
+    rest body), averaged over the subjects."""
+    from artifacts import ShapeFit
+    from bench.cases._markers_chain import run_chain
+    from body import load_model
+    from body.lbs import rest_state
+    from body.markers import load_json
+    from fitting import shape
+    from fitting.marker_graph import template_placement
+
+    recipe, out, gt = run_chain(until="shape_fit")
+    model = load_model("anny")
+    faces = np.asarray(model.faces)
+    v2v, v2v_mean, place, place_tpl = [], [], [], []
+    tpl = template_placement(model, "plug-in-gait")
+    for sid in recipe.subjects:
+        sf = ShapeFit.load(out / sid / "shape_fit")
+        true_betas = np.load(gt / "subjects" / f"{sid}.npz")["betas"]
+        v2v.append(_v2v(model, true_betas, sf.betas))
+        v2v_mean.append(_v2v(model, true_betas, np.zeros(1)))
+        rest = rest_state(model, true_betas).vertices[0]
+        truth = template_placement(model, load_json(gt / "subjects" / f"{sid}_markers.json",
+                                                    num_faces=len(faces)))
+        p_true = shape.marker_rest_points(rest, faces, truth)
+        p_fit = shape.marker_rest_points(rest, faces, shape.placement_of(sf))
+        place.append(np.linalg.norm(p_fit - p_true, axis=1).mean() * 1000)
+        place_tpl.append(np.linalg.norm(shape.marker_rest_points(rest, faces, tpl) - p_true,
+                                        axis=1).mean() * 1000)
+    return {"shape_fit.v2v_markers_mm": float(np.mean(v2v)),
+            "shape_fit.v2v_mean_body_mm": float(np.mean(v2v_mean)),
+            "shape_fit.placement_mm": float(np.mean(place)),
+            "shape_fit.placement_template_mm": float(np.mean(place_tpl))}
 
 
 def _run_studio(recipe, gt: Path) -> dict[str, float]:

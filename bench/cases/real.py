@@ -1,0 +1,141 @@
+"""Public recorded Vicon captures (``recipes/real.yaml``; the files stay in ``../shared/real``,
+see SOURCES.md there), each run as a marker-only sequence through the engine: shape_fit
+(shape and marker placement from the markers) -> marker_fit (every sample at the capture's own
+rate) -> marker_loo (leave-one-out). No ground truth exists: the honest figures are the
+residual of the fitted markers and, above all, the leave-one-out error of a marker the fit
+did not see.
+
+Keys, per capture ``<tag>`` (``pycgm_movement``, ``ktk_serve``, ``ktk2_derrick``,
+``ktk2_viktor``, ``cmu_walk``, ``opensim_jogging``):
+- ``real.<tag>.residual_median_mm`` / ``residual_p90_mm``: marker residuals over all
+  marker-frames of the valid frames;
+- ``real.<tag>.loo_median_mm`` / ``loo_p90_mm``: each marker predicted by a fit without it;
+- ``real.<tag>.fps_per_cpu_s``: marker_fit frames per CPU-second;
+- ``real.<tag>.frames_valid_share``: valid frames / C3D samples (all frames: goal 1);
+- ``real.<tag>.warnings``: how many warnings the marker_fit report gives.
+And the C3D format suite (the same capture by DEC, PC and SGI processors, int and real):
+``real.c3d_suite_files_read`` (of 6) and ``real.c3d_suite_max_diff_mm`` (largest coordinate
+difference from ``pc_real``).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[2]
+RECIPE = REPO / "recipes" / "real.yaml"
+TAGS = {"pycgm/Movement 1": "pycgm_movement", "ktk/Tennis Serve 1": "ktk_serve",
+        "ktk2/Derrick Serve 1": "ktk2_derrick", "ktk2/Viktor Serve 1": "ktk2_viktor",
+        "cmu/Walk 05": "cmu_walk", "opensim/Jogging 1": "opensim_jogging"}
+GOALS = {}
+LIMITS = {}
+for _t in TAGS.values():
+    GOALS.update({f"real.{_t}.residual_median_mm": ("<=", 2.5),
+                  f"real.{_t}.residual_p90_mm": ("<=", 6.0),
+                  f"real.{_t}.loo_median_mm": ("<=", 9.0),
+                  f"real.{_t}.fps_per_cpu_s": (">=", 100.0),
+                  f"real.{_t}.frames_valid_share": ("==", 1.0)})
+GOALS["real.c3d_suite_files_read"] = ("==", 6.0)
+_SERVE = ("the trunk in the tennis serves: STRN, CLAV and T10 fit to ~5 mm in the placement "
+          "frames but reach 40-60 mm together at the same instant of every serve, a pose or "
+          "skinning limit, not placement: Plug-in Gait's trunk markers skin mostly to spine02 / "
+          "spine04, which the fit keeps rigid (freeing them cut the serve's p90 8.3 -> 7.6 mm "
+          "but raised the leave-one-out figures, pycgm 7.3 -> 8.4 mm: tried, reverted)")
+_LOO = ("leave-one-out mixes the placement's error with how well the other markers fix the "
+        "pose: without LSHO/RSHO or LUPA/RUPA the upper arm's roll, without a toe or heel marker "
+        "the foot, is barely determined (per-marker figures in marker_loo/report.json); the "
+        "throwaway prototype's 9.3 mm figure was on the pycgm capture, which passes")
+for _t in ("ktk_serve", "ktk2_derrick", "ktk2_viktor"):
+    LIMITS[f"real.{_t}.residual_median_mm"] = _SERVE
+    LIMITS[f"real.{_t}.residual_p90_mm"] = _SERVE
+for _t in TAGS.values():
+    LIMITS[f"real.{_t}.loo_median_mm"] = _LOO
+for _k in ("residual_median_mm", "residual_p90_mm"):
+    LIMITS[f"real.cmu_walk.{_k}"] = (
+        "the CMU set's template (body.markers.cmu41) was placed by rays on Anny without a real "
+        "CMU subject to check it against: C7-T10 is 23 cm in the data against 35 cm on the "
+        "template, and the waist markers sit elsewhere; the placement slides them but not all "
+        "the way within its 200 mm cap and segment rule")
+    LIMITS[f"real.opensim_jogging.{_k}"] = "as the other captures: the trunk and the knees."
+
+
+def _recipe(work: Path) -> Path:
+    """recipes/real.yaml with absolute paths (the bench runs from its own work folder)."""
+    import yaml
+
+    rec = yaml.safe_load(RECIPE.read_text())
+
+    def absolute(p):
+        q = (RECIPE.parent / p).resolve()
+        if not q.exists():
+            raise FileNotFoundError(f"{RECIPE}: {p}: not found ({q}); the real captures live in "
+                                    "../shared/real beside the checkout")
+        return str(q)
+
+    for s in rec["subjects"].values():
+        for t in s.get("static", []):
+            t["c3d"] = absolute(t["c3d"])
+    for q in rec["sequences"].values():
+        q["c3d"] = absolute(q["c3d"])
+    path = work / "recipe.yaml"
+    path.write_text(yaml.safe_dump(rec, sort_keys=False))
+    return path
+
+
+def _suite() -> dict[str, float]:
+    from formats.c3d import read_c3d
+    from formats.errors import InputError
+
+    folder = (RECIPE.parent / "../../shared/real/c3d_format_suite").resolve()
+    ref = read_c3d(folder / "pc_real.c3d")
+    read, diff = 0, 0.0
+    for f in sorted(folder.glob("*.c3d")):
+        try:
+            m = read_c3d(f)
+        except InputError as e:
+            print(f"[bench real] {f.name}: {e}", flush=True)
+            continue
+        read += 1
+        both = np.isfinite(m.xyz) & np.isfinite(ref.xyz)
+        if m.names != ref.names or m.xyz.shape != ref.xyz.shape:
+            raise RuntimeError(f"{f.name}: other labels or shape than pc_real.c3d")
+        diff = max(diff, float(np.max(np.abs(m.xyz[both] - ref.xyz[both]))) * 1000)
+    return {"real.c3d_suite_files_read": float(read), "real.c3d_suite_max_diff_mm": diff}
+
+
+def run(work: Path) -> dict[str, float]:
+    from artifacts import BodyFit
+    from pipeline.cli import main
+    from recipes import load_recipe
+
+    path = _recipe(work)
+    recipe = load_recipe(path)
+    out: dict[str, float] = {}
+    for sid, tag in TAGS.items():
+        logs: list[str] = []
+        rc = main(["sequence", sid, "--recipe", str(path), "--outputs", str(work / "outputs"),
+                   "--until", "marker_loo"], log=logs.append)
+        print("\n".join(logs[-6:]), flush=True)
+        if rc != 0:
+            out[f"real.{tag}.error"] = 1.0
+            (work / f"{tag}.log").write_text("\n".join(logs))
+            continue
+        g, a = sid.split("/")
+        base = work / "outputs" / recipe.session / g / a
+        rep = json.loads((base / "marker_fit" / "report.json").read_text())
+        fit = BodyFit.load(base / "marker_fit")
+        mm = fit.marker_residual_m[fit.valid] * 1000
+        out[f"real.{tag}.residual_median_mm"] = float(np.nanmedian(mm))
+        out[f"real.{tag}.residual_p90_mm"] = float(np.nanpercentile(mm, 90))
+        out[f"real.{tag}.fps_per_cpu_s"] = float(rep["fps_per_cpu_s"])
+        out[f"real.{tag}.frames_valid_share"] = float(fit.valid.mean())
+        out[f"real.{tag}.warnings"] = float(len(rep["warnings"]))
+        loo = base / "marker_loo" / "report.json"
+        if loo.is_file():
+            lr = json.loads(loo.read_text())
+            out[f"real.{tag}.loo_median_mm"] = float(lr["overall"]["median_mm"])
+            out[f"real.{tag}.loo_p90_mm"] = float(lr["overall"]["p90_mm"])
+    out.update(_suite())
+    return out
