@@ -27,7 +27,7 @@ sequence: setup
 	@$(PY) -m pipeline sequence "$(SEQ)" --recipe $(RECIPE) $(if $(STAGE),--until $(STAGE),) $(foreach f,$(FORCE),--force $(f))
 
 loo: setup
-	@test -n "$(SEQ)" || { echo "usage: make loo SEQ=<group>/<action> [RECIPE=...] [MARKERS=RELB,RWRA] [STRIDE=4]"; exit 2; }
+	@test -n "$(SEQ)" || { echo "usage: make loo SEQ=<group>/<action> [RECIPE=...] [MARKERS=RELB,RWRA] [STRIDE=2]"; exit 2; }
 	@$(PY) -m pipeline sequence "$(SEQ)" --recipe $(RECIPE) --until marker_loo $(if $(MARKERS),--set "marker_loo.markers=[$(MARKERS)]",) $(if $(STRIDE),--set marker_loo.stride=$(STRIDE),) $(foreach f,$(FORCE),--force $(f))
 
 release: setup
