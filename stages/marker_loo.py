@@ -72,6 +72,9 @@ def run(ctx: StageContext) -> None:
     template = common.marker_template(ctx, rv.wearer.markerset, model)
     markers = common.read_subject_markers(ctx.raw["c3d"], shape.names, rv.wearer.label_prefix,
                                           rv.wearer.marker_labels)
+    # the same cleaned observations marker_fit fitted: ghosts and spikes neither enter the
+    # refits nor score the held-out marker
+    markers, _ = common.clean_capture(markers, ctx.raw["c3d"])
     unknown = [m for m in o.markers if m not in shape.names]
     if unknown:
         raise InputError(ctx.recipe_path or "<recipe>", "stages.marker_loo.markers",
