@@ -36,6 +36,10 @@ PLANNED: tuple[tuple[str, Granularity, tuple[str, ...], str], ...] = (
     ("convert", "sequence", ("marker_fit", "partner_fit"), "SMPL-X parameters of both"),
     ("export", "sequence", ("shape_fit", "keypoints", "marker_fit", "partner_fit", "convert"),
      "CHI3D-layout files"),
+    ("release", "session", ("export",),
+     "the release folder: every sequence's export, SHA-256 manifest, datasheet, re-read"),
+    ("evaluate", "session", ("release",),
+     "the CHI3D benchmark of the release against the session's ground truth"),
 )
 
 
@@ -111,7 +115,10 @@ VIDEO_STAGES = ("keypoints", "partner_fit")
 
 def applies(recipe: Session, stage: str, unit: str) -> bool:
     """Whether ``stage`` runs for ``unit``: the video stages only on sequences recorded with
-    video (``partner_fit`` also needs a partner); everything else always."""
+    video (``partner_fit`` also needs a partner); ``evaluate`` only when the recipe names a
+    ground-truth folder (``stages.evaluate.truth``); everything else always."""
+    if stage == "evaluate":
+        return bool((recipe.stages.get("evaluate") or {}).get("truth"))
     if stage not in VIDEO_STAGES or unit not in recipe.sequences:
         return True
     seq = recipe.sequences[unit]
@@ -129,7 +136,10 @@ def recipe_view(recipe: Session, unit: str, name: str):
       of ``markers_on`` / ``partner``; all None without a partner);
     - per subject: ``subject.<markerset | sex | label_prefix | marker_labels | has_scan | marker_sequences |
       static_frames>`` (``static_frames``: each static trial's ``[first, last]`` or None);
-    - ``ground_plane.<normal | offset>`` (or ``ground_plane``).
+    - ``ground_plane.<normal | offset>`` (or ``ground_plane``);
+    - for the session: ``session.<name | subjects | sequences>``, ``sequences`` mapping each
+      sequence id to its ``group``, ``action``, ``markers_on``, ``partner``, ``fps``, ``text``
+      and ``has_video``.
 
     Files are never part of the view (they are raw inputs, keyed by content): a marker set
     given as a ``.json`` file reads as ``"file"``. KeyError for any other name."""
@@ -154,6 +164,13 @@ def recipe_view(recipe: Session, unit: str, name: str):
                               "rate_hz": seq.mocap.rate_hz}}
         else:
             tree = _subject_fields(recipe, seq.markers_on if head == "wearer" else seq.partner)
+        return _pick(tree, rest, name)
+    if head == "session":
+        tree = {"name": recipe.session, "subjects": list(recipe.subjects),
+                "sequences": {q: {"group": q.split("/", 1)[0], "action": q.split("/", 1)[-1],
+                                  "markers_on": s.markers_on, "partner": s.partner,
+                                  "fps": s.fps, "text": s.text, "has_video": s.has_video}
+                              for q, s in recipe.sequences.items()}}
         return _pick(tree, rest, name)
     if head == "subject":
         if unit not in recipe.subjects:
