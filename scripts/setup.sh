@@ -40,3 +40,7 @@ fi
 if [ -f body/anny_export.py ]; then
   "$PY" -m body.anny_export --if-stale
 fi
+# The SMPL-X-schema stand-in target (Anny re-rigged on its own remeshed surface; ~5-25 s).
+if [ -f body/smplx_standin.py ]; then
+  "$PY" -m body.smplx_standin --if-stale
+fi
