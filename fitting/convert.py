@@ -1,0 +1,677 @@
+"""Conversion of a fitted body (Anny by default) to a model of the SMPL family, frame by frame.
+
+Two parts (pure numpy / scipy / libigl; no stage imports):
+
+1. ``register(source, target)``: a surface correspondence between the two models, built once
+   per model pair the way CHI3D registered SMPL-X to GHUM. The target template is fitted onto
+   the source template (both at betas 0, pose 0, the source's reference posture): first its
+   joints onto the source's joints of the same name (``ANNY_TO_SMPLX_ANCHOR`` for Anny), solving
+   target pose, translation and shape betas; then a few rounds of ICP (each subsampled target
+   vertex to its closest point of the source surface, same unknowns); then a per-vertex
+   free-form offset regularised by the mesh Laplacian (non-rigid ICP with decreasing stiffness).
+   The result is a :class:`Correspondence`: each target vertex on the source surface (face +
+   barycentric coordinates), each source vertex on the registered target surface, and the
+   nearest facet of the other mesh at every facet centroid.
+
+2. ``convert_motion(...)``: per frame, the target points are the posed source surface at each
+   target vertex's correspondence; Levenberg-Marquardt on pose (body, hands, jaw) and
+   translation with the exact LBS Jacobian of ``fitting.skinned.point_jacobian`` (pose
+   correctives enter the residual, not the Jacobian), on a subsample of target vertices;
+   shape betas once per subject, then frozen: by default (``shape_at_rest``) one static fit
+   at the subject's rest posture (pose 0, where the registration was made: betas depend on
+   the subject only), else jointly with the poses of ``shape_frames`` frames of the motion. Each frame starts from the
+   previous one (the first from the joint-name correspondence). The reported error is every
+   target vertex's distance to the posed source SURFACE (libigl point-to-mesh), in mm.
+
+Unknowns of a frame: ``x = [r (3) global rotation vector, T (3), theta (3 (Q-1))]`` over the
+fit skeleton (every joint but the eyes), as in ``fitting/skinned.py``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import igl
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from body.lbs import forward, rest_state
+from body.model import BodyModel
+from body.rotations import rodrigues, rotmat_to_rotvec
+from fitting.skinned import (
+    _fk_np,
+    fit_skeleton,
+    point_jacobian,
+    reduced_offsets,
+    subtree,
+    vertex_coeffs,
+)
+
+REGISTRATION_VERSION = "1"  # part of the correspondence cache key: bump when register() changes
+
+# SMPL-X joint -> the Anny bone whose head it sits at (from body.smplx_from_anny.ANNY_TO_SMPLX;
+# copied, that module being a test-asset builder). Joints without an anchor are not matched.
+ANNY_TO_SMPLX_ANCHOR: dict[str, str] = {
+    "pelvis": "root", "spine1": "spine04", "spine2": "spine03", "spine3": "spine01",
+    "neck": "neck01", "head": "head", "left_eye_smplhf": "eye.L", "right_eye_smplhf": "eye.R",
+}  # fmt: skip
+for _s, _S in (("left", "L"), ("right", "R")):
+    ANNY_TO_SMPLX_ANCHOR.update({
+        f"{_s}_hip": f"upperleg01.{_S}", f"{_s}_knee": f"lowerleg01.{_S}",
+        f"{_s}_ankle": f"foot.{_S}", f"{_s}_collar": f"clavicle.{_S}",
+        f"{_s}_shoulder": f"upperarm01.{_S}", f"{_s}_elbow": f"lowerarm01.{_S}",
+        f"{_s}_wrist": f"wrist.{_S}",
+    })  # fmt: skip
+    for _f, _n in (("thumb", 1), ("index", 2), ("middle", 3), ("ring", 4), ("pinky", 5)):
+        for _i in (1, 2, 3):
+            ANNY_TO_SMPLX_ANCHOR[f"{_s}_{_f}{_i}"] = f"finger{_n}-{_i}.{_S}"
+
+EYE_JOINTS = ("left_eye_smplhf", "right_eye_smplhf")  # not fitted (kept at pose 0)
+SUBSAMPLE_RANDOM = 300  # target vertices of the per-frame fit, plus PER_JOINT per joint
+PER_JOINT = 6
+SUBSAMPLE_SEED = 5
+BETA_PRIOR = 1e-6  # ridge of the shape least squares (per person-frame point, m^2 per beta^2)
+REG_STIFFNESS = (30.0, 10.0, 3.0, 1.0)  # Laplacian weights of the free-form rounds
+REG_ICP_ROUNDS = 6
+REG_REJECT_M = 0.05  # ICP pairs farther than this, or with normals > 60 deg apart, are dropped
+
+
+# ----------------------------------------------------------------------------- correspondence
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Correspondence:
+    """The contract's ``correspondence.npz`` (see module doc); ``*_bary`` rows sum to 1."""
+
+    tgt_vert_face: np.ndarray
+    tgt_vert_bary: np.ndarray
+    src_vert_face: np.ndarray
+    src_vert_bary: np.ndarray
+    src_face_tgt_face: np.ndarray
+    tgt_face_src_face: np.ndarray
+    tgt_faces: np.ndarray
+    src_faces: np.ndarray
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+    def target_points(self, src_vertices: np.ndarray) -> np.ndarray:
+        """Source surface at each target vertex: (..., Vs, 3) -> (..., Vt, 3)."""
+        tri = np.asarray(src_vertices)[..., self.src_faces[self.tgt_vert_face], :]  # (..., Vt, 3, 3)
+        return np.einsum("...vkx,vk->...vx", tri, self.tgt_vert_bary)
+
+    def save(self, path: Path) -> None:
+        """Atomic write (a temporary file in the same folder, then renamed)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz.tmp")
+        os.close(fd)
+        try:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, **self.arrays())
+            os.replace(tmp, path)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+
+    @classmethod
+    def load(cls, path: Path) -> Correspondence:
+        with np.load(path) as z:
+            return cls(**{f.name: z[f.name] for f in dataclasses.fields(cls)})
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 22), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def correspondence_key(source_file: Path, target_file: Path) -> str:
+    """sha256 of both model files' content and the registration code version."""
+    h = hashlib.sha256()
+    for p in (source_file, target_file):
+        h.update(file_sha256(Path(p)).encode())
+    h.update(REGISTRATION_VERSION.encode())
+    h.update(hashlib.sha256(Path(__file__).read_bytes()).hexdigest().encode())
+    return h.hexdigest()[:32]
+
+
+def cached_correspondence(source: BodyModel, target: BodyModel, source_file: Path,
+                          target_file: Path, cache_dir: Path, log=print):
+    """(Correspondence, key, registered-now bool): from ``cache_dir/<key>.npz`` or registered
+    now and written there atomically."""
+    key = correspondence_key(source_file, target_file)
+    path = Path(cache_dir) / f"{key}.npz"
+    if path.exists():
+        try:
+            return Correspondence.load(path), key, False
+        except Exception as e:  # a truncated/corrupt cache entry: rebuild it
+            log(f"correspondence cache {path} unreadable ({e}): registering again")
+    t0 = time.perf_counter()
+    corr = register(source, target)
+    corr.save(path)
+    log(f"registered {target.name} onto {source.name} in {time.perf_counter() - t0:.1f} s "
+        f"-> {path}")
+    return corr, key, True
+
+
+# ----------------------------------------------------------------------------- geometry
+
+
+def closest_on_mesh(points: np.ndarray, V: np.ndarray, F: np.ndarray):
+    """(distance (N,), face (N,), barycentric (N, 3), closest point (N, 3)) on mesh V, F."""
+    d2, fi, c = igl.point_mesh_squared_distance(np.ascontiguousarray(points, float),
+                                                 np.ascontiguousarray(V, float),
+                                                 np.ascontiguousarray(F, np.int64))
+    fi = np.asarray(fi, np.int64).ravel()
+    return np.sqrt(np.maximum(d2, 0)), fi, barycentric(c, V[F[fi]]), c
+
+
+def barycentric(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates (N, 3) of points p (N, 3) in triangles tri (N, 3, 3), clipped
+    to the triangle and renormalised (p is assumed on or next to its triangle)."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    v0, v1, v2 = b - a, c - a, p - a
+    d00 = (v0 * v0).sum(1)
+    d01 = (v0 * v1).sum(1)
+    d11 = (v1 * v1).sum(1)
+    d20 = (v2 * v0).sum(1)
+    d21 = (v2 * v1).sum(1)
+    den = d00 * d11 - d01 * d01
+    den = np.where(np.abs(den) < 1e-30, 1e-30, den)
+    v = (d11 * d20 - d01 * d21) / den
+    w = (d00 * d21 - d01 * d20) / den
+    bc = np.clip(np.stack([1 - v - w, v, w], 1), 0, 1)
+    return bc / np.maximum(bc.sum(1, keepdims=True), 1e-12)
+
+
+def vertex_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    n = np.zeros_like(V)
+    for k in range(3):
+        np.add.at(n, F[:, k], fn)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+
+def uniform_laplacian(F: np.ndarray, n: int) -> sp.csr_matrix:
+    """Graph Laplacian I - D^-1 A of a triangle mesh (n vertices)."""
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    A = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
+                      shape=(n, n)).tocsr()
+    A.data[:] = 1.0
+    deg = np.asarray(A.sum(1)).ravel()
+    return (sp.eye(n) - sp.diags(1.0 / np.maximum(deg, 1)) @ A).tocsr()
+
+
+# ----------------------------------------------------------------------------- the target rig
+
+
+def lm_solve(fun, x, iters: int, lam: float = 1e-3, tol: float = 1e-4):
+    """Levenberg-Marquardt: ``fun(x) -> (r (m,), J (m, n))``; returns (x, cost)."""
+    r, J = fun(x)
+    cost = float(r @ r)
+    for _ in range(iters):
+        JtJ = J.T @ J
+        g = J.T @ r
+        diag = np.diag(JtJ).copy() + 1e-9
+        while True:
+            dx = np.linalg.solve(JtJ + lam * np.diag(diag), -g)
+            r2, J2 = fun(x + dx)
+            c2 = float(r2 @ r2)
+            if c2 < cost:
+                lam = max(lam / 3, 1e-7)
+                break
+            lam *= 4
+            if lam > 1e8:
+                return x, cost
+        done = cost - c2 < tol * cost
+        x, r, J, cost = x + dx, r2, J2, c2
+        if done:
+            break
+    return x, cost
+
+
+class TargetRig:
+    """The target model's points as functions of the frame unknowns ``x`` and shape ``betas``.
+
+    ``slots``: rest points given by (weights rows (N, J), rest points linear in betas); the
+    positions are exact LBS of the reduced tree plus the pose correctives of the current pose
+    (their derivative is left out of the Jacobian)."""
+
+    def __init__(self, model: BodyModel, vertices: np.ndarray, num_betas: int = 10):
+        self.model = model
+        J = model.num_joints
+        fit = [j for j in range(J) if model.joint_names[j] not in EYE_JOINTS]
+        self.skel = fit_skeleton(model, fit)
+        self.sub_tree = subtree(self.skel)
+        self.K = min(num_betas, model.num_shape or model.num_betas)
+        self.vertices = np.asarray(vertices, np.int64)
+        W = model.weights[self.vertices]
+        self._base = self._coeffs(np.zeros(model.num_betas), W)
+        self._dirs = []
+        for k in range(self.K):
+            e = np.zeros(model.num_betas)
+            e[k] = 1.0
+            u, H = self._coeffs(e, W)
+            self._dirs.append((u - self._base[0], H - self._base[1]))
+        pd = model.posedirs
+        self.posedirs = (None if pd is None else np.ascontiguousarray(
+            pd.reshape(pd.shape[0], -1, 3)[:, self.vertices].reshape(pd.shape[0], -1)))
+        self.Wq = self._base[1][..., 3]  # (N, Q) skinning weight of each fitted joint
+        self.set_betas(np.zeros(self.K))
+
+    def _coeffs(self, betas, W):
+        rest = rest_state(self.model, betas)
+        u, _ = reduced_offsets(self.model, rest, self.skel)
+        H = vertex_coeffs(self.model, rest, self.skel, W, rest.vertices[0][self.vertices])
+        return u, H
+
+    def set_betas(self, betas):
+        self.betas = np.asarray(betas, float)[: self.K].copy()
+        u, H = self._base[0].copy(), self._base[1].copy()
+        for b, (du, dH) in zip(self.betas, self._dirs, strict=False):
+            u += b * du
+            H += b * dH
+        self.u, self.H = u, H
+
+    @property
+    def n(self) -> int:
+        return self.skel.n
+
+    def full_pose(self, x) -> np.ndarray:
+        """(J, 3) axis-angle of every model joint (entry 0 zero; non-fitted joints zero)."""
+        p = np.zeros((self.model.num_joints, 3))
+        p[self.skel.joints[1:]] = np.asarray(x[6:]).reshape(-1, 3)
+        return p
+
+    def params(self, x):
+        """(global_orient (3, 3), transl (3,), body_pose (J, 3)) in body.forward's convention."""
+        return rodrigues(np.asarray(x[:3])), np.asarray(x[3:6]).copy(), self.full_pose(x)
+
+    def x_from(self, R, T, pose) -> np.ndarray:
+        return np.concatenate([rotmat_to_rotvec(R), T, pose[self.skel.joints[1:]].ravel()])
+
+    def _slots(self, x):
+        H = self.H
+        if self.posedirs is not None:
+            D = rodrigues(self.full_pose(x)[1:])
+            feat = (D - np.eye(3)).reshape(-1)
+            dv = (feat @ self.posedirs).reshape(-1, 3)  # rest-frame correctives (N, 3)
+            H = H.copy()
+            H[..., :3] += self.Wq[..., None] * dv[:, None, :]
+        return H
+
+    def positions(self, x) -> np.ndarray:
+        pos, _ = point_jacobian(self.skel, self.u, self._slots(x), x, self.sub_tree)
+        return pos
+
+    def fit(self, x, targets, weights=None, iters: int = 8, prior=None):
+        """LM on x: ``sum w |pos - target|^2`` (+ ``prior (x0, sigma (n,))`` Tikhonov)."""
+        w = np.ones(len(targets)) if weights is None else np.asarray(weights, float)
+        sw = np.sqrt(w)[:, None, None]
+
+        def fun(xx):
+            pos, Jac = point_jacobian(self.skel, self.u, self._slots(xx), xx, self.sub_tree)
+            r = ((pos - targets) * sw[..., 0]).ravel()
+            Jm = (Jac * sw).reshape(-1, len(xx))
+            if prior is not None:
+                x0, s = prior
+                r = np.concatenate([r, (xx - x0) / s])
+                Jm = np.vstack([Jm, np.diag(1.0 / s)])
+            return r, Jm
+
+        return lm_solve(fun, np.asarray(x, float), iters)
+
+    def beta_directions(self, x) -> np.ndarray:
+        """(K, N, 3) d positions / d betas at x (positions are exactly linear in betas)."""
+        G, _ = _fk_np(self.skel, self.u, x)
+        x0 = np.array(x, float)
+        x0[3:6] = 0.0
+        out = np.empty((self.K, len(self.vertices), 3))
+        for k, (du, dH) in enumerate(self._dirs):
+            _, tk = _fk_np(self.skel, du, x0)  # the translation part is linear in u
+            out[k] = np.einsum("qab,nqb->na", G, dH[..., :3]) + np.einsum("qa,nq->na", tk,
+                                                                           self.Wq)
+        return out
+
+    def fit_betas(self, xs, targets, weights=None, prior: float = BETA_PRIOR) -> np.ndarray:
+        """Betas minimising ``sum_f sum_n w |pos_f(betas) - target_f|^2 + prior |betas|^2``."""
+        A = np.zeros((self.K, self.K))
+        b = np.zeros(self.K)
+        for i, (x, tgt) in enumerate(zip(xs, targets, strict=True)):
+            w = np.ones(len(tgt)) if weights is None else np.asarray(weights[i])
+            D = self.beta_directions(x).reshape(self.K, -1)  # (K, 3N)
+            r = (self.positions(x) - tgt).ravel()  # at the current betas
+            ww = np.repeat(w, 3)
+            A += (D * ww) @ D.T
+            b += (D * ww) @ r
+        n_pts = sum(len(t) for t in targets)
+        A += prior * n_pts * np.eye(self.K)
+        b += prior * n_pts * self.betas  # pull toward 0: d(prior |beta|^2)/d step
+        step = -np.linalg.solve(A, b)
+        return self.betas + step
+
+
+    def fit_shape(self, xs, targets, iters: int = 10, prior: float = BETA_PRIOR):
+        """Joint LM on the frames' unknowns ``xs`` and the shared betas (set on the rig):
+        normal equations assembled per frame block (the betas couple them)."""
+        xs = [np.asarray(x, float).copy() for x in xs]
+        K, n, S = self.K, self.n, len(xs)
+        n_pts = sum(len(t) for t in targets)
+        mu = prior * n_pts
+
+        def evaluate(xs_, b):
+            self.set_betas(b)
+            out, cost = [], mu * float(b @ b)
+            for x, tgt in zip(xs_, targets, strict=True):
+                pos, Jx = point_jacobian(self.skel, self.u, self._slots(x), x, self.sub_tree)
+                r = (pos - tgt).ravel()
+                Jb = self.beta_directions(x).reshape(K, -1).T
+                out.append((r, Jx.reshape(-1, n), Jb))
+                cost += float(r @ r)
+            return out, cost
+
+        b = self.betas.copy()
+        blocks, cost = evaluate(xs, b)
+        lam = 1e-3
+        for _ in range(iters):
+            N = S * n + K
+            A = np.zeros((N, N))
+            g = np.zeros(N)
+            for i, (r, Jx, Jb) in enumerate(blocks):
+                sl = slice(i * n, (i + 1) * n)
+                A[sl, sl] = Jx.T @ Jx
+                A[sl, S * n:] = Jx.T @ Jb
+                A[S * n:, sl] = A[sl, S * n:].T
+                A[S * n:, S * n:] += Jb.T @ Jb
+                g[sl] = Jx.T @ r
+                g[S * n:] += Jb.T @ r
+            A[S * n:, S * n:] += mu * np.eye(K)
+            g[S * n:] += mu * b
+            d = np.diag(A).copy() + 1e-9
+            while True:
+                step = np.linalg.solve(A + lam * np.diag(d), -g)
+                xs2 = [x + step[i * n:(i + 1) * n] for i, x in enumerate(xs)]
+                b2 = b + step[S * n:]
+                blocks2, c2 = evaluate(xs2, b2)
+                if c2 < cost:
+                    lam = max(lam / 3, 1e-7)
+                    break
+                lam *= 4
+                if lam > 1e8:
+                    self.set_betas(b)
+                    return xs
+            done = cost - c2 < 1e-6 * cost
+            xs, b, blocks, cost = xs2, b2, blocks2, c2
+            if done:
+                break
+        self.set_betas(b)
+        return xs
+
+
+def subsample_vertices(model: BodyModel, n_random: int = SUBSAMPLE_RANDOM,
+                       per_joint: int = PER_JOINT, seed: int = SUBSAMPLE_SEED) -> np.ndarray:
+    """Target vertices of the per-frame fit: the ``per_joint`` vertices most bound to each joint
+    (so every finger segment is seen) plus ``n_random`` at random."""
+    W = model.weights.tocsc()
+    pick = set()
+    for j in range(model.num_joints):
+        col = W[:, j]
+        rows, vals = col.indices, col.data
+        if len(rows):
+            pick.update(rows[np.argsort(-vals)[:per_joint]].tolist())
+    rng = np.random.default_rng(seed)
+    pick.update(rng.choice(model.num_vertices, size=min(n_random, model.num_vertices),
+                           replace=False).tolist())
+    return np.array(sorted(pick), np.int64)
+
+
+def joint_pairs(source: BodyModel, target: BodyModel) -> tuple[np.ndarray, np.ndarray]:
+    """(source joint indices, target joint indices) matched by name: identical names first
+    (a target converted onto itself), else the Anny anchors of ``ANNY_TO_SMPLX_ANCHOR``."""
+    s_names = {n: i for i, n in enumerate(source.joint_names)}
+    si, ti = [], []
+    for j, n in enumerate(target.joint_names):
+        m = n if n in s_names else ANNY_TO_SMPLX_ANCHOR.get(n)
+        if m is not None and m in s_names:
+            si.append(s_names[m])
+            ti.append(j)
+    if len(ti) < 4:
+        raise ValueError(f"only {len(ti)} joints of {target.name} match {source.name}'s by name")
+    return np.array(si), np.array(ti)
+
+
+class JointRig(TargetRig):
+    """The target's joints (``joints``) as slots: same machinery, points = the joints."""
+
+    def __init__(self, model: BodyModel, joints: np.ndarray, num_betas: int = 10):
+        self._joints = np.asarray(joints, np.int64)
+        self.model = model
+        fit = [j for j in range(model.num_joints) if model.joint_names[j] not in EYE_JOINTS]
+        self.skel = fit_skeleton(model, fit)
+        self.sub_tree = subtree(self.skel)
+        self.K = min(num_betas, model.num_shape or model.num_betas)
+        self.vertices = self._joints  # only their count matters below
+        Wj = sp.csr_matrix((np.ones(len(self._joints)), (np.arange(len(self._joints)),
+                                                         self._joints)),
+                           shape=(len(self._joints), model.num_joints))
+        self._base = self._jcoeffs(np.zeros(model.num_betas), Wj)
+        self._dirs = []
+        for k in range(self.K):
+            e = np.zeros(model.num_betas)
+            e[k] = 1.0
+            u, H = self._jcoeffs(e, Wj)
+            self._dirs.append((u - self._base[0], H - self._base[1]))
+        self.posedirs = None
+        self.Wq = self._base[1][..., 3]
+        self.set_betas(np.zeros(self.K))
+
+    def _jcoeffs(self, betas, W):
+        rest = rest_state(self.model, betas)
+        u, _ = reduced_offsets(self.model, rest, self.skel)
+        return u, vertex_coeffs(self.model, rest, self.skel, W, rest.joints[0][self._joints])
+
+
+def init_from_joints(rig: TargetRig, jrig: JointRig, src_joints: np.ndarray, x0=None,
+                     shape: bool = False, rounds: int = 3) -> np.ndarray:
+    """Frame unknowns putting the target's joints on ``src_joints`` (jrig's order): a rigid
+    Procrustes start, then LM on the joints (and, ``shape``, betas by least squares)."""
+    if x0 is None:
+        p0 = jrig.positions(np.zeros(jrig.n))
+        mu_a, mu_b = p0.mean(0), src_joints.mean(0)
+        U, _, Vt = np.linalg.svd((src_joints - mu_b).T @ (p0 - mu_a))
+        R = U @ np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+        x0 = np.zeros(jrig.n)
+        x0[:3] = rotmat_to_rotvec(R)
+        root = jrig.u[0]
+        x0[3:6] = mu_b - R @ (mu_a - root) - root
+    x = x0
+    sig = np.full(jrig.n, 3.0)  # weak pose prior: joints alone leave twists free
+    sig[:6] = 1e3
+    for _ in range(rounds if shape else 1):
+        x, _ = jrig.fit(x, src_joints, iters=15, prior=(np.zeros(jrig.n), sig))
+        if shape:
+            b = jrig.fit_betas([x], [src_joints], prior=1e-3)
+            jrig.set_betas(b)
+            rig.set_betas(b)
+    return x
+
+
+# ----------------------------------------------------------------------------- registration
+
+
+def register(source: BodyModel, target: BodyModel) -> Correspondence:
+    """Register the target template onto the source template (module doc, part 1)."""
+    src = forward(source, np.zeros(source.num_betas), np.zeros((1, source.num_joints, 3)),
+                  np.eye(3)[None], np.zeros((1, 3)))
+    Vs, Fs = src.vertices[0], np.asarray(source.faces, np.int64)
+    Ft = np.asarray(target.faces, np.int64)
+    ns = vertex_normals(Vs, Fs)
+    si, ti = joint_pairs(source, target)
+    rig = TargetRig(target, subsample_vertices(target))
+    jrig = JointRig(target, ti)
+    x = init_from_joints(rig, jrig, src.joints[0][si], shape=True)
+    # ICP on pose, translation and betas (subsample)
+    for _ in range(REG_ICP_ROUNDS):
+        pos = rig.positions(x)
+        d, fi, bc, c = closest_on_mesh(pos, Vs, Fs)
+        nt = vertex_normals(*_posed_target(target, rig, x))[rig.vertices]
+        nsrc = np.einsum("nk,nkx->nx", bc, ns[Fs[fi]])
+        w = ((d < REG_REJECT_M) & ((nt * nsrc).sum(1) > 0.5)).astype(float)
+        x, _ = rig.fit(x, c, w, iters=6)
+        rig.set_betas(rig.fit_betas([x], [c], [w], prior=1e-5))
+    Vt, _ = _posed_target(target, rig, x)
+    # free-form offsets, Laplacian-regularised, decreasing stiffness
+    L = uniform_laplacian(Ft, len(Vt))
+    LtL = (L.T @ L).tocsc()
+    off = np.zeros_like(Vt)
+    for alpha in REG_STIFFNESS:
+        for _ in range(2):
+            cur = Vt + off
+            d, fi, bc, c = closest_on_mesh(cur, Vs, Fs)
+            nsrc = np.einsum("nk,nkx->nx", bc, ns[Fs[fi]])
+            w = ((d < REG_REJECT_M) & ((vertex_normals(cur, Ft) * nsrc).sum(1) > 0.5))
+            Wd = sp.diags(w.astype(float) + 1e-6)
+            A = (Wd + alpha * LtL).tocsc()
+            rhs = Wd @ (c - Vt)
+            solve = spla.factorized(A)
+            off = np.stack([solve(rhs[:, k]) for k in range(3)], 1)
+    reg = Vt + off
+    _, tvf, tvb, _ = closest_on_mesh(reg, Vs, Fs)
+    _, svf, svb, _ = closest_on_mesh(Vs, reg, Ft)
+    _, sft, _, _ = closest_on_mesh(Vs[Fs].mean(1), reg, Ft)
+    _, tfs, _, _ = closest_on_mesh(reg[Ft].mean(1), Vs, Fs)
+    return Correspondence(tgt_vert_face=tvf, tgt_vert_bary=tvb, src_vert_face=svf,
+                          src_vert_bary=svb, src_face_tgt_face=sft, tgt_face_src_face=tfs,
+                          tgt_faces=Ft, src_faces=Fs)
+
+
+def _posed_target(target: BodyModel, rig: TargetRig, x):
+    R, T, pose = rig.params(x)
+    b = np.zeros(target.num_betas)
+    b[: rig.K] = rig.betas
+    out = forward(target, b, pose[None], R[None], T[None])
+    return out.vertices[0], np.asarray(target.faces, np.int64)
+
+
+# ----------------------------------------------------------------------------- per-frame fit
+
+
+@dataclasses.dataclass
+class PersonConversion:
+    """One person's converted motion (F frames) in body.forward's convention of the target."""
+
+    global_orient: np.ndarray  # (F, 3, 3)
+    transl: np.ndarray  # (F, 3)
+    body_pose: np.ndarray  # (F, J, 3) axis-angle over all target joints
+    betas: np.ndarray  # (K,)
+    v2s_mean_mm: np.ndarray  # (F,)
+    v2s_median_mm: np.ndarray
+    v2s_p95_mm: np.ndarray
+    v2s_max_mm: np.ndarray
+    cpu_s: float
+
+
+SHAPE_FRAMES = 4
+SHAPE_ITERS = 8
+ITERS_FIRST = 12
+ITERS = 3
+
+
+def convert_motion(source: BodyModel, target: BodyModel, corr: Correspondence, betas,
+                   body_pose, global_orient, transl, shape_frames: int = SHAPE_FRAMES,
+                   iters: int = ITERS, progress=None, rig: TargetRig | None = None,
+                   fit_shape: bool = True, shape_at_rest: bool = True) -> PersonConversion:
+    """Convert one person's source motion (body.forward arguments of ``source``: betas (S,),
+    body_pose (F, Js, 3), global_orient (F, 3, 3), transl (F, 3)) to ``target``."""
+    t_cpu = time.process_time()
+    F = len(body_pose)
+    rest_src = rest_state(source, betas)
+    Fs = np.asarray(source.faces, np.int64)
+    rig = rig if rig is not None else TargetRig(target, subsample_vertices(target))
+    rig.set_betas(np.zeros(rig.K))
+    jrig = None
+    si, ti = joint_pairs(source, target)
+
+    def source_frame(f):
+        if f is None:  # the subject's rest posture (pose 0), where the registration was made
+            out = forward(source, None, np.zeros((1, source.num_joints, 3)), np.eye(3)[None],
+                          np.zeros((1, 3)), rest=rest_src)
+        else:
+            out = forward(source, None, body_pose[f:f + 1], global_orient[f:f + 1],
+                          transl[f:f + 1], rest=rest_src)
+        return out.vertices[0], out.joints[0]
+
+    def init(f, shape):
+        nonlocal jrig
+        Vs, Js = source_frame(f)
+        if jrig is None:
+            jrig = JointRig(target, ti)
+        jrig.set_betas(rig.betas)
+        x = init_from_joints(rig, jrig, Js[si], shape=shape)
+        return rig.fit(x, corr.target_points(Vs)[rig.vertices], iters=ITERS_FIRST)[0]
+
+    # shape once per subject: frames spread over the motion, poses and betas alternating
+    if fit_shape and shape_at_rest:  # betas depend on the subject only: one static fit
+        tg = [corr.target_points(source_frame(None)[0])[rig.vertices]]
+        rig.fit_shape([init(None, shape=True)], tg, iters=SHAPE_ITERS)
+    elif fit_shape and shape_frames > 0:
+        sf = np.unique(np.linspace(0, F - 1, min(shape_frames, F)).round().astype(int))
+        tg = [corr.target_points(source_frame(f)[0])[rig.vertices] for f in sf]
+        xs = [init(f, shape=(i == 0)) for i, f in enumerate(sf)]
+        rig.fit_shape(xs, tg, iters=SHAPE_ITERS)
+    K, Jt = rig.K, target.num_joints
+    R_all = np.zeros((F, 3, 3))
+    T_all = np.zeros((F, 3))
+    P_all = np.zeros((F, Jt, 3))
+    stats = np.full((4, F), np.nan)
+    full_b = np.zeros(target.num_betas)
+    full_b[:K] = rig.betas
+    rest_t = rest_state(target, full_b)
+    x = x_prev = None
+    loop = range(F) if progress is None else progress(range(F), total=F, desc="convert")
+    for f in loop:
+        Vs, _ = source_frame(f)
+        tgt = corr.target_points(Vs)
+        if x is None:
+            x0 = init(f, shape=False)
+        elif x_prev is None:
+            x0 = x
+        else:  # constant-velocity prediction of the warm start
+            x0 = 2 * x - x_prev
+        x_prev = x
+        x, _ = rig.fit(x0, tgt[rig.vertices], iters=iters)
+        R, T, pose = rig.params(x)
+        R_all[f], T_all[f], P_all[f] = R, T, pose
+        Vt = forward(target, None, pose[None], R[None], T[None], rest=rest_t).vertices[0]
+        d, _, _, _ = closest_on_mesh(Vt, Vs, Fs)
+        d = d * 1e3
+        stats[:, f] = d.mean(), np.median(d), np.percentile(d, 95), d.max()
+    return PersonConversion(global_orient=R_all, transl=T_all, body_pose=P_all,
+                            betas=rig.betas.copy(), v2s_mean_mm=stats[0], v2s_median_mm=stats[1],
+                            v2s_p95_mm=stats[2], v2s_max_mm=stats[3],
+                            cpu_s=time.process_time() - t_cpu)
+
+
+def smplx_arrays(target: BodyModel, pose: np.ndarray) -> dict[str, np.ndarray]:
+    """Split (F, J, 3) axis-angle over all target joints into smplx's arguments as rotation
+    matrices: ``body_pose (F, 21, 3, 3)``, and for SMPL-X ``jaw_pose``, ``leye_pose``,
+    ``reye_pose (F, 3, 3)``, ``left_hand_pose``/``right_hand_pose (F, 15, 3, 3)`` (SMPL+H:
+    hands only; SMPL: ``body_pose (F, 23, 3, 3)``)."""
+    Rm = rodrigues(np.asarray(pose, float))
+    J = target.num_joints
+    if J == 55:
+        return {"body_pose": Rm[:, 1:22], "jaw_pose": Rm[:, 22], "leye_pose": Rm[:, 23],
+                "reye_pose": Rm[:, 24], "left_hand_pose": Rm[:, 25:40],
+                "right_hand_pose": Rm[:, 40:55]}
+    if J == 52:
+        return {"body_pose": Rm[:, 1:22], "left_hand_pose": Rm[:, 22:37],
+                "right_hand_pose": Rm[:, 37:52]}
+    return {"body_pose": Rm[:, 1:]}
