@@ -19,9 +19,11 @@ from evaluate.metrics import (
 from evaluate.protocol import evaluate_pairs, markdown
 
 
-def evaluate_folders(pred_root, gt_root, smplx_model=None) -> dict:
-    """Score PRED against GT (both CHI3D-layout roots); raises the first InputError met."""
-    pairs, errors = load_pairs(pred_root, gt_root, smplx_model)
+def evaluate_folders(pred_root, gt_root, smplx_model=None, anny_model=None) -> dict:
+    """Score PRED against GT (both CHI3D-layout roots); raises the first InputError met.
+    smplx_model / anny_model: model files for ``smplx/`` / ``anny/`` parameter files (None:
+    ``$SMPLX_MODEL_PATH`` / the default Anny model)."""
+    pairs, errors = load_pairs(pred_root, gt_root, smplx_model, anny_model)
     if errors:
         raise errors[0]
     result = evaluate_pairs(pairs)

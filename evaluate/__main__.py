@@ -1,4 +1,4 @@
-"""``python -m evaluate PRED GT [--json OUT] [--smplx-model PATH]``: score a prediction folder
+"""``python -m evaluate PRED GT [--json OUT] [--smplx-model PATH] [--anny-model PATH]``: score a prediction folder
 against a truth folder, both in the CHI3D layout. Prints a markdown table (mm) and writes the
 same figures as JSON (default ``<PRED>/evaluation.json``). Bad input: one line per problem
 (file, field, frame), exit code 2."""
@@ -22,9 +22,11 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, default=None, help=f"output (default <PRED>/{K.DEFAULT_JSON})")
     ap.add_argument("--smplx-model", default=None,
                     help="SMPL-X model file for smplx/<action>.json (default $SMPLX_MODEL_PATH)")
+    ap.add_argument("--anny-model", default=None,
+                    help="Anny model file for anny/<action>.json (default: body.load_model's)")
     a = ap.parse_args(argv)
     try:
-        pairs, errors = load_pairs(a.pred, a.gt, a.smplx_model)
+        pairs, errors = load_pairs(a.pred, a.gt, a.smplx_model, a.anny_model)
         if errors:
             for e in errors:
                 print(f"error: {e}", file=sys.stderr)

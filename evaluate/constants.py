@@ -20,6 +20,7 @@ VALID_DIR = "valid"          # valid/<action>.json: {"valid": (P, F) or (F,) boo
 VERTICES_DIR = "vertices"    # vertices/<action>.npz: vertices (P, F, V, 3), root (P, F, 3) metres
 JOINTS_DIR = "joints3d_25"
 SMPLX_DIR = "smplx"
+ANNY_DIR = "anny"            # anny/<action>.json: Anny parameters (formats.anny_json)
 CAMERAS_DIR = "camera_parameters"
 CONTACT_FILE = "interaction_contact_signature.json"
 DEFAULT_JSON = "evaluation.json"

@@ -7,13 +7,18 @@ defines the sequences ``<subject>/<action>``; the prediction must have each of t
 Per subject and action:
 
 - ``joints3d_25/<action>.json`` (required; ``formats.chi3d.read_joints3d_25``): ``(P, F, 25, 3)``.
-- vertices (optional), first found of: ``vertices/<action>.npz`` with ``vertices (P, F, V, 3)``
-  and ``root (P, F, 3)`` (the model's joint 0), metres, world; or ``smplx/<action>.json`` with an
-  SMPL-X model file (``--smplx-model`` / ``$SMPLX_MODEL_PATH``), posed by ``body.forward``.
+- vertices (optional), the first that applies of: ``anny/<action>.json``
+  (``formats.anny_json``) posed with the Anny model, when BOTH sides have one (the same mesh on
+  both sides); ``smplx/<action>.json`` with an SMPL-X model file (``--smplx-model`` /
+  ``$SMPLX_MODEL_PATH``), posed by ``body.forward``; ``vertices/<action>.npz`` with
+  ``vertices (P, F, V, 3)`` and ``root (P, F, 3)`` (the model's joint 0), metres, world. The
+  result names the mesh used (``Vertices.mesh``: ``anny``, ``smplx`` or ``vertices npz``).
 - truth only: ``camera_parameters/<camera>/<action>.json`` (the matching camera: the first
   serial; taken from the prediction's folder when the truth has none),
   ``interaction_contact_signature.json`` (the contact interval), ``valid/<action>.json``
   (``{"valid": (P, F) or (F,) booleans}``: frames published as ground truth; absent = all).
+- prediction's ``valid/<action>.json`` (a release's): the person-frames it publishes; the others
+  are not scored and are counted as excluded (``SequenceData.valid`` on the prediction side).
 
 Errors are ``formats.errors.InputError`` naming the file and the field.
 """
@@ -44,6 +49,7 @@ class Vertices:
     vertices: np.ndarray
     root: np.ndarray
     source: str
+    mesh: str = "vertices npz"
 
 
 @dataclass(frozen=True, eq=False)
@@ -51,7 +57,8 @@ class SequenceData:
     """One side (prediction or truth) of one sequence.
 
     joints: (P, F, 25, 3) metres; vertices: posed meshes or None, with ``vertices_note`` saying
-    why not; valid: (P, F) bool (truth; all True when no mask file); camera and contact: truth
+    why not; valid: (P, F) bool (truth: all True when no mask file; prediction: the frames it
+    publishes, None when it has no mask file); camera and contact: truth
     only (None for a prediction); files: {what: path} for messages."""
 
     name: str
@@ -63,6 +70,7 @@ class SequenceData:
     camera: Camera | None = None
     contact: ContactSignature | None = None
     contact_note: str = ""
+    frame_ids: np.ndarray | None = None  # truth: its frame numbers kept (None: 0..F-1)
 
 
 # ------------------------------------------------------------------------------------ discovery
@@ -136,7 +144,7 @@ def read_vertices(path: Path, P: int, F: int) -> Vertices:
         bad = ~np.isfinite(a).reshape(P, F, -1).all(axis=(0, 2))
         if bad.any():
             raise InputError(path, key, "NaN or inf", frame=int(np.flatnonzero(bad)[0]))
-    return Vertices(v, r, str(path))
+    return Vertices(v, r, str(path), "vertices npz")
 
 
 def vertices_from_smplx(model, params: dict, source: str) -> Vertices:
@@ -153,7 +161,34 @@ def vertices_from_smplx(model, params: dict, source: str) -> Vertices:
         out = forward(model, betas, pose, params["global_orient"][p][:, 0], params["transl"][p])
         vs.append(out.vertices)
         roots.append(out.joints[:, 0])
-    return Vertices(np.stack(vs), np.stack(roots), source)
+    return Vertices(np.stack(vs), np.stack(roots), source, "smplx")
+
+
+def vertices_from_anny(model, path: Path, P: int, F: int) -> Vertices:
+    """Pose the Anny model with ``anny/<action>.json`` -> Vertices (root = posed joint 0);
+    (persons, frames) and the joint names are checked against the joints' and the model's."""
+    from formats.anny_json import read_anny
+
+    d = read_anny(path)
+    if d["transl"].shape[:2] != (P, F):
+        raise InputError(path, "transl", f"(persons, frames) {d['transl'].shape[:2]} != "
+                         f"joints3d_25's {(P, F)}")
+    if tuple(d["joint_names"]) != tuple(model.joint_names):
+        raise InputError(path, "joint_names", f"{len(d['joint_names'])} joints that are not the "
+                         f"Anny model's {model.num_joints} ({model.source})")
+    if d["betas"].shape[2] > model.num_betas:
+        raise InputError(path, "betas", f"{d['betas'].shape[2]} coefficients, the model has "
+                         f"{model.num_betas}")
+    pose, orient = rotmat_to_rotvec(d["body_pose"]), d["global_orient"]
+    vs, roots = [], []
+    for p in range(P):
+        betas = d["betas"][p]
+        if np.allclose(betas, betas[:1]):  # one shape per person (the usual case): one rest state
+            betas = betas[0]
+        out = forward(model, betas, pose[p], orient[p], d["transl"][p])
+        vs.append(out.vertices)
+        roots.append(out.joints[:, 0])
+    return Vertices(np.stack(vs), np.stack(roots), str(path), "anny")
 
 
 def smplx_model_path(given: str | Path | None) -> Path | None:
@@ -172,10 +207,11 @@ def first_camera(subject_dir: Path, action: str, files: dict) -> Camera:
 
 
 def load_side(subject_dir: Path, action: str, name: str, P: int | None, F: int | None,
-              smplx_model=None, truth: bool = False) -> SequenceData:
+              smplx_model=None, truth: bool = False, anny_model=None) -> SequenceData:
     """Read one side of a sequence. P, F: the truth's persons and frames (None when reading the
     truth itself); the prediction must match them. smplx_model: a loaded SMPL-X BodyModel or
-    None (vertices from smplx/ files are then not computed)."""
+    None (vertices from smplx/ files are then not computed); anny_model: the Anny BodyModel when
+    both sides have ``anny/<action>.json`` (those are then the vertices), else None."""
     jpath = subject_dir / K.JOINTS_DIR / f"{action}.json"
     if not jpath.is_file():
         raise InputError(jpath, K.JOINTS_DIR, f"missing: the truth has action {action!r}")
@@ -192,9 +228,10 @@ def load_side(subject_dir: Path, action: str, name: str, P: int | None, F: int |
     vertices, note = None, ""
     vpath = subject_dir / K.VERTICES_DIR / f"{action}.npz"
     spath = subject_dir / K.SMPLX_DIR / f"{action}.json"
-    if vpath.is_file():
-        vertices = read_vertices(vpath, P, F)
-    elif spath.is_file():
+    apath = subject_dir / K.ANNY_DIR / f"{action}.json"
+    if anny_model is not None and apath.is_file():
+        vertices = vertices_from_anny(anny_model, apath, P, F)
+    elif spath.is_file() and (smplx_model is not None or not vpath.is_file()):
         params = read_smplx(spath)
         if params["transl"].shape[:2] != (P, F):
             raise InputError(spath, "transl", f"(persons, frames) {params['transl'].shape[:2]} "
@@ -203,13 +240,21 @@ def load_side(subject_dir: Path, action: str, name: str, P: int | None, F: int |
             note = f"{spath} found but no SMPL-X model file (--smplx-model or $SMPLX_MODEL_PATH)"
         else:
             vertices = vertices_from_smplx(smplx_model, params, str(spath))
+    elif vpath.is_file():
+        vertices = read_vertices(vpath, P, F)
     else:
-        note = f"no {K.VERTICES_DIR}/{action}.npz or {K.SMPLX_DIR}/{action}.json in {subject_dir}"
+        note = (f"no {K.ANNY_DIR}/{action}.json on both sides, {K.SMPLX_DIR}/{action}.json or "
+                f"{K.VERTICES_DIR}/{action}.npz in {subject_dir}")
     if vertices is not None:
         files["vertices"] = vertices.source
 
     valid = camera = contact = None
     contact_note = ""
+    if not truth:
+        mpath = subject_dir / K.VALID_DIR / f"{action}.json"
+        if mpath.is_file():
+            valid = read_valid(mpath, P, F)
+            files["valid"] = str(mpath)
     if truth:
         valid = np.ones((P, F), bool)
         mpath = subject_dir / K.VALID_DIR / f"{action}.json"
@@ -238,21 +283,67 @@ def load_side(subject_dir: Path, action: str, name: str, P: int | None, F: int |
                         contact_note=contact_note)
 
 
-def load_pairs(pred_root: str | Path, gt_root: str | Path, smplx_model_file=None):
+def published_frames(subject_dir: Path, action: str) -> np.ndarray | None:
+    """The ``frames`` (F',) of a prediction's ``valid/<action>.json`` (a release's: the truth's
+    frame numbers it holds), or None when it gives none."""
+    path = subject_dir / K.VALID_DIR / f"{action}.json"
+    if not path.is_file():
+        return None
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise InputError(path, "<json>", f"cannot read: {e}") from None
+    if not isinstance(d, dict) or d.get("frames") is None:
+        return None
+    a = np.asarray(d["frames"])
+    if a.ndim != 1 or not np.issubdtype(a.dtype, np.integer) or (a < 0).any():
+        raise InputError(path, "frames", f"expected (F,) non-negative frame numbers, got {a.shape}")
+    return a.astype(np.int64)
+
+
+def select_frames(gt: SequenceData, frames: np.ndarray, source: Path) -> SequenceData:
+    """The truth restricted to the frame numbers ``frames`` (a release cut to its fitted
+    frames); InputError naming ``source`` if one is beyond the truth."""
+    F = gt.joints.shape[1]
+    if len(frames) and frames.max() >= F:
+        bad = int(np.flatnonzero(frames >= F)[0])
+        raise InputError(source, "frames", f"frame {int(frames[bad])} beyond the truth's {F} "
+                         f"frames ({gt.files['joints3d_25']})", frame=bad)
+    v = gt.vertices
+    if v is not None:
+        v = replace(v, vertices=v.vertices[:, frames], root=v.root[:, frames])
+    return replace(gt, joints=gt.joints[:, frames], vertices=v,
+                   valid=None if gt.valid is None else gt.valid[:, frames], frame_ids=frames)
+
+
+def load_pairs(pred_root: str | Path, gt_root: str | Path, smplx_model_file=None,
+               anny_model_file=None):
     """[(pred SequenceData, truth SequenceData)] for every sequence of the truth, and the list
-    of InputErrors met (every problem, not just the first)."""
+    of InputErrors met (every problem, not just the first). anny_model_file: the Anny model
+    file for ``anny/`` files (None: ``body.load_model("anny")``'s default)."""
     pred_root, gt_root = Path(pred_root), Path(gt_root)
     gt_subjects = subject_dirs(gt_root)
     model = None
     mpath = smplx_model_path(smplx_model_file)
     if mpath is not None and (any((d / K.SMPLX_DIR).is_dir() for d in gt_subjects.values())):
         model = load_model("smplx", mpath)
+    anny = None
     pairs, errors = [], []
     for subj, action in sequences(gt_root):
         name = sequence_name(subj, action)
         try:
-            gt = load_side(gt_subjects[subj], action, name, None, None, model, truth=True)
-            pred = load_side(pred_root / subj, action, name, *gt.joints.shape[:2], model)
+            both_anny = all((d / K.ANNY_DIR / f"{action}.json").is_file()
+                            for d in (gt_subjects[subj], pred_root / subj))
+            if both_anny and anny is None:
+                anny = load_model("anny", anny_model_file)
+            am = anny if both_anny else None
+            gt = load_side(gt_subjects[subj], action, name, None, None, model, truth=True,
+                           anny_model=am)
+            frames = published_frames(pred_root / subj, action)
+            if frames is not None and not np.array_equal(frames, np.arange(gt.joints.shape[1])):
+                gt = select_frames(gt, frames, pred_root / subj / K.VALID_DIR / f"{action}.json")
+            pred = load_side(pred_root / subj, action, name, *gt.joints.shape[:2], model,
+                             anny_model=am)
             if gt.camera is None:  # a truth without cameras (the studio's gt/): the prediction's
                 if not (pred_root / subj / K.CAMERAS_DIR).is_dir():
                     raise InputError(gt_subjects[subj] / K.CAMERAS_DIR, K.CAMERAS_DIR,

@@ -40,8 +40,17 @@ PROTOCOL = {
     "contact": "start_fr..end_fr of interaction_contact_signature.json (fr_id when no "
                "interval), both people",
     "fr_id_person0": "the public code's *_c convention: frame fr_id, person 0 only",
-    "validity": "person-frames marked false in the truth's valid/<action>.json are excluded",
+    "validity": "person-frames marked false in the truth's valid/<action>.json are excluded; "
+                "so are those the prediction's own valid/<action>.json does not publish (a "
+                "release's frames without evidence), counted as not published",
+    "mesh": "vertex metrics on the Anny mesh when both sides have anny/<action>.json, else "
+            "SMPL-X from smplx/<action>.json with a model file, else vertices/<action>.npz",
 }
+
+#: the contact-frame convention, said in every report
+CONTACT_NOTE = ("contact frames = start_fr..end_fr of interaction_contact_signature.json, both "
+                "people; the public code's *_c figures are frame fr_id of person 0 only (its "
+                "persons are concatenated along the frame axis), reported as fr_id_person0")
 
 
 def contact_frames(gt: SequenceData) -> np.ndarray | None:
@@ -52,6 +61,8 @@ def contact_frames(gt: SequenceData) -> np.ndarray | None:
     c = gt.contact
     lo = c.start_fr if c.start_fr is not None else c.fr_id
     hi = c.end_fr if c.end_fr is not None else c.fr_id
+    if gt.frame_ids is not None:  # a truth cut to a release's frames: by frame number
+        return (gt.frame_ids >= lo) & (gt.frame_ids <= hi)
     m = np.zeros(F, bool)
     m[lo: hi + 1] = True
     return m
@@ -79,7 +90,10 @@ def evaluate_sequence(pred: SequenceData, gt: SequenceData) -> dict:
     err = {"mpjpe": M.mpjpe(pj, gt.joints), "pa_mpjpe": M.pa_mpjpe(pj, gt.joints),
            "transl_err": M.translation_error(pj, gt.joints)}
     notes = []
+    mesh = None
     if pred.vertices is not None and gt.vertices is not None:
+        mesh = gt.vertices.mesh if gt.vertices.mesh == pred.vertices.mesh else \
+            f"{pred.vertices.mesh} (prediction) / {gt.vertices.mesh} (truth)"
         pv, gv = pred.vertices, gt.vertices
         if pv.vertices.shape[2] != gv.vertices.shape[2]:
             raise InputError(pv.source, "vertices", f"{pv.vertices.shape[2]} vertices per mesh, "
@@ -92,7 +106,11 @@ def evaluate_sequence(pred: SequenceData, gt: SequenceData) -> dict:
                                                                      ("truth", gt))
                         if s.vertices is None)
         notes.append(f"vertex metrics not computed ({why})")
-    valid = gt.valid if gt.valid is not None else np.ones((P, F), bool)
+    truth_valid = gt.valid if gt.valid is not None else np.ones((P, F), bool)
+    # the prediction's published person-frames, in the truth's person order
+    published = (M.reorder_people(pred.valid, order) if pred.valid is not None
+                 else np.ones((P, F), bool))
+    valid = truth_valid & published
     masks = {"all": valid}
     cf = contact_frames(gt)
     if cf is None:
@@ -101,16 +119,28 @@ def evaluate_sequence(pred: SequenceData, gt: SequenceData) -> dict:
     else:
         masks["contact"] = valid & cf[None, :]
         one = np.zeros((P, F), bool)
-        one[0, gt.contact.fr_id] = True
+        ids = gt.frame_ids if gt.frame_ids is not None else np.arange(F)
+        one[0] = ids == gt.contact.fr_id
         masks["fr_id_person0"] = valid & one
         if not masks["contact"].any():
             notes.append("no valid person-frame in the contact interval")
+    not_pub = truth_valid & ~published
+    if not_pub.any():
+        notes.append(f"{int(not_pub.sum())} person-frames valid in the truth are not published by "
+                     f"the prediction ({pred.files.get('valid')}): not scored")
     out = {"frames": F, "people": P,
-           "person_frames_not_valid": int((~valid).sum()),
-           "frames_not_valid": int((~valid).any(axis=0).sum()),
+           "person_frames": P * F,
+           "person_frames_scored": int(valid.sum()),
+           "person_frames_not_valid": int((~truth_valid).sum()),
+           "person_frames_not_published": int(not_pub.sum()),
+           "frames_scored": int(valid.any(axis=0).sum()),
+           "frames_not_valid": int((~truth_valid).any(axis=0).sum()),
+           "frames_not_published": int(not_pub.any(axis=0).sum()),
            "swapped_frames": int((order != np.arange(P)).any(axis=1).sum()),
            "contact_frames": None if cf is None else int(cf.sum()),
-           "vertices": {"prediction": pred.files.get("vertices"), "truth": gt.files.get("vertices")}}
+           "contact_person_frames_scored": int(masks["contact"].sum()),
+           "vertices": {"mesh": mesh, "prediction": pred.files.get("vertices"),
+                        "truth": gt.files.get("vertices")}}
     for g in GROUPS:
         out[g] = {m: (_mean(err[m], masks[g]) if m in err else None) for m in K.METRICS}
     out["notes"] = notes
@@ -127,15 +157,21 @@ def aggregate(per_sequence: dict[str, dict]) -> dict:
             vals = [s[g][m] for s in per_sequence.values() if s[g][m] is not None]
             out[g][m] = float(np.mean(vals)) if vals else None
             out["sequences"][g][m] = len(vals)
-    for key in ("frames", "frames_not_valid", "person_frames_not_valid", "swapped_frames"):
+    for key in ("frames", "frames_scored", "frames_not_valid", "frames_not_published",
+                "person_frames", "person_frames_scored", "person_frames_not_valid",
+                "person_frames_not_published", "contact_person_frames_scored", "swapped_frames"):
         out[key] = int(sum(s[key] for s in per_sequence.values()))
+    out["contact_frames"] = int(sum(s["contact_frames"] or 0 for s in per_sequence.values()))
+    meshes = sorted({s["vertices"]["mesh"] for s in per_sequence.values() if s["vertices"]["mesh"]})
+    out["vertices"] = {"mesh": ", ".join(meshes) if meshes else None}
     return out
 
 
 def evaluate_pairs(pairs) -> dict:
     """[(pred, truth)] -> ``{"protocol", "sequences": {name: figures}, "overall": ...}``."""
     per = {gt.name: evaluate_sequence(pred, gt) for pred, gt in pairs}
-    return {"protocol": PROTOCOL, "sequences": per, "overall": aggregate(per)}
+    return {"protocol": PROTOCOL, "contact_convention": CONTACT_NOTE, "sequences": per,
+            "overall": aggregate(per)}
 
 
 # ------------------------------------------------------------------------------------- report
@@ -149,19 +185,31 @@ def _cell(v) -> str:
 
 def markdown(result: dict) -> str:
     """The figures as markdown tables (mm): all frames, then contact frames; n/c = not
-    computed (the notes say why)."""
+    computed (the notes say why). Columns: frames (of the sequence, or of its contact
+    interval), scored (person-frames scored / person-frames), not valid (frames with a
+    person-frame the truth marks not valid), not published (frames with a person-frame the
+    prediction does not publish), swapped (frames where the matching swapped people)."""
     lines = []
     for g, title in (("all", "all valid frames"), ("contact", "contact frames")):
         lines += [f"**{title}** (mm)", "",
-                  "| sequence | frames | not valid | swapped | "
+                  "| sequence | frames | scored | not valid | not published | swapped | "
                   + " | ".join(NAMES[m] for m in K.METRICS) + " |",
-                  "|---" * (4 + len(K.METRICS)) + "|"]
+                  "|---" * (6 + len(K.METRICS)) + "|"]
         rows = list(result["sequences"].items()) + [("**mean over sequences**", result["overall"])]
         for name, s in rows:
-            frames = s["frames"] if g == "all" else (s.get("contact_frames") or "-")
-            lines.append(f"| {name} | {frames} | {s['frames_not_valid']} | {s['swapped_frames']} | "
+            if g == "all":
+                frames, scored = s["frames"], f"{s['person_frames_scored']}/{s['person_frames']}"
+            else:
+                frames = s.get("contact_frames") or "-"
+                scored = s["contact_person_frames_scored"]
+            lines.append(f"| {name} | {frames} | {scored} | {s['frames_not_valid']} | "
+                         f"{s['frames_not_published']} | {s['swapped_frames']} | "
                          + " | ".join(_cell(s[g][m]) for m in K.METRICS) + " |")
         lines.append("")
+    o = result["overall"]
+    lines += [f"vertex metrics on: {o.get('vertices', {}).get('mesh') or 'n/c'}",
+              f"contact convention: {CONTACT_NOTE}: "
+              + ", ".join(f"{NAMES[m]} {_cell(o['fr_id_person0'][m])}" for m in K.METRICS), ""]
     notes = [f"- {n}: {x}" for n, s in result["sequences"].items() for x in s["notes"]]
     if notes:
         lines += ["notes:", *notes, ""]

@@ -44,7 +44,10 @@ def preset_recipe(preset: str, recipe_dir: Path, data_dir: Path) -> dict:
 
     p = PL.PRESETS[preset]
     prefix = os.path.relpath(Path(data_dir).resolve(), Path(recipe_dir).resolve()).replace(os.sep, "/")
-    return PL.recipe_dict(PL.make_plan(p.seed, preset=preset), prefix=prefix + "/")
+    raw = PL.recipe_dict(PL.make_plan(p.seed, preset=preset), prefix=prefix + "/")
+    if raw.get("cameras"):  # two-person presets: the evaluate stage scores against the truth
+        raw["stages"] = {"evaluate": {"truth": f"{prefix}/gt"}}
+    return raw
 
 
 def _generated_plan_matches(files: list[Path], preset: str) -> bool:
@@ -102,6 +105,10 @@ def ensure_generated(recipe_path: str | Path) -> Path:
     preset = session.removeprefix("studio_") if session.startswith("studio_") else None
     if files and all(f.exists() for f in files):
         if preset not in PL.PRESETS or _generated_plan_matches(files, preset):
+            if preset in PL.PRESETS:  # an older session: add its CHI3D truth, inputs untouched
+                from studio.truth import ensure_truth
+
+                ensure_truth(Path(os.path.commonpath([str(f) for f in files])))
             return recipe_path
     if preset not in PL.PRESETS:
         missing = next(f for f in files if not f.exists()) if files else "sequences"

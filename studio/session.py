@@ -426,8 +426,11 @@ def generate(out: str | Path, plan: PL.SessionPlan | PL.MarkerSessionPlan) -> Pa
     meta = {"plan": plan_dict(plan), "sequences": infos, "studio_source": source_hash(),
             "seconds": round(time.time() - t0, 1)}
     (out / "gt" / "session.json").write_text(json.dumps(meta, indent=1))
+    from studio.truth import write_chi3d_truth
+
+    write_chi3d_truth(out, model)
     recipe = out / "recipe.yaml"
-    write_recipe(recipe, PL.recipe_dict(plan))
+    write_recipe(recipe, {**PL.recipe_dict(plan), "stages": {"evaluate": {"truth": "gt"}}})
     _log(f"session {plan.session} written to {out} in {time.time() - t0:.0f} s")
     return recipe
 

@@ -166,6 +166,9 @@ EDITS = {  # a recipe edit for each field name a stage may declare
     "ground_plane": lambda r: r.__setitem__("ground_plane", {"normal": [0, 0, 1], "offset": 0.02}),
     "ground_plane.offset": lambda r: r.__setitem__("ground_plane", {"normal": [0, 0, 1], "offset": 0.02}),
     "ground_plane.normal": lambda r: r.__setitem__("ground_plane", {"normal": [0, 1, 0], "offset": 0}),
+    "session.name": lambda r: r.__setitem__("session", "another_session"),
+    "session.subjects": lambda r: r["subjects"].__setitem__("sc", dict(r["subjects"]["sb"])),
+    "session.sequences": lambda r: r["sequences"]["g/X 1"].__setitem__("text", "a third sentence"),
 }
 
 

@@ -278,7 +278,8 @@ def test_cli_table_json_and_errors(tmp_path, capsys):
     write_seq(tmp_path / "pred", j + [0.0, 0.0, 0.012])
     assert main([str(tmp_path / "pred"), str(tmp_path / "gt")]) == 0
     out = capsys.readouterr().out
-    assert "| s01/Hug 1 | 10 | 0 | 0 | 0.0 | 0.0 | 12.0 | n/c | n/c |" in out
+    assert "| s01/Hug 1 | 10 | 20/20 | 0 | 0 | 0 | 0.0 | 0.0 | 12.0 | n/c | n/c |" in out
+    assert "fr_id of person 0 only" in out
     assert "mean over sequences" in out
     r = json.loads((tmp_path / "pred" / "evaluation.json").read_text())
     assert r["overall"]["contact"]["transl_err"] == pytest.approx(12.0)
@@ -347,3 +348,74 @@ def test_cameras_from_the_prediction_when_the_truth_has_none(tmp_path):
     r = evaluate_folders(tmp_path / "pred", tmp_path / "gt")
     s = seq_figures(r)
     assert s["swapped_frames"] == F and s["all"]["mpjpe"] == pytest.approx(0, abs=1e-9)
+
+
+# ----------------------------------------------------------------- release-side additions (#17)
+def anny_params(model, rng, F_, P=2):
+    from body.rotations import rodrigues
+    J = model.num_joints
+    pose = 0.1 * rng.normal(size=(P, F_, J, 3))
+    pose[:, :, 0] = 0.0
+    return dict(transl=rng.normal(0, 0.3, (P, F_, 3)) + [[[-0.75, 0, 0.95]], [[0.75, 0, 0.95]]][:P],
+                global_orient=rodrigues(rng.normal(0, 0.2, (P, F_, 3))),
+                body_pose=rodrigues(pose), betas=np.zeros((P, F_, 4)),
+                joint_names=list(model.joint_names))
+
+
+def test_vertices_from_anny_files_on_both_sides(tmp_path):
+    from body import load_model
+    from formats.anny_json import write_anny
+    model = load_model("anny")
+    rng = np.random.default_rng(11)
+    j = people(rng, 3)
+    a = anny_params(model, rng, 3)
+    for side in ("gt", "pred"):
+        write_seq(tmp_path / side, j)
+        write_anny(tmp_path / side / "s01" / "anny" / f"{ACTION}.json", **a)
+    s = seq_figures(evaluate_folders(tmp_path / "pred", tmp_path / "gt"))
+    assert s["vertices"]["mesh"] == "anny"
+    assert s["all"]["mpvpe"] == pytest.approx(0, abs=1e-9)
+    b = dict(a, transl=a["transl"] + [0.1, 0.0, 0.0])  # centred on joint 0: no vertex error
+    write_anny(tmp_path / "pred" / "s01" / "anny" / f"{ACTION}.json", **b)
+    s = seq_figures(evaluate_folders(tmp_path / "pred", tmp_path / "gt"))
+    assert s["all"]["mpvpe"] == pytest.approx(0, abs=1e-6)
+    bp = a["body_pose"].copy()
+    bp[:, :, 1:] = np.swapaxes(bp[:, :, 1:], -1, -2)   # inverted local rotations
+    write_anny(tmp_path / "pred" / "s01" / "anny" / f"{ACTION}.json", **dict(a, body_pose=bp))
+    r = evaluate_folders(tmp_path / "pred", tmp_path / "gt")
+    assert seq_figures(r)["all"]["mpvpe"] > 5.0
+    assert "vertex metrics on: anny" in __import__("evaluate").markdown(r)
+    # the prediction without an anny file: not compared across meshes
+    (tmp_path / "pred" / "s01" / "anny" / f"{ACTION}.json").unlink()
+    s = seq_figures(evaluate_folders(tmp_path / "pred", tmp_path / "gt"))
+    assert s["all"]["mpvpe"] is None and s["vertices"]["mesh"] is None
+
+
+def test_frames_not_published_by_the_prediction_are_counted_not_scored(tmp_path):
+    rng = np.random.default_rng(12)
+    j = people(rng)
+    write_seq(tmp_path / "gt", j, contact={ACTION: signature(4, 2, 6)})
+    frames = np.arange(2, 9)                           # the release holds truth frames 2..8
+    k = j[:, frames].copy()
+    pub = np.ones((2, len(frames)), bool)
+    pub[1, 0] = False                                  # truth frame 2, person 1: not published
+    k[1, 0, NON_PELVIS] += 0.5                         # garbage there
+    k[0, 3, NON_PELVIS] += [0.0, 0.0, 0.013]           # truth frame 5, person 0: 13 mm
+    d = write_seq(tmp_path / "pred", k)
+    (d / "valid").mkdir()
+    (d / "valid" / f"{ACTION}.json").write_text(json.dumps(
+        {"valid": pub.tolist(), "reason": [[""] * 7] * 2, "frames": frames.tolist()}))
+    s = seq_figures(evaluate_folders(tmp_path / "pred", tmp_path / "gt"))
+    assert s["frames"] == 7 and s["person_frames_scored"] == 13
+    assert s["frames_not_published"] == 1 and s["person_frames_not_published"] == 1
+    assert s["all"]["mpjpe"] == pytest.approx(13.0 / 13)
+    assert s["contact_frames"] == 5                   # truth frames 2..6
+    assert s["fr_id_person0"]["mpjpe"] == pytest.approx(0, abs=1e-9)  # truth frame 4
+    assert any("not published" in n for n in s["notes"])
+    bad = write_seq(tmp_path / "late", j[:, :3])
+    (bad / "valid").mkdir()
+    (bad / "valid" / f"{ACTION}.json").write_text(json.dumps({"valid": [[True] * 3] * 2,
+                                                              "frames": [8, 9, 10]}))
+    with pytest.raises(InputError, match="beyond the truth's 10 frames") as e:
+        evaluate_folders(tmp_path / "late", tmp_path / "gt")
+    assert e.value.field == "frames" and e.value.frame == 2
