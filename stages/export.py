@@ -1,0 +1,387 @@
+"""Stage ``export`` (per sequence): the sequence's files in the CHI3D layout (``shared/FORMATS.md``).
+
+Under ``<group>/`` in the stage folder, for the sequence's action (person 0 = the marker
+wearer, person 1 = the partner; P = 1 on a sequence without partner):
+
+- ``smplx/<action>.json``: convert's SMPL-X parameters (``formats.chi3d.write_smplx``:
+  rotation matrices, leading person axis, betas and expression repeated per frame);
+- ``anny/<action>.json``: the fitted model's own parameters (``formats.anny_json``; the folder
+  is named after the fitted model, ``smplx_fit`` when that is SMPL-X itself);
+- ``joints3d_25/<action>.json``: the 25 CHI3D joints regressed from the fitted mesh
+  (``body.joints.regressor(model, "joints3d_25")`` on ``body.forward``, as the studio's truth);
+- ``camera_parameters/<camera>/<action>.json`` and ``videos/<camera>/<action>.mp4`` (cut to the
+  exported frames) when the sequence was filmed;
+- ``valid/<action>.json``: per person and frame whether it is ground truth, and the reason
+  when not (``artifacts.INVALID_REASONS`` of the fit, or ``not_converted`` where the fit is
+  valid but convert marks the SMPL-X frame not valid). Every file's arrays are dense (frames
+  that are not valid are written too): the mask says which are ground truth;
+- ``interaction_contact_signature.json``: this action's entry with the signature in every
+  released model: ``anny_signature`` as annotated, ``smplx_signature`` with each Anny facet
+  mapped to its nearest SMPL-X facet through convert's ``correspondence.npz``
+  (``src_face_tgt_face``) and the region of each pair taken from the official
+  ``contact_regions.json`` (option ``contact_regions``: ``rid_to_smplx_fids``) when given, else
+  the Anny facet's region in our 75-region map (``body.regions``); ``ghum_signature`` empty;
+- ``text_annotations.json``: ``{action: sentence}`` (the recipe's ``text``).
+
+Beside them ``figures.json`` (the fitting figures of marker_fit, partner_fit and convert that
+the release's datasheet lists) and ``export.json`` (frames, files, what is absent and why, the
+per-reason counts of frames that are not valid, camera conversions, contact mapping notes).
+
+Frames are convert's frames (marker_fit's frames that partner_fit also has). Contact frames
+(``fr_id``, ``start_fr``, ``end_fr``) index the exported frame axis: they are kept as they are
+when the exported frames are ``0..F-1`` of the video, else moved onto the exported frames
+(the original values are in ``export.json``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.spec import Stage, StageContext
+from stages import common
+
+READS = ("body_model.kind", "cameras", "sequence.fps", "sequence.text", "sequence.markers_on",
+         "sequence.partner", "sequence.has_video")
+
+NOT_CONVERTED = "not_converted"  # fit valid, but the SMPL-X conversion of the frame is not
+
+
+@dataclass(frozen=True)
+class Options:
+    """contact_regions : path of CHI3D's official ``info/contact_regions.json``
+    (``rid_to_smplx_fids``): the SMPL-X signature's regions are then the official region of
+    each mapped SMPL-X facet (relative paths: from the recipe's folder). None: our regions."""
+
+    contact_regions: str | None = None
+
+
+def _contact_regions_path(recipe) -> Path | None:
+    p = (recipe.stages.get("export") or {}).get("contact_regions")
+    if not p:
+        return None
+    p = Path(p)
+    src = getattr(recipe, "source", None)
+    return p if p.is_absolute() or src is None else Path(src).parent / p
+
+
+def raw_inputs(recipe, unit: str) -> dict[str, Path]:
+    seq = recipe.sequence(unit)
+    out = {"body_model": common.body_model_file(recipe)}
+    for cam in recipe.cameras:
+        if cam in seq.calibration:
+            out[f"calibration:{cam}"] = Path(seq.calibration[cam])
+        if cam in seq.videos:
+            out[f"video:{cam}"] = Path(seq.videos[cam])
+    if seq.contact is not None:
+        out["contact"] = Path(seq.contact)
+    cr = _contact_regions_path(recipe)
+    if cr is not None:
+        out["contact_regions"] = cr
+    return out
+
+
+# ------------------------------------------------------------------------------ pure helpers
+def frame_index(fit_frames, frames, file, who: str) -> np.ndarray:
+    """Positions of ``frames`` in a fit's ``fit_frames``; InputError naming the first missing."""
+    from formats.errors import InputError
+
+    fit_frames = np.asarray(fit_frames)
+    idx = np.searchsorted(fit_frames, frames)
+    ok = (idx < len(fit_frames)) & (fit_frames[np.minimum(idx, len(fit_frames) - 1)] == frames)
+    if not ok.all():
+        raise InputError(file, "frames", f"frame not fitted by {who}",
+                         frame=int(np.asarray(frames)[~ok][0]))
+    return idx
+
+
+def validity(fits_valid, fits_reason, converted=None) -> tuple[np.ndarray, np.ndarray]:
+    """(P, F) valid and reason names from each person's fit (``valid``, ``invalid_reason``
+    codes at the exported frames) and convert's ``valid`` (P, F) (None: no conversion)."""
+    from artifacts import INVALID_REASONS
+
+    valid = np.asarray(fits_valid, bool).copy()
+    reason = np.array([[INVALID_REASONS[int(c)] for c in row] for row in fits_reason], dtype=object)
+    if converted is not None:
+        lost = valid & ~np.asarray(converted, bool)
+        reason[lost] = NOT_CONVERTED
+        valid &= ~lost
+    return valid, reason.astype(str)
+
+
+def smplx_release(sm: dict, P: int) -> dict[str, np.ndarray]:
+    """convert's ``smplx.npz`` -> the CHI3D per-frame shapes (``formats.chi3d.SMPLX_SHAPES``)."""
+    F = sm["transl"].shape[1]
+    out = {"transl": sm["transl"], "body_pose": sm["body_pose"],
+           "left_hand_pose": sm["left_hand_pose"], "right_hand_pose": sm["right_hand_pose"]}
+    for k in ("global_orient", "jaw_pose", "leye_pose", "reye_pose"):
+        out[k] = np.asarray(sm[k]).reshape(P, F, 1, 3, 3)
+    for k in ("betas", "expression"):
+        a = np.asarray(sm[k], float)
+        out[k] = np.repeat(a[:, None, :10], F, axis=1) if a.ndim == 2 else a
+    return {k: np.asarray(v, float) for k, v in out.items()}
+
+
+def move_contact_frames(frames: np.ndarray, fr_id: int, start: int | None, end: int | None):
+    """The contact frames on the exported frame axis (positions into ``frames``): the frame
+    itself when ``frames`` is ``0..F-1``; else ``fr_id`` to the nearest exported frame,
+    ``start`` to the first exported frame at or after it, ``end`` to the last at or before it
+    (each clamped so that start <= fr_id <= end)."""
+    frames = np.asarray(frames)
+    if np.array_equal(frames, np.arange(len(frames))):
+        return fr_id, start, end
+    fr = int(np.argmin(np.abs(frames - fr_id)))
+    s = None if start is None else min(int(np.searchsorted(frames, start, "left")), fr)
+    e = None if end is None else max(int(np.searchsorted(frames, end, "right")) - 1, fr)
+    return fr, s, e
+
+
+def map_signature(sig, src_family: str, src_face_tgt_face, src_face_region, tgt_face_region=None):
+    """``formats.chi3d.ContactSignature`` with the SMPL-X signature made from the source
+    family's (``anny``): facets through ``src_face_tgt_face``; regions = ``tgt_face_region`` of
+    the mapped facets (official map) when given, else ``src_face_region`` of the source facets.
+    Without facet pairs the source's region pairs carry over (our map only)."""
+    import dataclasses
+
+    faces = np.asarray(sig.faces(src_family), np.int64).reshape(-1, 2)
+    tgt = np.asarray(src_face_tgt_face, np.int64)[faces]
+    if len(faces):
+        regions = (np.asarray(tgt_face_region)[tgt] if tgt_face_region is not None
+                   else np.asarray(src_face_region)[faces])
+    elif tgt_face_region is None:
+        regions = np.asarray(sig.regions(src_family), np.int64).reshape(-1, 2)
+    else:
+        regions = np.zeros((0, 2), np.int64)  # region ids of another map cannot be carried over
+    return dataclasses.replace(sig, smplx_faces=tgt.reshape(-1, 2),
+                               smplx_regions=np.asarray(regions, np.int64).reshape(-1, 2))
+
+
+# ------------------------------------------------------------------------------------- stage
+def _pick(report: dict | None, keys) -> dict | None:
+    if report is None:
+        return None
+    return {k: report[k] for k in keys if k in report}
+
+
+MARKER_FIT_FIGURES = ("subject", "frames", "frames_valid", "frames_not_valid", "residual_mm",
+                      "outlier_marker_frames", "fit_rate_hz", "fit_cpu_s", "fps_per_cpu_s",
+                      "warnings")
+PARTNER_FIT_FIGURES = ("subject", "frames", "frames_valid", "frames_not_valid", "reprojection_px",
+                       "penetration", "contact_distance", "ground_penetration", "contact_frames",
+                       "fit_cpu_s", "fps", "warnings")
+CONVERT_FIGURES = ("target", "per_person", "fps_per_core", "cpu_s", "warnings")
+
+
+def _json(art, name):
+    try:
+        return art.json(name)
+    except FileNotFoundError:
+        return None
+
+
+def run(ctx: StageContext) -> None:
+    from artifacts import BodyFit, ShapeFit
+    from body import forward
+    from body.joints import regress, regressor
+    from body.rotations import rodrigues
+    from calib.convert import convert_distortion
+    from calib.io import read_chi3d_camera, write_chi3d_camera
+    from formats import anny_json, chi3d
+    from formats import release as R
+    from formats.errors import InputError
+
+    # the option contact_regions acts through the raw input of that name (keyed by content)
+    rv = ctx.recipe
+    group, action = ctx.unit.split("/", 1)
+    model = common.load_body(ctx)
+    subjects = [rv.sequence.markers_on] + ([rv.sequence.partner] if rv.sequence.partner else [])
+    mf_art, pf_art = ctx.inputs["marker_fit"], ctx.inputs.get("partner_fit")
+    cv_art = ctx.inputs.get("convert")
+    fits = [BodyFit.load(mf_art)] + ([BodyFit.load(pf_art)] if pf_art is not None else [])
+    subjects = subjects[:len(fits)]
+    P = len(fits)
+    absent: dict[str, str] = {}
+    if pf_art is None:
+        absent["person 1"] = ("no partner_fit (a sequence without partner or without video): "
+                              "one person (P = 1)")
+    sm = corr = None
+    if cv_art is not None:
+        sm = cv_art.arrays("smplx")
+        frames = np.asarray(sm["frames"], np.int64)
+        if sm["transl"].shape[0] != P:
+            raise InputError(cv_art.path("smplx.npz"), "transl",
+                             f"{sm['transl'].shape[0]} persons, the fits have {P}")
+        corr = cv_art.arrays("correspondence")
+    else:
+        frames = np.asarray(fits[0].frames, np.int64)
+        for f in fits[1:]:
+            frames = np.intersect1d(frames, f.frames)
+        absent["smplx"] = "no convert artifact: no SMPL-X parameters"
+    if not len(frames):
+        raise InputError(mf_art.dir, "frames", "no frame fitted by every person to export")
+    F = len(frames)
+    idx = [frame_index(f.frames, frames, a.dir / "fit.npz", name) for f, a, name in
+           zip(fits, [mf_art, pf_art][:P], ["marker_fit", "partner_fit"][:P], strict=True)]
+    out_dir = Path(ctx.out.dir)
+    written: list[str] = []
+
+    def rel(name: str) -> Path:
+        p = ctx.out.path(f"{group}/{name}")
+        written.append(p.relative_to(out_dir).as_posix())
+        return p
+
+    # validity
+    valid, reason = validity([f.valid[i] for f, i in zip(fits, idx, strict=True)],
+                             [f.invalid_reason[i] for f, i in zip(fits, idx, strict=True)],
+                             None if sm is None else sm["valid"])
+    R.write_valid(rel(f"{R.VALID_DIR}/{action}.json"), valid, reason, frames)
+    # the fitted model's own parameters, and the joints from its mesh
+    S = max(len(f.betas) for f in fits)
+    betas = np.stack([np.pad(np.asarray(f.betas, float), (0, S - len(f.betas))) for f in fits])
+    pose = np.stack([np.asarray(f.body_pose, float)[i] for f, i in zip(fits, idx, strict=True)])
+    orient = np.stack([np.asarray(f.global_orient, float)[i] for f, i in zip(fits, idx, strict=True)])
+    transl = np.stack([np.asarray(f.transl, float)[i] for f, i in zip(fits, idx, strict=True)])
+    own = model.name if model.name != "smplx" else "smplx_fit"  # never over convert's smplx/
+    anny_json.write_anny(rel(f"{own}/{action}.json"), transl, orient, rodrigues(pose),
+                         np.repeat(betas[:, None], F, axis=1), list(model.joint_names))
+    reg25 = regressor(model, "joints3d_25")
+    j25 = []
+    for p in range(P):
+        b = forward(model, betas[p], pose[p], orient[p], transl[p])
+        j25.append(regress(reg25, b.vertices, b.joints))
+    chi3d.write_joints3d_25(rel(f"joints3d_25/{action}.json"), np.stack(j25))
+    if sm is not None:
+        if not np.array_equal(np.asarray(sm["transl"]).shape[:2], (P, F)):
+            raise InputError(cv_art.path("smplx.npz"), "transl", "(persons, frames) "
+                             f"{sm['transl'].shape[:2]} != frames' {(P, F)}")
+        chi3d.write_smplx(rel(f"smplx/{action}.json"), smplx_release(sm, P))
+    # cameras and videos
+    cameras: dict[str, dict] = {}
+    fps = None
+    for c in rv.cameras:
+        if f"calibration:{c}" not in ctx.raw:
+            continue
+        cam = read_chi3d_camera(ctx.raw[f"calibration:{c}"], name=c)
+        info = {"source": Path(ctx.raw[f"calibration:{c}"]).name, "model": cam.model}
+        if cam.model != "h36m" and np.any(cam.p):
+            conv = convert_distortion(cam, "h36m")
+            cam = conv.camera
+            info.update(converted_to="h36m", rms_px=conv.rms_px, max_px=conv.max_px)
+        write_chi3d_camera(rel(f"camera_parameters/{c}/{action}.json"), cam)
+        cameras[c] = info
+    if not cameras:
+        absent["camera_parameters"] = "the sequence has no calibration (marker-only)"
+    videos = [c for c in rv.cameras if f"video:{c}" in ctx.raw]
+    if videos:
+        fps = common.sequence_fps(rv.sequence.fps, ctx.raw[f"video:{videos[0]}"])
+        step = np.diff(frames)
+        if len(step) and np.all(step == step[0]) and step[0] > 1:
+            fps = fps / float(step[0])  # every k-th frame: the cut video keeps real time
+        for c in ctx.progress(videos, total=len(videos), desc="videos"):
+            R.cut_video(ctx.raw[f"video:{c}"], rel(f"videos/{c}/{action}.mp4"), frames, fps)
+    else:
+        absent["videos"] = "the sequence was not filmed (marker-only)"
+    # contact signature
+    contact_note = None
+    if "contact" in ctx.raw:
+        contact_note = _export_contact(ctx, model, action, frames, corr, rel)
+    else:
+        absent["interaction_contact_signature"] = "the recipe gives no contact file"
+    # text
+    text = (rv.sequence.text or "").strip()
+    if text:
+        R.write_text_annotations(rel(R.TEXT_FILE), {action: text})
+    else:
+        absent["text_annotations"] = "the recipe gives no text for the sequence"
+    # figures of the fits, for the datasheet
+    shape = ctx.inputs.get("shape_fit") or {}
+    figures = {
+        "sequence": ctx.unit, "subjects": subjects,
+        "marker_fit": _pick(_json(mf_art, "report"), MARKER_FIT_FIGURES),
+        "partner_fit": None if pf_art is None else _pick(_json(pf_art, "report"),
+                                                         PARTNER_FIT_FIGURES),
+        "convert": None if cv_art is None else _pick(_json(cv_art, "report"), CONVERT_FIGURES),
+        "shape_source": {s: str(ShapeFit.load(shape[s]).shape_source)
+                         for s in subjects if s in shape},
+    }
+    ctx.out.save_json("figures", figures)
+    counts = R.reason_counts(reason)
+    ctx.out.save_json("export", {
+        "sequence": ctx.unit, "group": group, "action": action, "persons": subjects,
+        "model": model.name, "frames": int(F), "first_frame": int(frames[0]),
+        "last_frame": int(frames[-1]), "video_fps": fps,
+        "person_frames_not_valid": int((~valid).sum()),
+        "not_valid_by_reason": [{"subject": s, **c} for s, c in zip(subjects, counts, strict=True)],
+        "cameras": cameras, "contact": contact_note, "absent": absent, "files": written})
+    ctx.log(f"{ctx.unit}: exported {F} frames x {P} persons, {int((~valid).sum())} person-frames "
+            f"not valid, {len(written)} files")
+
+
+def _export_contact(ctx, model, action: str, frames, corr, rel) -> dict:
+    import dataclasses
+
+    from body.regions import load_official, region_map
+    from fitting.contact_signature import model_family
+    from formats.chi3d import read_contact_signatures, write_contact_signatures
+    from formats.errors import InputError
+
+    path = Path(ctx.raw["contact"])
+    sigs = read_contact_signatures(path)
+    if action not in sigs:
+        raise InputError(path, action, f"action missing (the file has: {sorted(sigs)})")
+    sig = sigs[action]
+    fam = model_family(model) or model.name
+    note: dict = {"source": path.name, "family": fam,
+                  "original_frames": {"fr_id": sig.fr_id, "start_fr": sig.start_fr,
+                                      "end_fr": sig.end_fr}}
+    T = len(model.faces)
+    faces = sig.faces(fam) if fam in ("anny", "smplx", "ghum") else np.zeros((0, 2), np.int64)
+    if len(faces) and faces.max() >= T:
+        raise InputError(path, f"{action}.{fam}_signature.face_id",
+                         f"facet {int(faces.max())} outside the model's {T} faces", sig.fr_id)
+    if fam != "smplx" and not len(sig.faces(fam)) and not len(sig.regions(fam)):
+        note["smplx"] = f"no {fam} pairs in the file: its SMPL-X signature is kept as given"
+    elif fam != "smplx":
+        if corr is None:
+            note["smplx"] = "no convert artifact: the SMPL-X signature is left empty"
+            sig = dataclasses.replace(sig, smplx_faces=np.zeros((0, 2), np.int64),
+                                      smplx_regions=np.zeros((0, 2), np.int64))
+        else:
+            m = np.asarray(corr["src_face_tgt_face"])
+            if len(m) != T:
+                raise InputError("correspondence.npz", "src_face_tgt_face",
+                                 f"{len(m)} source facets, the fitted model has {T}")
+            official = None
+            if "contact_regions" in ctx.raw:
+                official = load_official(ctx.raw["contact_regions"], "smplx",
+                                         num_faces=len(corr["tgt_faces"])).face_region
+                note["smplx_regions"] = ("official contact_regions.json (rid_to_smplx_fids) "
+                                         "region of each mapped SMPL-X facet")
+            else:
+                note["smplx_regions"] = (f"our 75-region map: the region of each {fam} facet "
+                                         "(body.regions.region_map)")
+            src_region = region_map(model).face_region if len(faces) else None
+            sig = map_signature(sig, fam, m, src_region, official)
+            if official is not None and (sig.smplx_regions < 0).any():
+                bad = int(np.flatnonzero((sig.smplx_regions < 0).any(axis=1))[0])
+                note.setdefault("warnings", []).append(
+                    f"pair {bad}: a mapped SMPL-X facet lies in no official region (-1)")
+            note["smplx_facets"] = "nearest SMPL-X facet of each facet (src_face_tgt_face)"
+    fr, s, e = move_contact_frames(frames, sig.fr_id, sig.start_fr, sig.end_fr)
+    note["moved_to_exported_frames"] = (fr, s, e) != (sig.fr_id, sig.start_fr, sig.end_fr)
+    sig = dataclasses.replace(sig, fr_id=fr, start_fr=s, end_fr=e)
+    if (sig.smplx_regions < 0).any():  # not writable as ids: drop the pairs without a region
+        keep = ~(sig.smplx_regions < 0).any(axis=1)
+        sig = dataclasses.replace(sig, smplx_regions=sig.smplx_regions[keep],
+                                  smplx_faces=sig.smplx_faces[keep])
+    write_contact_signatures(rel("interaction_contact_signature.json"), {action: sig})
+    note["pairs"] = {f: int(len(sig.faces(f))) for f in ("anny", "smplx", "ghum")}
+    return note
+
+
+STAGE = Stage(name="export", func=run, per="sequence",
+              upstream=("shape_fit", "keypoints", "marker_fit", "partner_fit", "convert"),
+              params=Options, raw_inputs=raw_inputs, reads=READS, version="1",
+              doc="CHI3D-layout files of the sequence (SMPL-X, Anny, joints, cameras, videos, "
+                  "validity, contact signature, text)")
