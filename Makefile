@@ -11,16 +11,19 @@ FRAMES ?=
 SCENARIOS ?=
 MARKERS ?=
 STRIDE ?=
+PRED ?=
+GT ?=
 export PYTHONPATH := $(CURDIR)
 export ANNY_CACHE_DIR ?= $(CURDIR)/assets/cache/anny
 
-.PHONY: setup demo test test-fast sequence loo release status bench studio lint clean
+.PHONY: setup demo test test-fast sequence loo release evaluate status bench studio lint clean
 
 setup:
 	@bash scripts/setup.sh
 
 demo: setup
 	@$(PY) -m pipeline demo --recipe $(RECIPE) $(foreach f,$(FORCE),--force $(f))
+	@$(PY) -m evaluate.session --recipe $(RECIPE)
 
 sequence: setup
 	@test -n "$(SEQ)" || { echo "usage: make sequence SEQ=<subject>/<action> [RECIPE=...]"; exit 2; }
@@ -32,6 +35,14 @@ loo: setup
 
 release: setup
 	@$(PY) -m pipeline release --recipe $(RECIPE) $(if $(STAGE),--until $(STAGE),) $(foreach f,$(FORCE),--force $(f))
+	@$(PY) -m evaluate.session --recipe $(RECIPE)
+
+# make evaluate RECIPE=...: the recipe's release scored against its ground truth (stages.evaluate.truth);
+# make evaluate PRED=dir GT=dir: any two folders in the CHI3D layout
+evaluate: setup
+	@if [ -n "$(PRED)" ]; then $(PY) -m evaluate "$(PRED)" "$(GT)"; else \
+	  $(PY) -m pipeline release --recipe $(RECIPE) --until evaluate $(foreach f,$(FORCE),--force $(f)) && \
+	  $(PY) -m evaluate.session --recipe $(RECIPE); fi
 
 status: setup
 	@$(PY) -m pipeline status --recipe $(RECIPE)
