@@ -577,12 +577,17 @@ class PersonConversion:
     v2s_p95_mm: np.ndarray
     v2s_max_mm: np.ndarray
     cpu_s: float
+    restarts: int = 0  # frames whose warm start was replaced by a restart from the joints
 
 
 SHAPE_FRAMES = 4
 SHAPE_ITERS = 8
 ITERS_FIRST = 12
 ITERS = 3
+#: a warm-started frame whose RMS distance to its correspondence points exceeds this is also
+#: fitted from the joint-name start, and the better of the two is kept (a fast motion over a
+#: stride lets the warm start fall into a wrong pose that later frames inherit)
+RESTART_RMS_M = 0.015
 
 
 def convert_motion(source: BodyModel, target: BodyModel, corr: Correspondence, betas,
@@ -636,6 +641,7 @@ def convert_motion(source: BodyModel, target: BodyModel, corr: Correspondence, b
     full_b[:K] = rig.betas
     rest_t = rest_state(target, full_b)
     x = x_prev = None
+    restarts = 0
     loop = range(F) if progress is None else progress(range(F), total=F, desc="convert")
     for f in loop:
         Vs, _ = source_frame(f)
@@ -647,7 +653,11 @@ def convert_motion(source: BodyModel, target: BodyModel, corr: Correspondence, b
         else:  # constant-velocity prediction of the warm start
             x0 = 2 * x - x_prev
         x_prev = x
-        x, _ = rig.fit(x0, tgt[rig.vertices], iters=iters)
+        x, cost = rig.fit(x0, tgt[rig.vertices], iters=iters)
+        if np.sqrt(cost / len(rig.vertices)) > RESTART_RMS_M:  # the warm start lost the pose
+            xr, cr = rig.fit(init(f, shape=False), tgt[rig.vertices], iters=iters)
+            if cr < cost:
+                x, x_prev, restarts = xr, None, restarts + 1
         R, T, pose = rig.params(x)
         R_all[f], T_all[f], P_all[f] = R, T, pose
         Vt = forward(target, None, pose[None], R[None], T[None], rest=rest_t).vertices[0]
@@ -657,7 +667,7 @@ def convert_motion(source: BodyModel, target: BodyModel, corr: Correspondence, b
     return PersonConversion(global_orient=R_all, transl=T_all, body_pose=P_all,
                             betas=rig.betas.copy(), v2s_mean_mm=stats[0], v2s_median_mm=stats[1],
                             v2s_p95_mm=stats[2], v2s_max_mm=stats[3],
-                            cpu_s=time.process_time() - t_cpu)
+                            cpu_s=time.process_time() - t_cpu, restarts=restarts)
 
 
 def smplx_arrays(target: BodyModel, pose: np.ndarray) -> dict[str, np.ndarray]:

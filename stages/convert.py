@@ -180,7 +180,8 @@ def run(ctx: StageContext) -> None:
         med = float(np.nanmedian(res.v2s_mean_mm))
         per_person.append({"subject": subjects[p], "v2s_median_mm": med,
                            "v2s_p95_mm": float(np.nanmedian(res.v2s_p95_mm)),
-                           "v2s_max_mm": float(np.nanmax(res.v2s_max_mm)), "frames": F})
+                           "v2s_max_mm": float(np.nanmax(res.v2s_max_mm)), "frames": F,
+                           "restarts": int(res.restarts)})
         ctx.log(f"{ctx.unit}: {subjects[p]} -> {target.name}: v2s {med:.1f} mm (median), "
                 f"{F} frames, {F / max(res.cpu_s, 1e-9):.1f} frames/s")
         if med > WARN_V2S_MM:

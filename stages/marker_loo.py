@@ -55,10 +55,9 @@ def raw_inputs(recipe, unit: str) -> dict[str, Path]:
 
 
 def run(ctx: StageContext) -> None:
-    from fitting.loo import leave_one_out
-
     from artifacts import BodyFit, ShapeFit
     from drawing.plots import marker_residual_plot
+    from fitting.loo import leave_one_out
     from fitting.marker_fit import MarkerFitOptions
     from formats.errors import InputError
 

@@ -225,3 +225,25 @@ def test_bench_case_reads_convert_artifacts(converted, tmp_path):
     assert out["convert.fps_per_core"] > 0 and out["convert.v2s_p95_mm"] >= out["convert.v2s_mm"]
     with pytest.raises(RuntimeError):
         collect(tmp_path / "empty")
+
+
+def test_a_lost_warm_start_is_restarted_from_the_joints(target):
+    """A sudden half-turn and a new arm pose between two frames (a fast motion over a stride):
+    the warm start from the previous frame cannot follow in a few iterations, so the frame is
+    also fitted from the joint-name start, and the conversion stays on the surface."""
+    from body.rotations import rodrigues
+    from fitting.convert import convert_motion, register
+
+    rng = np.random.default_rng(5)
+    F, J = 4, target.num_joints
+    pose = np.zeros((F, J, 3))
+    pose[:, 1:22] = rng.normal(0, 0.15, (1, 21, 3))
+    pose[2:, 16:22] += rng.normal(0, 0.9, (1, 6, 3))  # both arms jump
+    go = rodrigues(np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.05], [0.0, 0.0, 2.8],
+                             [0.0, 0.0, 2.85]]))
+    tr = np.array([[0.0, 0.0, 1.0], [0.0, 0.02, 1.0], [0.3, 0.2, 1.0], [0.3, 0.22, 1.0]])
+    corr = register(target, target)
+    res = convert_motion(target, target, corr, np.zeros(target.num_betas), pose, go, tr,
+                         iters=3)
+    assert res.restarts >= 1
+    assert res.v2s_mean_mm[2] < 5.0 and np.nanmax(res.v2s_mean_mm) < 5.0, res.v2s_mean_mm

@@ -27,6 +27,15 @@ GOALS = {
     "convert.v2s_mm": ("<=", 5.0),
     "convert.fps_per_core": (">=", 20.0),
 }
+LIMITS = {
+    "convert.fps_per_core": "per frame ~45 ms of LM (600 target points, 3 iterations, exact "
+                            "Jacobian) and ~30 ms of igl point-to-surface for all 10,608 target "
+                            "vertices (the per-frame figure the report needs; igl rebuilds its "
+                            "tree each frame), plus betas once per person and sequence at rest "
+                            "(~0.7 s, heavy on the bench's 20-frame sequences) and restarts from "
+                            "the joints where a warm start over the stride is lost; a numpy "
+                            "ring-of-faces distance was slower than igl and 5 % wrong",
+}
 
 
 def collect(outputs: Path) -> dict[str, float]:

@@ -79,7 +79,7 @@ def run(work: Path) -> dict[str, float]:
     return out
 
 
-def report(results: dict) -> str:
+def report(results: dict) -> str:  # noqa: ARG001 - the table is read from the run's file
     """The evaluator's own table of the bench release (written by the last run)."""
     md = Path(__file__).resolve().parents[1] / "work" / "release" / "evaluation.md"
     if not md.is_file():
