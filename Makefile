@@ -23,6 +23,8 @@ setup:
 
 demo: setup
 	@$(PY) -m pipeline demo --recipe $(RECIPE) $(foreach f,$(FORCE),--force $(f))
+	@# the session stages (release, then evaluate against the studio truth) over every sequence
+	@$(PY) -m pipeline release --recipe $(RECIPE) --until evaluate
 	@$(PY) -m evaluate.session --recipe $(RECIPE)
 
 sequence: setup

@@ -154,7 +154,7 @@ def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
 def write_manifest(root: str | Path, files: Iterable[str | Path] | None = None) -> Path:
     """``<root>/MANIFEST.sha256`` over ``files`` (paths relative to root, or absolute inside
     it; default every file under root but the manifest), sorted, ``sha256sum -c`` format."""
-    root = Path(root)
+    root = Path(root).resolve()
     if files is None:
         files = [p for p in root.rglob("*") if p.is_file() and p.name != MANIFEST_FILE]
     rels = sorted({(Path(f) if Path(f).is_absolute() else root / f).relative_to(root).as_posix()
@@ -190,7 +190,7 @@ def read_manifest(path: str | Path) -> dict[str, str]:
 def verify_manifest(root: str | Path) -> list[str]:
     """Problems of ``<root>/MANIFEST.sha256`` against the folder, one line each naming the file
     (``[]``: every listed file is there with its hash and every file is listed)."""
-    root = Path(root)
+    root = Path(root).resolve()
     listed = read_manifest(root / MANIFEST_FILE)
     problems = []
     for name, h in listed.items():

@@ -223,12 +223,12 @@ def run(ctx: StageContext) -> None:
     F = len(frames)
     idx = [frame_index(f.frames, frames, a.dir / "fit.npz", name) for f, a, name in
            zip(fits, [mf_art, pf_art][:P], ["marker_fit", "partner_fit"][:P], strict=True)]
-    out_dir = Path(ctx.out.dir)
+    out_dir = Path(ctx.out.dir).resolve()
     written: list[str] = []
 
     def rel(name: str) -> Path:
         p = ctx.out.path(f"{group}/{name}")
-        written.append(p.relative_to(out_dir).as_posix())
+        written.append(Path(p).resolve().relative_to(out_dir).as_posix())
         return p
 
     # validity

@@ -361,7 +361,7 @@ def run(ctx: StageContext) -> None:
         exports = {ctx.unit: exports}
     if not exports:
         raise InputError(ctx.recipe_path or "<recipe>", "sequences", "no sequence was exported")
-    root = Path(ctx.out.dir)
+    root = Path(ctx.out.dir).resolve()
     copied = merge_exports(exports, root)
     sheet = datasheet(rv.session.name, list(rv.session.subjects),
                       rv.session.sequences.as_dict(), exports)

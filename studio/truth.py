@@ -130,7 +130,7 @@ def ensure_truth(session_dir: str | Path) -> list[Path]:
     (never touches the session's inputs). Returns the files written."""
     session_dir = Path(session_dir)
     files = truth_files(session_dir)
-    if files and all(f.is_file() for f in files):
+    if all(f.is_file() for f in files):  # complete, or no per-sequence truth to lay out
         return []
     return write_chi3d_truth(session_dir)
 

@@ -388,3 +388,14 @@ def test_export_and_release_are_registered():
     st = {p[0]: _stage(*p) for p in PLANNED if p[0] in ("export", "release")}
     assert st["export"].implemented and st["release"].implemented
     assert st["release"].per == "session" and st["release"].upstream == ("export",)
+
+
+def test_release_into_a_relative_store_path(world, tmp_path, monkeypatch):
+    """The engine's store root is relative by default (``outputs``): the release and its
+    manifest are written and verified the same (the demo's path)."""
+    from formats import release as R
+
+    monkeypatch.chdir(tmp_path)
+    rel = _release(world, Path("relative") / "rel")
+    assert R.verify_manifest(rel) == []
+    assert json.loads((rel / "verification.json").read_text())["ok"]
