@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from formats.errors import InputError
+from formats.keypoints import load_json
 
 #: Keys of the file and each one's layout after the (persons, frames) axes.
 ANNY_KEYS = ("transl", "global_orient", "body_pose", "betas")
@@ -96,14 +97,7 @@ def read_anny(path: str | Path) -> dict:
     """``anny/<action>.json`` -> {transl (P, F, 3), global_orient (P, F, 3, 3),
     body_pose (P, F, J, 3, 3), betas (P, F, S): float64 arrays, joint_names: tuple of J str}."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as e:
-        raise InputError(path, "<file>", f"cannot read: {e.strerror or e}") from None
-    try:
-        d = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise InputError(path, "<json>", f"invalid or truncated JSON: {e}") from None
+    d = load_json(path)
     if not isinstance(d, dict):
         raise InputError(path, "<json>", f"expected an object, got {type(d).__name__}")
     for key in ANNY_KEYS + ("joint_names",):

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from formats.errors import InputError
+from formats.keypoints import load_json
 
 VALID_DIR = "valid"
 TEXT_FILE = "text_annotations.json"
@@ -31,17 +32,6 @@ MANIFEST_FILE = "MANIFEST.sha256"
 #: the reason of a valid person-frame (every other reason marks a frame that is not ground truth)
 VALID_REASON = "fitted"
 _HEX = re.compile(r"^[0-9a-f]{64}$")
-
-
-def _load(path: Path):
-    try:
-        text = Path(path).read_text()
-    except OSError as e:
-        raise InputError(path, "<file>", f"cannot read: {e.strerror or e}") from None
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as e:
-        raise InputError(path, "<json>", f"invalid or truncated JSON: {e}") from None
 
 
 def _dump(path: Path, d) -> Path:
@@ -104,7 +94,7 @@ def read_valid(path: str | Path) -> dict[str, np.ndarray]:
     """``valid/<action>.json`` -> ``{"valid": (P, F) bool, "reason": (P, F) str,
     "frames": (F,) int64}``."""
     path = Path(path)
-    d = _load(path)
+    d = load_json(path)
     if not isinstance(d, dict):
         raise InputError(path, "<json>", f"expected an object, got {type(d).__name__}")
     for k in ("valid", "reason", "frames"):
@@ -133,7 +123,7 @@ def write_text_annotations(path: str | Path, texts: Mapping[str, str]) -> Path:
 
 def read_text_annotations(path: str | Path) -> dict[str, str]:
     path = Path(path)
-    d = _load(path)
+    d = load_json(path)
     if not isinstance(d, dict):
         raise InputError(path, "<json>", f"expected an object, got {type(d).__name__}")
     for a, t in d.items():
