@@ -39,6 +39,10 @@ class Stage:
         them: reading anything else raises :class:`UndeclaredRead`. Files are not read through
         the view but through ``raw_inputs`` (keyed by content, not by path).
     implemented : False for a planned stage that does not exist yet (the CLI says so plainly).
+    cores, memory_gb : what one unit of the stage needs on a worker. A distributed executor
+        runs it only where that much is free (Dask resources ``cores`` / ``memory_gb``), and the
+        stage gets ``ctx.cores`` (the cores granted) for its own worker pools, so a stage that
+        starts processes never oversubscribes its worker.
     """
 
     name: str
@@ -51,6 +55,8 @@ class Stage:
     implemented: bool = True
     doc: str = ""
     reads: tuple[str, ...] = ()
+    cores: int = 1
+    memory_gb: float = 2.0
 
 
 @dataclass(frozen=True)
@@ -198,6 +204,8 @@ class StageContext:
     raw : the raw input files of this unit, ``{name: Path}``.
     progress : ``progress(iterable, total=None, desc="")`` wraps per-frame loops in a bar
         that is quiet when stderr is not a terminal.
+    cores : the cores the executor granted this unit (0: the whole machine, as in a serial
+        run); a stage that starts worker processes starts at most this many.
     """
 
     stage: str
@@ -211,3 +219,4 @@ class StageContext:
     log: Callable[[str], None]
     extras: dict[str, Any] = field(default_factory=dict)
     recipe_path: Path | None = None
+    cores: int = 0

@@ -100,13 +100,14 @@ class Options:
             raise ValueError(f"overlay_frame: must be >= 0, got {self.overlay_frame}")
         self.sequence_options()  # chunk, body_margin, near_frac, cross_view_px
 
-    def sequence_options(self) -> SequenceOptions:
-        """The domain options (workers 0 resolved to the number of cores)."""
+    def sequence_options(self, cores: int = 0) -> SequenceOptions:
+        """The domain options (workers 0 resolved to ``cores``, the cores the executor granted
+        the stage, or when that is 0 to the number of cores of the machine)."""
         return SequenceOptions(hands=self.hands, track=self.track, mask_wearer=self.mask_wearer,
                                body_margin=self.body_margin, near_frac=self.near_frac,
                                cross_view=self.cross_view, cross_view_px=self.cross_view_px,
                                identity=self.identity,
-                               workers=self.workers or (os.cpu_count() or 1), chunk=self.chunk)
+                               workers=self.workers or cores or (os.cpu_count() or 1), chunk=self.chunk)
 
 
 def _precomputed_files(seq, cam: str) -> list[Path]:
@@ -181,7 +182,7 @@ class Computed:
 
 
 def compute(view, raw: dict[str, Path], o: Options, *, unit: str = "", recipe_path="<recipe>",
-            progress=lambda it, **_: it, log=lambda _msg: None) -> Computed:
+            progress=lambda it, **_: it, log=lambda _msg: None, cores: int = 0) -> Computed:
     """The stage without the artifact store (used by :func:`run` and the bench): read the raw
     inputs (``raw_inputs`` paths), check the videos, resample the markers, run
     :func:`detect.sequence.detect_keypoints`. ``view`` : the stage's recipe view
@@ -231,7 +232,7 @@ def compute(view, raw: dict[str, Path], o: Options, *, unit: str = "", recipe_pa
     source = VideoSource(tuple(str(v) for v in videos))
     log(f"keypoints: detector {kind}")
     kp, facts = detect_keypoints(cams, source, xyz, list(markers.names), frames, factory,
-                                 o.sequence_options(), progress=progress, log=log)
+                                 o.sequence_options(cores), progress=progress, log=log)
     report = {"detector": kind, "cameras": cam_names, "video_frames": n_video,
               "stride": o.stride, **facts}
     return Computed(kp, report, source)
@@ -292,7 +293,7 @@ def write_mcap(path: Path, kp: Keypoints2D, fps: float) -> str:
 def run(ctx: StageContext) -> None:
     o: Options = ctx.params or Options()
     c = compute(ctx.recipe, ctx.raw, o, unit=ctx.unit, recipe_path=ctx.recipe_path or "<recipe>",
-                progress=ctx.progress, log=ctx.log)
+                progress=ctx.progress, log=ctx.log, cores=ctx.cores)
     kp = c.keypoints
     kp.save(ctx.out)
     sample = int(kp.frames[len(kp.frames) // 2]) if o.overlay_frame is None else o.overlay_frame
@@ -308,7 +309,7 @@ def run(ctx: StageContext) -> None:
 
 
 STAGE = Stage(name="keypoints", func=run, per="sequence", upstream=(), params=Options,
-              raw_inputs=raw_inputs, version="1",
+              raw_inputs=raw_inputs, version="1", cores=2, memory_gb=4.0,
               reads=("cameras", "sequence.fps", "sequence.mocap", "sequence.has_keypoints",
                      "sequence.keypoints_format"),
               doc="2D body and hand keypoints of both people in every view")
