@@ -1,0 +1,297 @@
+"""drawing.overlay and drawing.qa_plots: the fitted meshes sit on the people in the video to
+the pixel (distortion included), the views tile, the overlay MP4 plays the requested frames,
+and the QA plot shades the flagged spans.
+
+The overlay tests use the small studio session's truth (``tests/conftest.py``): the truth
+meshes of both people, the calibration files and the videos the studio rendered from them
+(real lens distortion), read through the same readers as the pipeline.
+"""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+SEQ = "s01/Handshake 1"
+FRAME = 12
+
+
+def _session(recipe: Path):
+    """Cameras, video paths and truth meshes (vertices (2, F, V, 3), faces) of SEQ."""
+    import yaml
+
+    from calib.io import read_chi3d_camera
+
+    root = recipe.parent
+    rec = yaml.safe_load(recipe.read_text())
+    seq = rec["sequences"][SEQ]
+    names = [str(c) for c in rec["cameras"]]
+    cams = [read_chi3d_camera(root / seq["calibration"][n], name=n) for n in names]
+    videos = [root / seq["videos"][n] for n in names]
+    group, action = SEQ.split("/")
+    gt = np.load(root / "gt" / group / f"{action}.npz")
+    assert list(gt["frames"]) == list(range(len(gt["frames"])))  # gt row = video frame
+    return cams, videos, gt["vertices"].astype(float), np.asarray(gt["faces"])
+
+
+def _mesh(vertices, faces, rgb):
+    from drawing.render import PersonMesh
+
+    return PersonMesh(vertices, faces, np.tile(np.asarray(rgb, np.uint8), (len(vertices), 1)))
+
+
+def _no_lens(cam):
+    return dataclasses.replace(cam, k=np.zeros(3), p=np.zeros(2))
+
+
+def _outline_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Symmetric distances (px) between the outlines of two masks: each outline pixel of one
+    to the nearest outline pixel of the other."""
+    import cv2
+
+    from drawing.overlay import silhouette_outline
+
+    oa, ob = silhouette_outline(a), silhouette_outline(b)
+    da = cv2.distanceTransform((~ob).astype(np.uint8), cv2.DIST_L2, 5)[oa]
+    db = cv2.distanceTransform((~oa).astype(np.uint8), cv2.DIST_L2, 5)[ob]
+    return np.concatenate([da, db])
+
+
+def _projected_silhouette(cam, vertices, faces) -> np.ndarray:
+    """(H, W) bool: every triangle of the mesh, its corners projected by calib.project
+    (distortion), filled at 1/16 px (triangles are a few px: straight edges are exact enough)."""
+    import cv2
+
+    from calib import project
+
+    m = np.zeros((cam.height, cam.width), np.uint8)
+    for tri in np.rint(project(cam, vertices)[faces] * 16).astype(np.int32):
+        cv2.fillConvexPoly(m, tri, 1, lineType=cv2.LINE_8, shift=4)
+    return m.astype(bool)
+
+
+def test_overlay_outline_sits_on_the_projected_mesh(small_session):
+    """Every projected vertex (calib.project, distortion) lies in the overlay's silhouette
+    and the drawn 1-px outline is within ~1 px of the projected mesh's outline, on the
+    session's four cameras and on a copy of one with strong barrel distortion; rendering
+    through cameras without their distortion puts the outline visibly off."""
+    import cv2
+
+    from calib import project
+    from drawing.overlay import overlay_views, silhouette_outline
+    from drawing.render import Renderer
+
+    cams, _, V, faces = _session(small_session)
+    strong = dataclasses.replace(cams[0], name="strong", k=np.array([-0.35, 0.12, 0.0]))
+    cams = cams + [strong]
+    col = (255, 140, 0)
+
+    def measure(render_cams):
+        out = []  # per (person, view): max px of a vertex outside, outline distances, outline ok
+        with Renderer(render_cams) as r:
+            for k in range(2):
+                mesh = _mesh(V[k, FRAME], faces, col)
+                ids = r.render_ids([mesh])
+                black = [np.zeros((c.height, c.width, 3), np.uint8) for c in render_cams]
+                over = overlay_views(r, render_cams, [mesh], black, alpha=0.5,
+                                     outline_colors=[col])
+                for c, cam in enumerate(cams):  # the true lens: where the vertices are
+                    sil = ids[c] == 0
+                    drawn = np.all(over[c] == col, axis=-1)  # the outline's pixels
+                    uv = np.rint(project(cam, V[k, FRAME])).astype(int)
+                    assert ((uv >= 0) & (uv < [cam.width, cam.height])).all()
+                    off = cv2.distanceTransform((~sil).astype(np.uint8), cv2.DIST_L2, 5)
+                    out.append((off[uv[:, 1], uv[:, 0]].max(),
+                                _outline_distances(sil, _projected_silhouette(cam, V[k, FRAME], faces)),
+                                np.array_equal(drawn, silhouette_outline(sil)), sil.sum()))
+        return out
+
+    right = measure(cams)
+    for k_view, (off, d, outline_ok, area) in enumerate(right):
+        assert area > 5000, k_view
+        assert outline_ok, k_view  # the drawn outline is the silhouette's 1-px border
+        assert off <= 1.5, (k_view, off)  # every vertex in the silhouette (rounding: <= 1 px)
+        assert d.mean() < 0.8 and np.percentile(d, 90) <= 1.5, (k_view, d.mean())
+    # the strong camera without its lens: the mesh's periphery is drawn 4-8 px off
+    wrong = measure([_no_lens(c) for c in cams])
+    for i in (4, 9):  # the strong camera, person 0 and person 1
+        assert wrong[i][0] > 4.0, wrong[i][0]  # vertices land well outside the silhouette
+        assert np.percentile(wrong[i][1], 90) > 2.5, np.percentile(wrong[i][1], 90)
+        assert wrong[i][1].mean() > 2 * right[i][1].mean(), (wrong[i][1].mean(), right[i][1].mean())
+
+
+def test_overlay_covers_the_person_in_the_studio_video(small_session):
+    """On the studio's video frames (its own render of the truth meshes), the truth meshes'
+    overlay covers the people's pixels (background difference): IoU > 0.94 in every view;
+    the same meshes moved 5 cm do not (IoU < 0.8); drawn without the lens distortion the
+    mismatch grows where the lens moves pixels by > 2 px."""
+    from calib.camera import undistort_pixels
+    from drawing.overlay import overlay_views
+    from drawing.render import Renderer
+    from formats.video import VideoReader
+
+    cams, videos, V, faces = _session(small_session)
+    frames = []
+    for p in videos:
+        with VideoReader(p) as v:
+            frames.append(v[FRAME])
+    magenta = (255, 0, 255)
+
+    def overlay_masks(render_cams, shift=(0.0, 0.0, 0.0)):
+        people = [_mesh(V[k, FRAME] + np.asarray(shift), faces, magenta) for k in range(2)]
+        with Renderer(render_cams) as r:
+            empty = r.render([])
+            over = overlay_views(r, render_cams, people, frames, alpha=1.0, outline=False)
+        return [np.any(o != f, axis=-1) for o, f in zip(over, frames, strict=True)], empty
+
+    def iou(a, b):
+        return (a & b).sum() / (a | b).sum()
+
+    right, empty = overlay_masks(cams)
+    # the people's pixels: where the video differs from the studio without people
+    person = [np.abs(f.astype(int) - e.astype(int)).max(-1) > 25 for f, e in zip(frames, empty, strict=True)]
+    ious = [iou(p, m) for p, m in zip(person, right, strict=True)]
+    assert min(ious) > 0.94 and np.mean(ious) > 0.955, ious
+    moved, _ = overlay_masks(cams, shift=(0.05, 0.0, 0.0))
+    assert max(iou(p, m) for p, m in zip(person, moved, strict=True)) < 0.8
+    # distortion ignored: compare where the lens moves pixels by more than 2 px
+    wrong, _ = overlay_masks([_no_lens(c) for c in cams])
+    zones = []
+    for cam in cams:
+        uv = np.stack(np.meshgrid(np.arange(cam.width, dtype=float),
+                                  np.arange(cam.height, dtype=float)), -1)
+        zones.append(np.linalg.norm(undistort_pixels(cam, uv) - uv, axis=-1) > 2.0)
+    c = int(np.argmax([(z & m).sum() for z, m in zip(zones, right, strict=True)]))
+    z = zones[c]
+    assert (z & right[c]).sum() > 1000  # the people reach where the lens matters
+    err_right = ((person[c] ^ right[c]) & z).sum() / (right[c] & z).sum()
+    err_wrong = ((person[c] ^ wrong[c]) & z).sum() / (right[c] & z).sum()
+    assert err_wrong > 2.0 * err_right, (err_wrong, err_right)
+    assert iou(person[c], wrong[c]) < iou(person[c], right[c])
+
+
+# ------------------------------------------------------------------------------ tiles
+def test_tile_views_grid_and_labels():
+    from drawing import qa_constants as Q
+    from drawing.overlay import tile_views
+
+    cols = [(200, 30, 30), (30, 200, 30), (30, 30, 200), (200, 200, 30), (30, 200, 200)]
+    imgs = []
+    for c in cols:
+        im = np.zeros((160, 200, 3), np.uint8)
+        im[:, :100] = c
+        im[:, 100:] = 255 - np.asarray(c)  # right half: the complement (orientation kept)
+        imgs.append(im)
+    bar = Q.TILE_TITLE_PX
+
+    def white(a):
+        return (a.min(-1) > 200).sum()
+
+    out = tile_views(imgs[:4], ["a", "b", "", "d"], title="frame 7", scale=0.5)
+    assert out.shape == (bar + 2 * 80, 2 * 100, 3) and out.dtype == np.uint8
+    assert white(out[:bar]) > 20  # the title
+    for i, c in enumerate(cols[:4]):
+        r, k = divmod(i, 2)
+        cell = out[bar + 80 * r: bar + 80 * (r + 1), 100 * k: 100 * (k + 1)]
+        np.testing.assert_array_equal(cell[40:, 5:45], np.broadcast_to(c, (40, 40, 3)))
+        np.testing.assert_array_equal(cell[40:, 55:95], np.broadcast_to(255 - np.asarray(c), (40, 40, 3)))
+        assert (white(cell[:25, :40]) > 5) == (i != 2), i  # labelled cells only
+    five = tile_views(imgs, list("abcde"), scale=0.25)  # 5 views: 3 columns, 2 rows
+    assert five.shape == (bar + 2 * 40, 3 * 50, 3)
+    assert (five[bar + 40:, 100:] == 0).all()  # the sixth cell is empty
+    np.testing.assert_array_equal(five[bar + 75, 60], cols[4])  # the fifth, row 2 column 2
+    with pytest.raises(ValueError, match="labels"):
+        tile_views(imgs, ["a"])
+
+
+# ------------------------------------------------------------------------------ video
+def test_overlay_video_and_pngs_show_the_requested_frames(tmp_path):
+    """A tiny rig (4 views 160 x 120, lens distortion) and videos whose frame j is grey
+    level 30 + 50 j: the MP4 has one frame per requested frame, in order, each showing that
+    video frame with the box drawn on it; the PNGs are the same pictures."""
+    import cv2
+    import trimesh
+
+    from calib import look_at, project
+    from drawing import qa_constants as Q
+    from drawing.overlay import overlay_video, render_overlays
+    from formats.video import VideoReader, video_info, write_mp4
+
+    cams = [look_at(f"c{i}", [3 * np.cos(a), 3 * np.sin(a), 1.5], [0, 0, 1], (150, 150),
+                    (80, 60), 160, 120, k=(-0.2, 0.05, 0.0))
+            for i, a in enumerate(np.deg2rad([45, 135, 225, 315]))]
+    videos = [write_mp4(tmp_path / f"v{c.name}.mp4",
+                        (np.full((120, 160, 3), 30 + 50 * j, np.uint8) for j in range(4)), 25.0)
+              for c in cams]
+    box = trimesh.creation.box((0.3, 0.3, 0.6))
+    F = 4
+    # the box moves along x: row i (video frame i) at x = 0.2 i
+    verts = np.stack([box.vertices + [0.2 * i, 0, 1.0] for i in range(F)])
+    frame_index = {j: j for j in range(F)}
+    req = [2, 0, 3]
+    path = overlay_video(tmp_path / "out" / "overlay.mp4", cams, videos, req, [verts],
+                         box.faces, frame_index, fps=10.0, scale=1.0)
+    info = video_info(path)
+    assert info.n_frames == len(req) and info.fps == pytest.approx(10.0)
+    bar = Q.TILE_TITLE_PX
+    assert (info.width, info.height) == (320, bar + 240)
+    pngs = render_overlays(cams, videos, req, [verts], box.faces, frame_index, tmp_path / "png",
+                           scale=1.0)
+    assert sorted(pngs) == sorted(req)
+    with VideoReader(path) as v:
+        for i, f in enumerate(req):
+            img = v[i]
+            png = cv2.imread(str(pngs[f]))[..., ::-1]
+            assert pngs[f].name == f"overlay_{f:06d}.png"
+            assert np.abs(img.astype(int) - png.astype(int)).mean() < 6  # same picture (mp4v)
+            for c, cam in enumerate(cams):
+                r, k = divmod(c, 2)
+                tile = png[bar + 120 * r: bar + 120 * (r + 1), 160 * k: 160 * (k + 1)]
+                assert abs(int(tile[115, 150, 0]) - (30 + 50 * f)) <= 6  # the frame's grey (mp4v: +-3)
+                u, w = np.rint(project(cam, verts[f].mean(0))).astype(int)
+                assert np.abs(tile[w, u].astype(int) - (30 + 50 * f)).max() > 40  # the box on it
+    with pytest.raises(ValueError, match="frame_index"):
+        render_overlays(cams, videos, [9], [verts], box.faces, frame_index, tmp_path / "png")
+
+
+# ------------------------------------------------------------------------------ plot
+def test_qa_plot_shades_flagged_spans(tmp_path):
+    import cv2
+
+    from drawing import qa_constants as Q
+    from drawing.qa_plots import qa_figure, qa_plot
+
+    F = 100
+    frames = np.arange(F)
+    rng = np.random.default_rng(0)
+    med = rng.gamma(2, 2, F)
+    med[70:75] = np.nan  # a gap
+    values = {"wearer.marker_median_mm": med,
+              "wearer.reproj_body_px.50591643": rng.gamma(2, 3, F),
+              "penetration_mm": np.full(F, np.nan)}  # no data: no panel
+    units = {"wearer.marker_median_mm": "mm", "wearer.reproj_body_px.50591643": "px",
+             "penetration_mm": "mm"}
+    thresholds = {"wearer.marker_median_mm": 10.0}
+    spans = [(40, 59, "wearer.marker_median_mm")]
+    p = qa_plot(tmp_path / "qa" / "qa.png", frames, 50.0, values, units, thresholds, spans,
+                "s01 / Handshake 1")
+    fig = qa_figure(frames, 50.0, values, units, thresholds, spans, "s01 / Handshake 1")
+    assert fig.qa_panels == ["markers", "reproj.body"]
+    img = cv2.imread(str(p))[..., ::-1].astype(int)
+    H = img.shape[0]
+    shade = np.rint(255 * (1 - Q.QA_SPAN_ALPHA + Q.QA_SPAN_ALPHA * np.asarray(Q.QA_SPAN_RGB)))
+    is_shade = np.abs(img - shade).max(-1) <= 2
+    for ax in fig.qa_axes:
+        (x0, _), (x1, _) = ax.transData.transform([(39.5, 0.0), (59.5, 0.0)])
+        (_, top), (_, bottom) = ax.transAxes.transform([(0.0, 1.0), (0.0, 0.0)])
+        rows = slice(int(H - top) + 2, int(H - bottom) - 2)  # the panel (image rows go down)
+        cols = np.flatnonzero(is_shade[rows].any(0))
+        assert len(cols) > 0.8 * (x1 - x0)  # the span is shaded...
+        assert cols.min() >= x0 - 2 and cols.max() <= x1 + 2  # ...and nothing else
+        assert is_shade[rows, int(x0) + 3: int(x1) - 3].mean() > 0.5
+    line = fig.qa_axes[0].lines[0]
+    assert np.isnan(line.get_ydata()[70:75]).all()  # the gap stays a gap
+    thr = [ln for ln in fig.qa_axes[0].lines if ln.get_linestyle() == "--"]
+    assert len(thr) == 1 and thr[0].get_ydata()[0] == 10.0
