@@ -16,15 +16,15 @@ GT ?=
 export PYTHONPATH := $(CURDIR)
 export ANNY_CACHE_DIR ?= $(CURDIR)/assets/cache/anny
 
-.PHONY: setup demo test test-fast sequence loo release evaluate status bench studio lint clean
+.PHONY: setup browser demo test test-fast sequence loo release evaluate status bench studio lint clean
 
 setup:
 	@bash scripts/setup.sh
 
 demo: setup
 	@$(PY) -m pipeline demo --recipe $(RECIPE) $(foreach f,$(FORCE),--force $(f))
-	@# the session stages (release, then evaluate against the studio truth) over every sequence
-	@$(PY) -m pipeline release --recipe $(RECIPE) --until evaluate
+	@# the session stages over every sequence: qa, the release, the QA index, the benchmark
+	@$(PY) -m pipeline release --recipe $(RECIPE)
 	@$(PY) -m evaluate.session --recipe $(RECIPE)
 
 sequence: setup
@@ -52,8 +52,12 @@ status: setup
 studio: setup
 	@$(PY) -m studio --out $(OUT) --seed $(SEED) $(if $(FRAMES),--frames $(FRAMES),) $(if $(SCENARIOS),--scenarios $(SCENARIOS),)
 
-test: setup
-	@$(PY) -m pytest -q tests
+# setup plus Debian's chromium (headless; the HTML report tests render with it)
+browser:
+	@bash scripts/setup.sh --browser
+
+test: browser
+	@MOCAP_REQUIRE_BROWSER=1 $(PY) -m pytest -q tests
 
 test-fast: setup
 	@$(PY) -m pytest -q -m "not slow" tests

@@ -2,8 +2,19 @@
 # Create .venv and install the whole stack; idempotent and fast when nothing changed.
 # The stamp is keyed on the dependency files and this script; the Anny export has its own
 # stamp keyed on the exporter's source (body/anny_export.py).
+#
+# Opt-in: `scripts/setup.sh --browser` (or MOCAP_BROWSER=1) also installs Debian's `chromium`
+# when /usr/bin/chromium is missing: the headless browser the HTML report tests render with
+# (tests/test_qa_report.py; `make test` and `make browser` ask for it).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+BROWSER=${MOCAP_BROWSER:-0}
+for arg in "$@"; do
+  case "$arg" in
+    --browser) BROWSER=1 ;;
+    *) echo "usage: scripts/setup.sh [--browser]" >&2; exit 2 ;;
+  esac
+done
 VENV=.venv
 PY=$VENV/bin/python
 STAMP=$VENV/.setup-stamp
@@ -17,6 +28,18 @@ if ! egl_ok; then
       libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libgbm1 >/dev/null) \
       || echo "[setup] WARNING: could not install EGL packages; rendering (studio videos) will fail"
   fi
+fi
+
+if [ "$BROWSER" = 1 ] && [ ! -x /usr/bin/chromium ]; then
+  echo "[setup] installing Debian's chromium (headless, for the HTML report tests)"
+  AS_ROOT=""; [ "$(id -u)" = 0 ] || AS_ROOT="sudo -n"
+  if command -v apt-get >/dev/null 2>&1; then
+    ($AS_ROOT apt-get update -qq && $AS_ROOT env DEBIAN_FRONTEND=noninteractive apt-get install \
+      -y -qq --no-install-recommends chromium fonts-dejavu-core >/dev/null) || true
+  fi
+  [ -x /usr/bin/chromium ] || echo "[setup] WARNING: could not install chromium (run as root:" \
+    "apt-get install chromium); the report's browser tests fail under make test" \
+    "(MOCAP_REQUIRE_BROWSER=1) and are skipped otherwise" >&2
 fi
 
 if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$key" ]; then
