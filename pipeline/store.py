@@ -16,11 +16,25 @@ Life of an artifact:
 So a folder named ``<stage>`` always had a complete manifest when it was renamed; a killed
 stage leaves only a ``.tmp-`` folder, which never looks complete.
 
+Lock backends (``Store(root, locks=...)``, else the ``PIPELINE_LOCKS`` environment variable,
+else ``"flock"``): ``"flock"`` as above, for one machine; ``"lease"`` for workers on several
+hosts sharing the folder (a cluster on NFS/Lustre, where ``flock`` may be local to each
+client): the lock is a :class:`pipeline.lease.Lease` file ``<root>/<unit>/.<stage>.lease``
+renewed while the build runs (ttl ``lease_ttl_s``, else ``PIPELINE_LEASE_TTL_S``, else 60 s).
+A killed owner's lease blocks others until it expires (ttl + grace) instead of at once. If the
+lease was lost meanwhile (the owner paused longer than the ttl and another process took it
+over), :meth:`Store.commit` refuses: it removes the temporary folder and raises
+:class:`pipeline.lease.LeaseLost`, leaving the new holder's artifact alone. Every process
+working on one ``outputs`` folder must use the same backend (the flock backend's cleanup
+does respect live leases, see below).
+
 Leftovers of killed runs: every time the engine considers a node, hit or not, it removes the
 ``.tmp-``/``.trash-`` folders of that (unit, stage) that nobody is building
 (:meth:`Store.clean_stale_leftovers`): it takes the artifact's lock without waiting; if it
 gets it, no live process is building there (a builder holds the lock from step 1 to 4), so
-they are a killed run's; if not, it leaves them to their builder.
+they are a killed run's; if not, it leaves them to their builder. With leases, "gets it"
+means no live lease exists (none, or an expired one it took over); with flock, a live lease
+file also counts as held.
 
 Corruption: on read, an entry whose manifest is unreadable or whose files are missing or of
 the wrong size is *corrupt* (:meth:`Store.entry`): the engine warns, deletes it and
@@ -38,6 +52,7 @@ import math
 import os
 import secrets
 import shutil
+import time
 import zipfile
 import zlib
 from contextlib import contextmanager
@@ -46,14 +61,14 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 from pipeline.hashing import sha256_file
+from pipeline.lease import Lease, LeaseError, LeaseLost, is_live
 
 MANIFEST = "manifest.json"
-
-
+LOCKS = ("flock", "lease")  # the lock backends (see the module docstring)
 
 
 class StoreError(ValueError):
-    """A unit or stage name that can't be turned into a folder."""
+    """A unit or stage name that can't be turned into a folder, or a bad lock setting."""
 
 
 class CorruptArtifactError(RuntimeError):
@@ -191,8 +206,39 @@ class Entry:
 class Store:
     """The artifacts of one session under ``root`` (``outputs/<session>``)."""
 
-    def __init__(self, root: Path):
+    def __init__(self, root: Path, locks: str | None = None, lease_ttl_s: float | None = None):
         self.root = Path(root)
+        if locks is None:
+            env = os.environ.get("PIPELINE_LOCKS", "").strip()
+            locks, where = (env or "flock"), ("PIPELINE_LOCKS=" if env else "locks=")
+        else:
+            where = "locks="
+        if locks not in LOCKS:
+            raise StoreError(f"{where}{locks!r}: the lock backend must be one of {', '.join(LOCKS)}")
+        self.locks = locks
+        if lease_ttl_s is None:
+            env = os.environ.get("PIPELINE_LEASE_TTL_S", "").strip()
+            try:
+                lease_ttl_s = float(env) if env else 60.0
+            except ValueError:
+                lease_ttl_s = float("nan")
+            where = f"PIPELINE_LEASE_TTL_S={env!r}"
+        else:
+            where = f"lease_ttl_s={lease_ttl_s!r}"
+        if not (isinstance(lease_ttl_s, (int, float)) and lease_ttl_s > 0):
+            raise StoreError(f"{where}: the lease time-to-live must be a number of seconds > 0")
+        self.lease_ttl_s = float(lease_ttl_s)
+        self._leases: dict[tuple[str, str], Lease] = {}  # held by lock(), checked by commit()
+
+    def __getstate__(self) -> dict:  # a Store sent to another process holds no lease there
+        return {**self.__dict__, "_leases": {}}
+
+    def lease_path(self, unit: str, stage: str) -> Path:
+        """The lease file of (unit, stage) (``locks="lease"``)."""
+        return self.dir(unit, stage).parent / f".{stage}.lease"
+
+    def _lease(self, unit: str, stage: str) -> Lease:
+        return Lease(self.lease_path(unit, stage), ttl_s=self.lease_ttl_s)
 
     def dir(self, unit: str, stage: str) -> Path:
         _check_part("unit", unit)
@@ -251,9 +297,22 @@ class Store:
     def lock(self, unit: str, stage: str, on_wait: Callable[[], None] | None = None
              ) -> Iterator[None]:
         """Hold the exclusive lock of (unit, stage) for the ``with`` block. If another
-        process holds it, call ``on_wait()`` once and block until it is released."""
+        process holds it, call ``on_wait()`` once and block until it is released (with
+        leases: or until its lease expires, then take it over). A lease is renewed in the
+        background for the whole block."""
         d = self.dir(unit, stage)
         d.parent.mkdir(parents=True, exist_ok=True)
+        if self.locks == "lease":
+            lease = self._lease(unit, stage)
+            lease.acquire(wait=True, on_wait=on_wait)
+            self._leases[(unit, stage)] = lease
+            try:
+                yield
+            finally:
+                if self._leases.get((unit, stage)) is lease:
+                    del self._leases[(unit, stage)]
+                lease.release()
+            return
         fd = os.open(d.parent / f".{stage}.lock", os.O_RDWR | os.O_CREAT, 0o644)
         try:
             try:
@@ -274,6 +333,16 @@ class Store:
         if not d.parent.is_dir():
             yield True  # no folder: nothing to build in or clean, nobody to race with
             return
+        if self.locks == "lease":
+            lease = self._lease(unit, stage)
+            if not lease.acquire(wait=False):  # a live lease: someone is building
+                yield False
+                return
+            try:
+                yield True
+            finally:
+                lease.release()
+            return
         fd = os.open(d.parent / f".{stage}.lock", os.O_RDWR | os.O_CREAT, 0o644)
         try:
             try:
@@ -281,7 +350,8 @@ class Store:
             except BlockingIOError:
                 yield False
                 return
-            yield True
+            # a worker of a lease-locked run may be building here: leave it alone too
+            yield not is_live(self.lease_path(unit, stage), self.lease_ttl_s)
         finally:
             os.close(fd)
 
@@ -299,14 +369,24 @@ class Store:
     # The methods below must be called with the lock held.
 
     def clean_leftovers(self, unit: str, stage: str) -> list[Path]:
-        """Remove ``.tmp-<stage>-*`` and ``.trash-<stage>-*`` left by killed runs."""
+        """Remove ``.tmp-<stage>-*`` and ``.trash-<stage>-*`` left by killed runs, and the
+        private files of lease operations a kill interrupted (``.<stage>.lease.<op>-<token>``,
+        untouched for 10 ttl: in use, they live for milliseconds)."""
         parent = self.dir(unit, stage).parent
         gone = []
         if parent.is_dir():
+            old = time.time() - 10 * self.lease_ttl_s
             for p in parent.iterdir():
                 if p.name.startswith((f".tmp-{stage}-", f".trash-{stage}-")):
                     shutil.rmtree(p, ignore_errors=True)
                     gone.append(p)
+                elif p.name.startswith(f".{stage}.lease.") and "-" in p.name:
+                    try:
+                        if p.lstat().st_mtime < old:
+                            p.unlink()
+                            gone.append(p)
+                    except FileNotFoundError:
+                        pass
         return gone
 
     def begin(self, unit: str, stage: str) -> Writer:
@@ -330,7 +410,12 @@ class Store:
 
     def commit(self, writer: Writer, unit: str, stage: str, manifest: dict) -> dict:
         """Write the manifest (with every file's size and sha256) into the temporary folder
-        and rename it into place, replacing any older artifact. Returns the manifest written."""
+        and rename it into place, replacing any older artifact. Returns the manifest written.
+
+        With leases, when the lease of (unit, stage) held by :meth:`lock` is no longer ours
+        (checked by re-reading the file, and renewed so the rename runs within a fresh ttl),
+        it removes the temporary folder and raises :class:`pipeline.lease.LeaseLost`: the
+        process that took the lease over owns the artifact now."""
         files, hashes = {}, {}
         for p in sorted(writer.dir.rglob("*")):
             if p.is_file():
@@ -343,6 +428,7 @@ class Store:
             json.dump(manifest, f, indent=1, default=json_default)
             f.flush()
             os.fsync(f.fileno())
+        self._check_lease(writer, unit, stage)
         self.remove(unit, stage)
         os.rename(writer.dir, self.dir(unit, stage))
         dfd = os.open(self.dir(unit, stage).parent, os.O_RDONLY)
@@ -351,3 +437,29 @@ class Store:
         finally:
             os.close(dfd)
         return manifest
+
+    def _check_lease(self, writer: Writer, unit: str, stage: str) -> None:
+        """Before commit: the lease held by :meth:`lock` must still be ours (renewed now, so
+        the rename runs within a fresh ttl); else remove the temporary folder and raise
+        :class:`LeaseLost`."""
+        lease = self._leases.get((unit, stage))
+        if lease is None:
+            return
+        err: BaseException | None = None
+        for _ in range(3):
+            try:
+                lease.renew()
+                return
+            except LeaseError as e:
+                err = e
+                break
+            except OSError as e:  # a file server hiccup: look again before giving the work up
+                err = e
+                time.sleep(0.2)
+        shutil.rmtree(writer.dir, ignore_errors=True)
+        holder = getattr(err, "holder", None)
+        who = (f"now held by {holder.get('owner')}" if holder and "owner" in holder else
+               "no lease there now" if isinstance(err, LeaseLost) else f"{type(err).__name__}: {err}")
+        raise LeaseLost(lease.path, holder,
+                        f"of {stage} [{unit}] lost while building ({who}): not committed, "
+                        f"its temporary folder {writer.dir.name} was removed") from err
