@@ -1,0 +1,102 @@
+"""Constants of the QA metrics (``qa.metrics``): keypoint groups, default thresholds and the
+fixed parameters of the measurements. Units: metres, seconds, pixels unless named otherwise.
+
+The default thresholds were calibrated on the clean bench session (8 sequences, keypoint
+stride 6, 160 frames) and the demo session (2 sequences, full rate, 200 frames), against the
+studio's ground truth: each threshold sits just above the largest value seen on the frames
+whose fits are right (both people's KP65 body keypoints within 10 cm of the truth, partner
+valid). Those frames are then flagged at 1.7 % (6 of 360, all ``wearer.marker_max_mm``: the
+RFIN / LFIN marker 10-11 cm off in a grip, where the fitted fingers are 15-26 cm from the
+truth: a real defect that the body-only truth check misses). Clean maxima on those frames:
+marker max 31 mm (p98; 113 mm on those finger frames), per-view reprojection body 121 / hands
+77 / face 52 px, cross-view body 45 / hands 43 / face 20 px, penetration 39 mm, volume 67 cm3,
+self-penetration 35 mm, ground 6.5 mm, foot skate 1.1 m/s, jerk 662 m/s3, contact gap 3 mm,
+closest distance outside contact 19 mm, sync offset 0 (all minima of the cost at 0).
+"""
+from __future__ import annotations
+
+from formats import skeletons as S
+
+# ---------------------------------------------------------------- KP65 keypoint groups
+#: The face: nose, eyes, ears (KP65 has no other face points).
+FACE = tuple(range(0, 5))
+#: The body: shoulders, elbows, wrists, hips, knees, ankles and the six foot points.
+BODY = tuple(range(5, len(S.BODY23)))
+#: Both hands (21 + 21).
+HANDS = tuple(range(S.LEFT_HAND.start, S.RIGHT_HAND.stop))
+GROUPS = {"body": BODY, "hands": HANDS, "face": FACE}
+#: Sub-groups whose median errors are combined per group (the worst of them): a group's error
+#: is the largest median over its limbs, so that one limb off (a rotated forearm: 2-3 body
+#: keypoints, one hand) shows though the group's overall median would hide it.
+LIMBS = {
+    "body": (
+        tuple(S.kp65_index(n) for n in ("l_shoulder", "l_elbow", "l_wrist")),
+        tuple(S.kp65_index(n) for n in ("r_shoulder", "r_elbow", "r_wrist")),
+        tuple(S.kp65_index(n) for n in ("l_hip", "l_knee", "l_ankle")),
+        tuple(S.kp65_index(n) for n in ("r_hip", "r_knee", "r_ankle")),
+        tuple(S.kp65_index(n) for n in ("l_big_toe", "l_small_toe", "l_heel")),
+        tuple(S.kp65_index(n) for n in ("r_big_toe", "r_small_toe", "r_heel")),
+    ),
+    "hands": (tuple(range(S.LEFT_HAND.start, S.LEFT_HAND.stop)),
+              tuple(range(S.RIGHT_HAND.start, S.RIGHT_HAND.stop))),
+    "face": (FACE,),
+}
+#: The cross-view reprojection figure (the median over the views) needs this many views.
+MIN_VIEWS = 2
+#: A limb needs this many confident detections in a view to count.
+MIN_LIMB_POINTS = 2
+
+# ---------------------------------------------------------------- sync
+#: Time shifts (video frames) tried for each view.
+SYNC_SHIFTS = tuple(range(-3, 4))
+#: The best shift replaces 0 only when its cost (mean clipped px) is below this share of the cost at
+#: 0: a flat cost curve (a person standing still) keeps 0.
+SYNC_MIN_GAIN = 0.97
+#: Only detections whose projected wearer moves at least this much across the shifts count.
+SYNC_MIN_MOTION_PX = 3.0
+#: Per-detection errors are clipped here (a wrong detection counts as a miss, not more).
+SYNC_CAP_PX = 25.0
+#: Informative detections needed to estimate a view's shift.
+SYNC_MIN_POINTS = 30
+
+# ---------------------------------------------------------------- geometry
+#: Penetrating volume: grid cell edge (m) and the largest grid (cells); a larger overlap gets
+#: coarser cells.
+VOLUME_CELL_M = 0.005
+VOLUME_MAX_CELLS = 40_000
+#: Unexpected contact: the two meshes' closest distance is measured up to this (farther frames
+#: report NEAR_M).
+NEAR_M = 0.10
+#: Foot skate: a foot vertex within this of the floor is in contact.
+FOOT_CONTACT_M = 0.02
+#: Foot regions (``body.regions`` names, both sides) whose vertices are the foot.
+FOOT_REGIONS = ("sole", "heel", "toes")
+#: Unexpected contact: frames within this many video frames of the annotated interval count as
+#: expected (approach and release).
+CONTACT_MARGIN_FRAMES = 10
+#: Jerk: the third difference is taken on fit frames at least this far apart (seconds).
+JERK_DT_S = 0.1
+#: Proxy mesh size for self-penetration (``fitting.collision.ProxyMesh``).
+PROXY_VERTICES = 2000
+
+# ---------------------------------------------------------------- default thresholds
+MARKER_MAX_MM = 40.0
+MARKER_MEDIAN_MM = 15.0
+REPROJ_BODY_PX = 130.0
+REPROJ_HANDS_PX = 80.0
+REPROJ_FACE_PX = 55.0
+REPROJ_VIEWS_BODY_PX = 48.0
+REPROJ_VIEWS_HANDS_PX = 45.0
+REPROJ_VIEWS_FACE_PX = 21.0
+SYNC_MAX_FRAMES = 1
+PENETRATION_MM = 40.0
+PENETRATION_VOLUME_CM3 = 70.0
+SELF_PENETRATION_MM = 40.0
+GROUND_PENETRATION_MM = 10.0
+FOOT_SKATE_M_S = 1.2
+CONTACT_GAP_MM = 20.0
+UNEXPECTED_CONTACT_MM = 5.0
+JERK_M_S3 = 1000.0
+MERGE_GAP_FRAMES = 2
+MIN_CONF = 0.3
+NOT_VALID = 0.5  # <person>.not_valid is 1.0 / 0.0, flagged above this

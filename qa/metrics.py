@@ -1,0 +1,763 @@
+"""Per-frame QA metrics of a sequence's fits, their thresholds, flags and flagged spans
+(issue #18, part 1). Pure domain code: typed inputs in, arrays out, no file I/O.
+
+``sequence_metrics`` poses both bodies on the QA frames and measures, per frame:
+
+- ``wearer.marker_median_mm`` / ``wearer.marker_max_mm``: the marker fit's residuals
+  (``BodyFit.marker_residual_m``) over the markers seen in the frame;
+- ``<person>.reproj_<group>_px.<cam>``: the fitted mesh's KP65 keypoints (``body.joints``
+  regressor) projected with the camera (distortion included, ``calib.project``) against the
+  person's confident detections (conf >= ``min_conf``) of that view; groups
+  ``qa.constants.GROUPS`` (body, hands, face). With ``reproj_statistic="limb"`` (default) a
+  group's value is the largest of its limbs' median errors (``qa.constants.LIMBS``: each arm,
+  leg, foot, hand): one limb off by 30 degrees moves only 2-3 of the 18 body keypoints, which
+  the group's median (``"median"``) hides. Each limb counts the better of the detections and
+  their left/right mirror (a detector that swapped the legs in a view is not a fit error);
+  ``<person>.reproj_views_<group>_px``: per keypoint (per hand for the hands) the second
+  largest error over the views (at least ``MIN_VIEWS``), the largest in the group: a fit
+  error moves a keypoint in most views, a wrong detection in one (on the clean sessions this
+  separates a 40-degree shoulder rotation better than the median over the views); the
+  per-view figures are flagged at higher thresholds (a view that is off altogether);
+- ``sync_offset_frames.<cam>``: the wearer (whose marker fit does not depend on the video)
+  projected at video frame ``f + s`` against the view's detections of frame ``f`` (body and
+  hands), for ``s``
+  in ``constants.SYNC_SHIFTS``: the ``s`` of the lowest cost (0 unless it beats 0 by
+  ``constants.SYNC_MIN_GAIN``), one number per view repeated on every frame. The cost is the
+  mean error (clipped at ``SYNC_CAP_PX``) over the confident body detections whose projected
+  wearer moves by ``SYNC_MIN_MOTION_PX`` or more across the shifts (a still keypoint says
+  nothing of time). Between the wearer's fit frames (a keypoint stride) its keypoints are
+  interpolated by a cubic spline;
+- ``penetration_mm``: the deepest surface point of either body inside the other (subsampled:
+  the ``PROXY_VERTICES`` proxy points of one body, inside the other's proxy by the generalized
+  winding number; their depth is exact, to the other's full mesh); ``penetration_volume_cm3``:
+  the cells of a ``VOLUME_CELL_M`` grid (coarser beyond ``VOLUME_MAX_CELLS`` cells) over the
+  bounding box of the penetrating points that lie inside both proxies;
+- ``<person>.self_penetration_mm``: ``fitting.collision.self_collisions`` on the body's proxy
+  (``PROXY_VERTICES`` vertices: a subsample of the surface, depth to the proxy surface);
+- ``<person>.ground_penetration_mm``: the lowest vertex below the ground plane (0 above);
+- ``<person>.foot_skate_m_s``: the median horizontal speed of the foot vertices (sole, heel,
+  toes) within ``FOOT_CONTACT_M`` of the floor in this and the previous fit frame, the faster
+  foot; NaN when no foot is on the floor;
+- ``contact_gap_mm``: in annotated contact frames (``contact.active(frame)``), the largest
+  over the annotated region pairs of the pair's smallest facet distance (wearer region,
+  partner region; ``geometry.facet_distances``);
+- ``unexpected_contact_mm``: outside the contact interval widened by
+  ``contact_margin_frames``, the two meshes' closest distance (0 when they interpenetrate;
+  the proxy points of each against the other's full mesh, clipped at ``NEAR_M``); flagged
+  when *below* its threshold;
+- ``<person>.jerk_m_s3``: the largest over the KP65 body and face keypoints (joint centres,
+  feet, head) of ``|x[i+k] - 3 x[i] + 3 x[i-k] - x[i-2k]| / dt^3`` on fit frames ``k`` apart,
+  ``dt`` = their time step, the smallest multiple of the fit step of at least ``JERK_DT_S``
+  (so that the figure does not depend on the keypoint stride: at full rate, frame-to-frame
+  fitting noise would dominate); NaN where the four frames are not evenly spaced;
+- ``<person>.not_valid``: 1.0 where the fit marks the frame not valid.
+
+``flag_frames`` turns the metrics beyond their thresholds into per-frame reasons and spans.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from formats import skeletons as S
+from qa import constants as K
+
+PEOPLE = ("wearer", "partner")
+GROUP_NAMES = tuple(K.GROUPS)
+#: Metrics flagged when *below* their threshold (all others: above).
+LOWER_IS_BAD = ("unexpected_contact_mm",)
+
+
+# ---------------------------------------------------------------------------- options
+
+
+@dataclass(frozen=True)
+class QAOptions:
+    """Thresholds of the QA flags (the ``qa`` stage's recipe section ``stages.qa.<field>``).
+
+    marker_max_mm, marker_median_mm : per frame, the wearer's worst / median marker residual.
+    reproj_body_px, reproj_hands_px, reproj_face_px : per person, view and keypoint group, the
+        reprojection error (``reproj_statistic``: ``"limb"`` the worst limb's median,
+        ``"median"`` the group's median) of confident detections (conf >= ``min_conf``).
+    sync_max_frames : a view whose best time shift (wearer) is beyond this is flagged.
+    penetration_mm, penetration_volume_cm3 : deepest interpenetration between the two bodies
+        and the volume inside both.
+    self_penetration_mm, ground_penetration_mm : per person.
+    foot_skate_m_s : horizontal speed of a foot in ground contact.
+    contact_gap_mm : annotated contact frames whose annotated regions are farther apart.
+    unexpected_contact_mm : frames outside the annotated interval (+ ``contact_margin_frames``)
+        where the bodies are closer than this.
+    jerk_m_s3 : max over the body keypoints of |third difference| / dt^3.
+    merge_gap_frames : flagged frames at most this many fit frames apart form one span.
+    min_conf : detections below this confidence are not used.
+    """
+
+    marker_max_mm: float = K.MARKER_MAX_MM
+    marker_median_mm: float = K.MARKER_MEDIAN_MM
+    reproj_body_px: float = K.REPROJ_BODY_PX
+    reproj_hands_px: float = K.REPROJ_HANDS_PX
+    reproj_face_px: float = K.REPROJ_FACE_PX
+    reproj_views_body_px: float = K.REPROJ_VIEWS_BODY_PX
+    reproj_views_hands_px: float = K.REPROJ_VIEWS_HANDS_PX
+    reproj_views_face_px: float = K.REPROJ_VIEWS_FACE_PX
+    sync_max_frames: int = K.SYNC_MAX_FRAMES
+    penetration_mm: float = K.PENETRATION_MM
+    penetration_volume_cm3: float = K.PENETRATION_VOLUME_CM3
+    self_penetration_mm: float = K.SELF_PENETRATION_MM
+    ground_penetration_mm: float = K.GROUND_PENETRATION_MM
+    foot_skate_m_s: float = K.FOOT_SKATE_M_S
+    contact_gap_mm: float = K.CONTACT_GAP_MM
+    unexpected_contact_mm: float = K.UNEXPECTED_CONTACT_MM
+    jerk_m_s3: float = K.JERK_M_S3
+    merge_gap_frames: int = K.MERGE_GAP_FRAMES
+    min_conf: float = K.MIN_CONF
+    contact_margin_frames: int = K.CONTACT_MARGIN_FRAMES
+    reproj_statistic: str = "limb"
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if f.name == "reproj_statistic":
+                if v not in ("limb", "median"):
+                    raise ValueError(f"reproj_statistic: expected 'limb' or 'median', got {v!r}")
+                continue
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise ValueError(f"{f.name}: expected a number, got {v!r}")
+            if f.type in ("int", int):
+                if not float(v).is_integer() or v < 0:
+                    raise ValueError(f"{f.name}: expected an integer >= 0, got {v!r}")
+                continue
+            if math.isnan(v):
+                raise ValueError(f"{f.name}: NaN")
+            if f.name == "min_conf":
+                if not 0.0 <= v <= 1.0:
+                    raise ValueError(f"min_conf: expected a confidence in [0, 1], got {v!r}")
+            elif not v > 0:
+                raise ValueError(f"{f.name}: expected a threshold > 0 (inf disables), got {v!r}")
+
+
+def threshold_name(metric: str) -> str | None:
+    """The ``QAOptions`` field a metric is flagged against (None: ``not_valid``, flagged at
+    ``constants.NOT_VALID``, and unknown names)."""
+    parts = metric.split(".")
+    if parts[0] == "sync_offset_frames":
+        return "sync_max_frames"
+    if parts[0] in PEOPLE and len(parts) >= 2:
+        name = parts[1]
+        if name == "not_valid":
+            return None
+        if name.startswith("reproj_views_") and len(parts) == 2:
+            return name if name in _FIELDS else None
+        if name.startswith("reproj_") and len(parts) >= 3:
+            return name if name in _FIELDS else None
+        if len(parts) == 2 and name in _FIELDS and name in (
+                "marker_median_mm", "marker_max_mm", "self_penetration_mm",
+                "ground_penetration_mm", "foot_skate_m_s", "jerk_m_s3"):
+            if name.startswith("marker_") and parts[0] != "wearer":
+                return None
+            return name
+        return None
+    if len(parts) == 1 and parts[0] in ("penetration_mm", "penetration_volume_cm3",
+                                        "contact_gap_mm", "unexpected_contact_mm"):
+        return parts[0]
+    return None
+
+
+_FIELDS = {f.name for f in dataclasses.fields(QAOptions)}
+
+
+def _threshold(metric: str, opts: QAOptions) -> float:
+    t = threshold_name(metric)
+    if t is None:
+        return K.NOT_VALID
+    return float(getattr(opts, t))
+
+
+# ---------------------------------------------------------------------------- results
+
+
+@dataclass
+class QAMetrics:
+    """Per-frame metrics of a sequence (see the module doc for each name).
+
+    frames : (F,) video frames (the partner's when there is a partner, those the wearer's fit
+        also has; else the wearer's). values : name -> (F,) float, NaN = not applicable.
+    units : name -> unit. thresholds : name -> the threshold it is flagged against (flagged
+        names only). sequence : sequence-level findings, JSON-able. vertices : per person
+        present (F, V, 3) float32 posed on ``frames``; people : their roles, wearer first.
+    """
+
+    frames: np.ndarray
+    values: dict[str, np.ndarray]
+    units: dict[str, str]
+    thresholds: dict[str, float]
+    sequence: dict
+    vertices: list[np.ndarray] = field(default_factory=list)
+    people: list[str] = field(default_factory=list)
+
+
+@dataclass
+class Span:
+    """Flagged video frames ``start..end`` (inclusive), the reasons flagged inside, the frame of
+    the worst excess (value / threshold; below-threshold metrics: threshold / value) and each
+    reason's worst value."""
+
+    start: int
+    end: int
+    reasons: list[str]
+    peak_frame: int
+    worst: dict[str, float]
+
+    def to_json(self) -> dict:
+        return {"start": int(self.start), "end": int(self.end), "reasons": list(self.reasons),
+                "peak_frame": int(self.peak_frame),
+                "worst": {k: _json_float(v) for k, v in self.worst.items()}}
+
+
+@dataclass
+class Flags:
+    """reasons : (R,) metric names that can flag; flagged : (F, R) bool; spans."""
+
+    reasons: tuple[str, ...]
+    flagged: np.ndarray
+    spans: list[Span]
+
+    @property
+    def any(self) -> np.ndarray:
+        """(F,) bool: frames flagged by at least one reason."""
+        if self.flagged.ndim != 2 or not self.flagged.shape[1]:
+            return np.zeros(len(self.flagged), bool)
+        return self.flagged.any(axis=1)
+
+    @property
+    def rate(self) -> float:
+        """Fraction of frames flagged."""
+        a = self.any
+        return float(a.mean()) if len(a) else 0.0
+
+
+def _json_float(v) -> float | None:
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+# ---------------------------------------------------------------------------- flags
+
+
+def _excess(name: str, v: np.ndarray, thr: float) -> np.ndarray:
+    """(F,) how far beyond its threshold each value is (> 1: flagged), NaN -> 0."""
+    v = np.asarray(v, float)
+    base = name.split(".")[0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if base in LOWER_IS_BAD:
+            e = thr / np.maximum(v, 1e-3 * thr)
+            e = np.where(v < thr, np.maximum(e, 1.0 + 1e-9), np.minimum(e, 1.0))
+        elif base == "sync_offset_frames":
+            e = np.abs(v) / max(thr, 0.5)
+            e = np.where(np.abs(v) > thr, np.maximum(e, 1.0 + 1e-9), np.minimum(e, 1.0))
+        else:
+            e = v / thr if thr > 0 else np.where(v > thr, np.inf, 0.0)
+            e = np.where(v > thr, np.maximum(e, 1.0 + 1e-9), np.minimum(e, 1.0))
+    return np.where(np.isfinite(v), e, 0.0)
+
+
+def flag_frames(m: QAMetrics, opts: QAOptions = QAOptions()) -> Flags:
+    """The frames beyond a threshold, with their reasons, merged into spans: flagged frames at
+    most ``opts.merge_gap_frames`` fit frames (positions in ``m.frames``) apart share a span.
+    Thresholds come from ``opts`` (``not_valid``: ``m.thresholds``, 0.5)."""
+    reasons = tuple(n for n in m.thresholds if n in m.values)
+    F = len(m.frames)
+    thr = {n: (float(m.thresholds[n]) if threshold_name(n) is None else _threshold(n, opts))
+           for n in reasons}
+    exc = np.zeros((F, len(reasons)))
+    for r, n in enumerate(reasons):
+        exc[:, r] = _excess(n, m.values[n], thr[n])
+    flagged = exc > 1.0
+    spans: list[Span] = []
+    rows = np.flatnonzero(flagged.any(axis=1)) if len(reasons) else np.zeros(0, int)
+    if len(rows):
+        cuts = np.flatnonzero(np.diff(rows) > opts.merge_gap_frames) + 1
+        for grp in np.split(rows, cuts):
+            a, b = int(grp[0]), int(grp[-1])
+            sub = flagged[a:b + 1]
+            rs = [reasons[r] for r in range(len(reasons)) if sub[:, r].any()]
+            e = np.where(flagged[a:b + 1], exc[a:b + 1], 0.0)
+            peak = a + int(np.unravel_index(int(np.argmax(e)), e.shape)[0])
+            worst = {}
+            for n in rs:
+                v = np.asarray(m.values[n][a:b + 1], float)
+                v = v[np.isfinite(v)]
+                base = n.split(".")[0]
+                if base in LOWER_IS_BAD:
+                    worst[n] = float(v.min())
+                elif base == "sync_offset_frames":
+                    worst[n] = float(v[np.argmax(np.abs(v))])
+                else:
+                    worst[n] = float(v.max())
+            spans.append(Span(int(m.frames[a]), int(m.frames[b]), rs, int(m.frames[peak]), worst))
+    return Flags(reasons, flagged, spans)
+
+
+# ---------------------------------------------------------------------------- posing
+
+
+def _rows(have: np.ndarray, want: np.ndarray) -> np.ndarray:
+    """Row of each of ``want`` in the increasing ``have`` (-1: absent)."""
+    have = np.asarray(have)
+    want = np.asarray(want)
+    if not len(have):
+        return np.full(len(want), -1)
+    pos = np.searchsorted(have, want).clip(0, len(have) - 1)
+    return np.where(have[pos] == want, pos, -1)
+
+
+def _pose(model, fit, rows: np.ndarray, chunk: int = 64):
+    """(vertices (F, V, 3) float32, kp65 (F, 65, 3) float64) of ``fit`` at ``rows``."""
+    from body import forward, rest_state
+    from body.joints import regress, regressor
+
+    R = regressor(model, "kp65")
+    rest = rest_state(model, np.asarray(fit.betas, float))
+    V = np.empty((len(rows), model.num_vertices, 3), np.float32)
+    P = np.empty((len(rows), R.shape[0], 3))
+    for s in range(0, len(rows), chunk):
+        i = rows[s:s + chunk]
+        o = forward(model, None, fit.body_pose[i], fit.global_orient[i], fit.transl[i], rest=rest)
+        V[s:s + chunk] = o.vertices
+        P[s:s + chunk] = regress(R, o.vertices, o.joints)
+    return V, P
+
+
+def _kp65_all(model, fit, chunk: int = 64) -> np.ndarray:
+    """(F, 65, 3) KP65 keypoints of ``fit`` on all its frames (the sync's wearer)."""
+    return _pose(model, fit, np.arange(fit.num_frames), chunk)[1]
+
+
+# ---------------------------------------------------------------------------- per metric
+
+
+def _marker_metrics(wearer, rows, values, units):
+    res = np.asarray(wearer.marker_residual_m, float)[rows] * 1000.0
+    seen = np.isfinite(res).any(axis=1)
+    med = np.full(len(rows), np.nan)
+    mx = np.full(len(rows), np.nan)
+    with np.errstate(all="ignore"):
+        med[seen] = np.nanmedian(res[seen], axis=1)
+        mx[seen] = np.nanmax(res[seen], axis=1)
+    values["wearer.marker_median_mm"] = med
+    values["wearer.marker_max_mm"] = mx
+    units["wearer.marker_median_mm"] = units["wearer.marker_max_mm"] = "mm"
+
+
+def _median_rows(e: np.ndarray, need: int) -> np.ndarray:
+    """(F,) median over axis 1 of e (F, n) where at least ``need`` values are finite."""
+    out = np.full(len(e), np.nan)
+    ok = np.isfinite(e).sum(1) >= need
+    if ok.any():
+        out[ok] = np.nanmedian(e[ok], axis=1)
+    return out
+
+
+def _limb_errors(err: np.ndarray, err_flip: np.ndarray) -> np.ndarray:
+    """(F, 65) per-keypoint errors with each limb (``constants.LIMBS``) read directly or
+    mirrored, whichever fits better in the frame (a detector that swapped the legs or the hands
+    in a view is not a fit error); NaN where not detected."""
+    out = np.array(err, float)
+    for group in K.LIMBS.values():
+        for limb in group:
+            idx = list(limb)
+            need = min(K.MIN_LIMB_POINTS, len(idx))
+            a = _median_rows(err[:, idx], need)
+            b = _median_rows(err_flip[:, idx], need)
+            use = np.isfinite(a) & (b < a)
+            out[np.ix_(use, idx)] = err_flip[np.ix_(use, idx)]
+    return out
+
+
+def _group_error(e: np.ndarray, group: str, statistic: str) -> np.ndarray:
+    """(F,) one view's error of a group from per-keypoint errors e (F, 65): the largest limb
+    median (``"limb"``) or the group's median (``"median"``)."""
+    parts = (K.GROUPS[group],) if statistic == "median" else K.LIMBS[group]
+    M = np.stack([_median_rows(e[:, list(p)], min(K.MIN_LIMB_POINTS, len(p))) for p in parts], 1)
+    out = np.full(len(e), np.nan)
+    ok = np.isfinite(M).any(1)
+    out[ok] = np.nanmax(M[ok], axis=1)
+    return out
+
+
+def _views_error(E: np.ndarray, group: str) -> np.ndarray:
+    """(F,) cross-view error of a group from per-view keypoint errors E (C, F, 65): for each
+    unit (a keypoint of the body or face; a whole hand, by its median) the second largest
+    error over the views that see it (at least ``MIN_VIEWS``), then the largest unit. A fit
+    error moves a keypoint in most views, a detection error in one."""
+    if group == "hands":
+        units = [np.stack([_median_rows(E[c][:, list(h)], K.MIN_LIMB_POINTS)
+                           for c in range(len(E))], 0) for h in K.LIMBS["hands"]]
+    else:
+        units = [E[:, :, k] for k in K.GROUPS[group]]
+    cols = []
+    for U in units:  # (C, F)
+        n = np.isfinite(U).sum(0)
+        m = np.full(U.shape[1], np.nan)
+        ok = n >= K.MIN_VIEWS
+        if ok.any():  # the second largest: seen off in two views at least
+            srt = np.sort(np.where(np.isfinite(U[:, ok]), U[:, ok], -np.inf), axis=0)
+            m[ok] = srt[-2]
+        cols.append(m)
+    M = np.stack(cols, 1)
+    out = np.full(M.shape[0], np.nan)
+    ok = np.isfinite(M).any(1)
+    out[ok] = np.nanmax(M[ok], axis=1)
+    return out
+
+
+def _reprojection(person: str, pidx: int, P3: np.ndarray, frames, keypoints, cams, opts,
+                  values, units):
+    from calib import project
+
+    krows = _rows(np.asarray(keypoints.frames), frames)
+    have = krows >= 0
+    flip = list(S.KP65_FLIP)
+    E = []
+    for cam in cams:
+        try:
+            c = keypoints.camera(cam.name)
+        except KeyError:
+            continue
+        det = np.full((len(frames), P3.shape[1], 3), np.nan)
+        det[have] = np.asarray(keypoints.kp[c][krows[have], pidx], float)
+        ok = det[..., 2] >= opts.min_conf
+        uv = project(cam, P3)
+        err = np.where(ok, np.linalg.norm(uv - det[..., :2], axis=-1), np.nan)
+        err_flip = np.where(ok[:, flip], np.linalg.norm(uv - det[:, flip, :2], axis=-1), np.nan)
+        e = _limb_errors(err, err_flip)
+        E.append(e)
+        for g in GROUP_NAMES:
+            n = f"{person}.reproj_{g}_px.{cam.name}"
+            values[n] = _group_error(e, g, opts.reproj_statistic)
+            units[n] = "px"
+    if not E:
+        return
+    E = np.stack(E, 0)
+    for g in GROUP_NAMES:
+        n = f"{person}.reproj_views_{g}_px"
+        values[n] = _views_error(E, g)
+        units[n] = "px"
+
+
+def _sync_people(model, fits, keypoints):
+    """For each (fit, person index): (kp65 function of video time, usable detection frames)."""
+    from scipy.interpolate import CubicSpline
+
+    kf = np.asarray(keypoints.frames)
+    shifts = np.asarray(K.SYNC_SHIFTS)
+    out = []
+    for fit, pidx in fits:
+        wf = np.asarray(fit.frames)
+        if len(wf) < 4:
+            continue
+        P = _kp65_all(model, fit)
+        valid = np.asarray(fit.valid, bool)
+        if np.all(np.diff(wf) == 1):
+            at = lambda t, P=P, wf=wf: P[_rows(wf, t)]  # noqa: E731
+        else:
+            at = CubicSpline(wf, P, axis=0)
+        use = (kf + shifts.min() >= wf[0]) & (kf + shifts.max() <= wf[-1])
+        vi = np.searchsorted(wf, kf).clip(0, len(wf) - 1)  # the fit frames around are valid
+        use &= valid[vi] & valid[(vi - 1).clip(0)]
+        out.append((at, use, pidx))
+    return out
+
+
+def _sync(model, fits, keypoints, cams, opts, seq):
+    """Per view the best time shift of the detections against the fits (the wearer first; see
+    the module doc) and the cost of each shift. fits: [(BodyFit, person index)]."""
+    from calib import project
+
+    kf = np.asarray(keypoints.frames)
+    shifts = [int(s) for s in K.SYNC_SHIFTS]
+    pts = list(K.BODY + K.HANDS)
+    offsets, costs, points = {}, {}, {}
+    people = _sync_people(model, fits, keypoints)
+    for cam in cams:
+        try:
+            c = keypoints.camera(cam.name)
+        except KeyError:
+            continue
+        err = {s: [] for s in shifts}
+        for at, use, pidx in people:
+            det = np.asarray(keypoints.kp[c][:, pidx][:, pts], float)  # (Fk, n, 3)
+            ok = (det[..., 2] >= opts.min_conf) & use[:, None]
+            fr = np.flatnonzero(ok.any(1))
+            if not len(fr):
+                continue
+            U = {s: project(cam, at(kf[fr] + s)[:, pts]) for s in shifts}
+            motion = np.max([np.linalg.norm(U[s] - U[0], axis=-1) for s in shifts], axis=0)
+            inf = ok[fr] & (motion >= K.SYNC_MIN_MOTION_PX)
+            for s in shifts:
+                err[s].append(np.linalg.norm(U[s] - det[fr, :, :2], axis=-1)[inf])
+        e = {s: np.concatenate(v) if v else np.zeros(0) for s, v in err.items()}
+        points[cam.name] = int(len(e[0]))
+        if len(e[0]) < K.SYNC_MIN_POINTS:
+            continue
+        cost = {s: float(np.minimum(e[s], K.SYNC_CAP_PX).mean()) for s in shifts}
+        best = min(cost, key=cost.get)
+        if best != 0 and not cost[best] < K.SYNC_MIN_GAIN * cost[0]:
+            best = 0
+        offsets[cam.name] = int(best)
+        costs[cam.name] = {str(k): round(v, 3) for k, v in cost.items()}
+    seq["sync_offset_frames"] = offsets
+    seq["sync_cost"] = costs
+    seq["sync_points"] = points
+    return offsets
+
+
+def _bbox(V, pad=0.0):
+    return V.min(0) - pad, V.max(0) + pad
+
+
+def _in_box(P, box):
+    lo, hi = box
+    return np.all((P >= lo) & (P <= hi), axis=1)
+
+
+def _pair_frame(VA, VB, faces, proxy, need_near: bool):
+    """Deepest interpenetration (m), penetrating volume (m^3) and (when ``need_near``) the
+    closest distance (m, clipped at NEAR_M; 0 when penetrating) of two posed meshes VA, VB
+    (V, 3) of one model.
+
+    Subsampled where exactness is not needed: the inside test (winding number) is done with
+    the proxy points of one body (``proxy.points``: surface points riding on the full mesh)
+    against the other's proxy mesh; the depth of the points found inside is exact (nearest
+    point of the other's full mesh). The volume counts the cells of a grid over the bounding
+    box of the penetrating points inside both proxies; the closest distance is that of the
+    proxy points to the other full mesh (both ways)."""
+    from geometry import nearest_surface, winding_number
+
+    PA, PB = proxy.points(VA), proxy.points(VB)
+    pf = proxy.faces
+    pen, inside_pts = 0.0, []
+    boxA, boxB = _bbox(VA), _bbox(VB)
+    overlap = np.all(boxA[0] <= boxB[1]) and np.all(boxB[0] <= boxA[1])
+    if overlap:
+        for X, (WP, W, box) in ((PA, (PB, VB, boxB)), (PB, (PA, VA, boxA))):
+            cand = np.flatnonzero(_in_box(X, box))
+            if not len(cand):
+                continue
+            ins = cand[winding_number(X[cand], WP, pf) > 0.5]
+            if len(ins):
+                d = nearest_surface(X[ins], W, faces).distance
+                pen = max(pen, float(d.max()))
+                inside_pts.append(X[ins])
+    vol = 0.0
+    if inside_pts:
+        P = np.concatenate(inside_pts)
+        lo, hi = P.min(0) - 2 * K.VOLUME_CELL_M, P.max(0) + 2 * K.VOLUME_CELL_M
+        lo = np.maximum(lo, np.maximum(boxA[0], boxB[0]))
+        hi = np.minimum(hi, np.minimum(boxA[1], boxB[1]))
+        ext = np.maximum(hi - lo, 0.0)
+        cell = K.VOLUME_CELL_M
+        n = np.ceil(ext / cell).astype(int) + 1
+        if n.prod() > K.VOLUME_MAX_CELLS:
+            cell = float((np.prod(ext + cell) / K.VOLUME_MAX_CELLS) ** (1 / 3)) * 1.01
+            n = np.ceil(ext / cell).astype(int) + 1
+        g = [lo[k] + cell * (np.arange(n[k]) + 0.5) for k in range(3)]
+        G = np.stack(np.meshgrid(*g, indexing="ij"), -1).reshape(-1, 3)
+        inA = winding_number(G, PA, pf) > 0.5
+        if inA.any():
+            inB = winding_number(G[inA], PB, pf) > 0.5
+            vol = float(inB.sum()) * cell ** 3
+    near = np.nan
+    if need_near:
+        if pen > 0:
+            near = 0.0
+        else:
+            near = K.NEAR_M
+            for X, (W, box) in ((PA, (VB, boxB)), (PB, (VA, boxA))):
+                cand = _in_box(X, (box[0] - K.NEAR_M, box[1] + K.NEAR_M))
+                if cand.any():
+                    d = nearest_surface(X[cand], W, faces).distance
+                    near = min(near, float(d.min()))
+    return pen, vol, near
+
+
+def _contact_gap(VA, VB, faces, sel):
+    from geometry import facet_distances
+
+    return max(float(facet_distances(VA, faces, a, VB, faces, b).a_to_b.min()) for a, b in sel)
+
+
+def _foot_vertices(model) -> list[np.ndarray]:
+    from body.regions import region_map
+
+    rm = region_map(model)
+    faces = np.asarray(model.faces)
+    out = []
+    for side in ("l", "r"):
+        f = np.concatenate([rm.faces_of(f"{side}_{r}") for r in K.FOOT_REGIONS])
+        out.append(np.unique(faces[f]))
+    return out
+
+
+def _person_metrics(person, fit, rows, V, P3, frames, fps, ground, proxy, feet, progress,
+                    values, units):
+    F = len(rows)
+    step = np.diff(frames).astype(float)
+    # not valid
+    values[f"{person}.not_valid"] = (~np.asarray(fit.valid, bool)[rows]).astype(float)
+    units[f"{person}.not_valid"] = ""
+    # ground and foot skate
+    gp = np.full(F, np.nan)
+    sk = np.full(F, np.nan)
+    if ground is not None:
+        n = np.asarray(ground[0], float).reshape(3)
+        n = n / np.linalg.norm(n)
+        off = float(ground[1])
+        h = V @ n.astype(np.float32) - np.float32(off)  # (F, V) height above the plane
+        gp = np.maximum(0.0, -h.min(axis=1)).astype(float) * 1000.0
+        for i in range(1, F):
+            dt = step[i - 1] / fps
+            best = np.nan
+            for ids in feet:
+                on = ids[(h[i, ids] < K.FOOT_CONTACT_M) & (h[i - 1, ids] < K.FOOT_CONTACT_M)]
+                if len(on) < 3:
+                    continue
+                d = (V[i, on] - V[i - 1, on]).astype(float)
+                d -= np.outer(d @ n, n)
+                v = float(np.median(np.linalg.norm(d, axis=1))) / dt
+                best = v if not best >= v else best
+            sk[i] = best
+    values[f"{person}.ground_penetration_mm"] = gp
+    values[f"{person}.foot_skate_m_s"] = sk
+    units[f"{person}.ground_penetration_mm"] = "mm"
+    units[f"{person}.foot_skate_m_s"] = "m/s"
+    # jerk over the body keypoints, on a time step of at least JERK_DT_S
+    jk = np.full(F, np.nan)
+    X = P3[:, list(K.FACE + K.BODY)]
+    fs = float(np.median(step)) if len(step) else 1.0
+    k = max(1, int(math.ceil(K.JERK_DT_S * fps / fs - 1e-9)))
+    for i in range(2 * k, F - k):
+        w = frames[[i - 2 * k, i - k, i, i + k]]
+        d = np.diff(w)
+        if not np.all(d == d[0]):
+            continue
+        dt = d[0] / fps
+        d3 = X[i + k] - 3 * X[i] + 3 * X[i - k] - X[i - 2 * k]
+        jk[i] = float(np.linalg.norm(d3, axis=1).max()) / dt ** 3
+    values[f"{person}.jerk_m_s3"] = jk
+    units[f"{person}.jerk_m_s3"] = "m/s3"
+    # self-penetration on the proxy
+    from fitting.collision import self_collisions
+
+    sp = np.zeros(F)
+    it = range(F)
+    if progress is not None:
+        it = progress(it, total=F, desc=f"qa {person} self-penetration")
+    for i in it:
+        sp[i] = self_collisions(proxy, proxy.points(V[i].astype(float))).deepest * 1000.0
+    values[f"{person}.self_penetration_mm"] = sp
+    units[f"{person}.self_penetration_mm"] = "mm"
+
+
+# ---------------------------------------------------------------------------- the sequence
+
+
+def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, fps: float,
+                     opts: QAOptions = QAOptions(), progress=None) -> QAMetrics:
+    """Every per-frame metric of a sequence (module doc), with the thresholds they are flagged
+    against.
+
+    model : ``body.BodyModel``; wearer, partner : ``artifacts.BodyFit`` or None (at least one);
+    keypoints : ``artifacts.Keypoints2D`` or None (no reprojection, no sync); cams : list of
+    ``calib.Camera`` (their order is the metric order); contact : a
+    ``fitting.contact_signature.ContactAnnotation`` or None; ground : ``(normal (3,), offset)``
+    or None; fps : video rate; progress : ``ctx.progress``-like wrapper or None.
+    QA frames: the partner's frames that the wearer's fit also has (all of them without a
+    wearer), else the wearer's frames."""
+    from fitting.collision import ProxyMesh
+
+    if wearer is None and partner is None:
+        raise ValueError("sequence_metrics: no fit (wearer and partner are both None)")
+    if not fps > 0:
+        raise ValueError(f"fps: expected > 0, got {fps!r}")
+    if partner is not None:
+        frames = np.asarray(partner.frames)
+        if wearer is not None:
+            frames = frames[_rows(np.asarray(wearer.frames), frames) >= 0]
+    else:
+        frames = np.asarray(wearer.frames)
+    frames = frames.astype(np.int64)
+    F = len(frames)
+    values: dict[str, np.ndarray] = {}
+    units: dict[str, str] = {}
+    seq: dict = {"frames": int(F), "fps": float(fps)}
+    fits = [(n, f) for n, f in zip(PEOPLE, (wearer, partner), strict=True) if f is not None]
+    proxy = ProxyMesh.from_model(model, K.PROXY_VERTICES)
+    feet = _foot_vertices(model) if ground is not None else []
+    verts, people = [], []
+    seq["people"] = []
+    for person, fit in fits:
+        rows = _rows(np.asarray(fit.frames), frames)
+        V, P3 = _pose(model, fit, rows)
+        verts.append(V)
+        people.append(person)
+        if person == "wearer" and fit.has_markers:
+            _marker_metrics(fit, rows, values, units)
+        if keypoints is not None:
+            _reprojection(person, PEOPLE.index(person), P3, frames, keypoints, cams, opts,
+                          values, units)
+        _person_metrics(person, fit, rows, V, P3, frames, float(fps), ground, proxy,
+                        feet, progress, values, units)
+        seq["people"].append({"role": person, "frames": int(F),
+                              "not_valid": int((~np.asarray(fit.valid, bool)[rows]).sum())})
+    # sync: the wearer (the marker fit does not depend on the videos)
+    if keypoints is not None:
+        sync_fits = [(f, PEOPLE.index(n)) for n, f in fits if n == "wearer"]
+        offs = _sync(model, sync_fits, keypoints, cams, opts, seq)
+        for cam, s in offs.items():
+            values[f"sync_offset_frames.{cam}"] = np.full(F, float(s))
+            units[f"sync_offset_frames.{cam}"] = "frames"
+    # between the two
+    pen = np.full(F, np.nan)
+    vol = np.full(F, np.nan)
+    gap = np.full(F, np.nan)
+    unexp = np.full(F, np.nan)
+    if len(verts) == 2:
+        faces = np.asarray(model.faces)
+        VA, VB = verts
+        sel = []
+        if contact is not None and contact.has_contact:
+            from body.regions import region_map
+
+            rm = region_map(model)
+            sel = [(rm.faces_of(int(a)), rm.faces_of(int(b))) for a, b in contact.region_pairs]
+        lo = hi = None
+        if contact is not None:
+            lo = contact.interval[0] - opts.contact_margin_frames
+            hi = contact.interval[1] + opts.contact_margin_frames
+            seq["contact"] = {"interval": [int(x) for x in contact.interval],
+                              "has_contact": bool(contact.has_contact),
+                              "margin_frames": int(opts.contact_margin_frames)}
+        it = range(F)
+        if progress is not None:
+            it = progress(it, total=F, desc="qa interpenetration")
+        for i in it:
+            f = int(frames[i])
+            a, b = VA[i].astype(float), VB[i].astype(float)
+            outside = contact is not None and not (contact.has_contact and lo <= f <= hi)
+            p, v, near = _pair_frame(a, b, faces, proxy, outside)
+            pen[i], vol[i] = p * 1000.0, v * 1e6
+            if outside:
+                unexp[i] = near * 1000.0
+            if sel and contact.active(f):
+                gap[i] = _contact_gap(a, b, faces, sel) * 1000.0
+    for n, v, u in (("penetration_mm", pen, "mm"), ("penetration_volume_cm3", vol, "cm3"),
+                    ("contact_gap_mm", gap, "mm"), ("unexpected_contact_mm", unexp, "mm")):
+        values[n] = v
+        units[n] = u
+    thresholds = {n: _threshold(n, opts) for n in values
+                  if threshold_name(n) is not None or n.endswith(".not_valid")}
+    return QAMetrics(frames, values, units, thresholds, seq, verts, people)
