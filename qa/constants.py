@@ -81,6 +81,7 @@ PROXY_VERTICES = 2000
 
 # ---------------------------------------------------------------- default thresholds
 MARKER_MAX_MM = 40.0
+MARKERS_REPAIRED = 0.5  # any marker repaired by the cleaning step near the frame flags it
 MARKER_MEDIAN_MM = 15.0
 REPROJ_BODY_PX = 130.0
 REPROJ_HANDS_PX = 80.0

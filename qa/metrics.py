@@ -79,6 +79,9 @@ class QAOptions:
     """Thresholds of the QA flags (the ``qa`` stage's recipe section ``stages.qa.<field>``).
 
     marker_max_mm, marker_median_mm : per frame, the wearer's worst / median marker residual.
+    markers_repaired : per frame, markers whose capture samples the cleaning step
+        (``fitting.marker_clean``) un-swapped or removed (ghosts, spikes, swaps) near the frame:
+        the fit there rests on a repaired capture.
     reproj_body_px, reproj_hands_px, reproj_face_px : per person, view and keypoint group, the
         reprojection error (``reproj_statistic``: ``"limb"`` the worst limb's median,
         ``"median"`` the group's median) of confident detections (conf >= ``min_conf``).
@@ -96,6 +99,7 @@ class QAOptions:
     """
 
     marker_max_mm: float = K.MARKER_MAX_MM
+    markers_repaired: float = K.MARKERS_REPAIRED
     marker_median_mm: float = K.MARKER_MEDIAN_MM
     reproj_body_px: float = K.REPROJ_BODY_PX
     reproj_hands_px: float = K.REPROJ_HANDS_PX
@@ -154,9 +158,9 @@ def threshold_name(metric: str) -> str | None:
         if name.startswith("reproj_") and len(parts) >= 3:
             return name if name in _FIELDS else None
         if len(parts) == 2 and name in _FIELDS and name in (
-                "marker_median_mm", "marker_max_mm", "self_penetration_mm",
+                "marker_median_mm", "marker_max_mm", "markers_repaired", "self_penetration_mm",
                 "ground_penetration_mm", "foot_skate_m_s", "jerk_m_s3"):
-            if name.startswith("marker_") and parts[0] != "wearer":
+            if name.startswith("marker") and parts[0] != "wearer":
                 return None
             return name
         return None
@@ -665,8 +669,33 @@ def _person_metrics(person, fit, rows, V, P3, frames, fps, ground, proxy, feet, 
 # ---------------------------------------------------------------------------- the sequence
 
 
+def capture_repairs(raw, cleaned, frames: np.ndarray, clock) -> np.ndarray:
+    """(F,) per fit frame, how many of the wearer's markers had a capture sample repaired by
+    the cleaning step (un-swapped, or removed as a ghost, spike or swap) among the samples the
+    frame is interpolated from. raw, cleaned : ``formats.c3d.Markers`` before and after
+    ``fitting.marker_clean.clean_markers`` (same names and samples); frames : video frames
+    (or capture frames on a marker-only sequence); clock : ``fitting.mocap.VideoClock``."""
+    from fitting.mocap import frame_times
+
+    a, b = np.asarray(raw.xyz, float), np.asarray(cleaned.xyz, float)
+    if a.shape != b.shape:
+        raise ValueError(f"capture_repairs: raw {a.shape} and cleaned {b.shape} differ")
+    changed = ~((a == b) | (np.isnan(a) & np.isnan(b))).all(axis=-1)  # (Fs, M)
+    rate = clock.rate_hz or raw.rate_hz
+    t_src = (raw.first_frame + np.arange(len(a))) / rate
+    frames = np.asarray(frames, dtype=int)
+    if not len(frames):
+        return np.zeros(0)
+    t = frame_times(int(frames.max()) + 1, clock.fps, clock.sync_offset_s)[frames]
+    # the two samples around each frame time (what the linear resampling reads)
+    hi = np.clip(np.searchsorted(t_src, t), 0, len(t_src) - 1)
+    lo = np.clip(hi - 1, 0, len(t_src) - 1)
+    return (changed[lo] | changed[hi]).sum(axis=1).astype(float)
+
+
 def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, fps: float,
-                     opts: QAOptions = QAOptions(), progress=None) -> QAMetrics:
+                     opts: QAOptions = QAOptions(), progress=None,
+                     repaired: np.ndarray | None = None) -> QAMetrics:
     """Every per-frame metric of a sequence (module doc), with the thresholds they are flagged
     against.
 
@@ -674,8 +703,9 @@ def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, f
     keypoints : ``artifacts.Keypoints2D`` or None (no reprojection, no sync); cams : list of
     ``calib.Camera`` (their order is the metric order); contact : a
     ``fitting.contact_signature.ContactAnnotation`` or None; ground : ``(normal (3,), offset)``
-    or None; fps : video rate; progress : ``ctx.progress``-like wrapper or None.
-    QA frames: the partner's frames that the wearer's fit also has (all of them without a
+    or None; fps : video rate; progress : ``ctx.progress``-like wrapper or None;
+    repaired : (F_w,) on the wearer's fit frames, markers repaired per frame
+    (:func:`capture_repairs`), giving ``wearer.markers_repaired``. QA frames: the partner's frames that the wearer's fit also has (all of them without a
     wearer), else the wearer's frames."""
     from fitting.collision import ProxyMesh
 
@@ -706,6 +736,9 @@ def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, f
         people.append(person)
         if person == "wearer" and fit.has_markers:
             _marker_metrics(fit, rows, values, units)
+            if repaired is not None:
+                values["wearer.markers_repaired"] = np.asarray(repaired, float)[rows]
+                units["wearer.markers_repaired"] = "markers"
         if keypoints is not None:
             _reprojection(person, PEOPLE.index(person), P3, frames, keypoints, cams, opts,
                           values, units)

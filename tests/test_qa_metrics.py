@@ -313,3 +313,37 @@ def test_bad_options_name_the_field(field, value):
 def test_span_dataclass_json_handles_nan():
     s = Span(3, 7, ["x"], 5, {"x": float("nan")})
     assert s.to_json()["worst"] == {"x": None}
+
+
+def test_a_swap_burst_repaired_by_the_cleaning_is_flagged(small_session):
+    """``marker_fit`` cleans its capture first: a label swap is un-swapped (or removed) and
+    the fit looks fine, so QA flags the frames whose capture was repaired (and only those)."""
+    import yaml
+
+    from fitting.marker_clean import clean_markers
+    from fitting.mocap import VideoClock
+    from formats.c3d import read_c3d
+    from qa.metrics import capture_repairs
+
+    rec = yaml.safe_load(small_session.read_text())
+    seq = next(iter(rec["sequences"].values()))
+    raw = read_c3d(small_session.parent / seq["c3d"])
+    i, j = raw.names.index("LKNE"), raw.names.index("RKNE")
+    a = len(raw.xyz) // 3
+    xyz = np.array(raw.xyz)
+    xyz[a:a + 12, [i, j]] = xyz[a:a + 12, [j, i]]  # a burst of 12 samples, knees swapped
+    bad = dataclasses.replace(raw, xyz=xyz)
+    clock = VideoClock(float(seq.get("fps") or 50.0), 0.0, None)
+    t_src = (raw.first_frame + np.arange(len(xyz))) / raw.rate_hz
+    frames = np.arange(int(t_src[-1] * clock.fps))
+    assert not capture_repairs(raw, clean_markers(raw)[0], frames, clock).any()  # clean: none
+    cleaned, _ = clean_markers(bad)
+    rep = capture_repairs(bad, cleaned, frames, clock)
+    t = frames / clock.fps
+    inside = (t > t_src[a] + 0.5 / raw.rate_hz) & (t < t_src[a + 11] - 0.5 / raw.rate_hz)
+    assert inside.any() and (rep[inside] >= 2).all(), rep
+    far = (t < t_src[a] - 0.1) | (t > t_src[a + 11] + 0.1)
+    assert (rep[far] == 0).all(), rep
+    m = _metrics(frames, **{"wearer.markers_repaired": rep})
+    fl = flag_frames(m, QAOptions())
+    assert np.array_equal(fl.flagged[:, fl.reasons.index("wearer.markers_repaired")], rep > 0)
