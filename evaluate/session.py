@@ -1,8 +1,9 @@
 """``python -m evaluate.session --recipe R [--outputs DIR]``: after ``make release`` / ``make demo``
 / ``make evaluate``, say where a session's release folder is and print its benchmark.
 
-Reads the engine's artifacts (``<outputs>/<session>/session/release`` and ``.../evaluate``):
-prints the release folder, its verification and the datasheet's totals, then the evaluator's
+Reads the engine's artifacts (``<outputs>/<session>/session/release``, ``.../qa_index`` and
+``.../evaluate``): prints the release folder, its verification and the datasheet's totals, the
+QA index page and its most flagged sequences, then the evaluator's
 markdown table (when the recipe has a ground truth, ``stages.evaluate.truth``), and copies
 ``evaluation.json`` to ``<outputs>/<session>/evaluation.json``. Exit code 1 when the release (or
 the evaluation a recipe asks for) is missing: the pipeline's own log says why.
@@ -39,6 +40,17 @@ def summary(recipe_path: Path, outputs: Path) -> tuple[int, str]:
     else:
         lines.append(f"No release of session {session!r} under {root} (see the pipeline's log).")
         rc = 1
+    qa = root / "session" / "qa_index"
+    if (qa / "manifest.json").is_file() and (qa / "summary.json").is_file():
+        q = json.loads((qa / "summary.json").read_text())
+        lines += ["", f"QA report: {(qa / 'index.html').resolve()}",
+                  f"  {q['flagged']} of {q['frames']} frames flagged ({100 * q['rate']:.1f} %) over "
+                  f"{q['sequences']} sequences; open the index in a browser, each sequence's "
+                  "report shows both meshes on the four views at the flagged frames"]
+        for r in sorted(q["rows"], key=lambda r: -r["flagged"] / max(r["frames"], 1))[:5]:
+            lines.append(f"  {r['sequence']}: {r['flagged']}/{r['frames']} flagged"
+                         + (": " + ", ".join(f"{k} {v}" for k, v in sorted(
+                             r["reasons"].items(), key=lambda kv: -kv[1])[:3]) if r["reasons"] else ""))
     wants_eval = bool(((raw.get("stages") or {}).get("evaluate") or {}).get("truth"))
     if (ev / "evaluation.json").is_file():
         shutil.copyfile(ev / "evaluation.json", root / "evaluation.json")

@@ -36,8 +36,12 @@ PLANNED: tuple[tuple[str, Granularity, tuple[str, ...], str], ...] = (
     ("convert", "sequence", ("marker_fit", "partner_fit"), "SMPL-X parameters of both"),
     ("export", "sequence", ("shape_fit", "keypoints", "marker_fit", "partner_fit", "convert"),
      "CHI3D-layout files"),
-    ("release", "session", ("export",),
+    ("qa", "sequence", ("shape_fit", "keypoints", "marker_fit", "partner_fit"),
+     "per-frame quality flags, overlays on the four views, plots, HTML report, 3D scene"),
+    ("release", "session", ("export", "qa"),
      "the release folder: every sequence's export, SHA-256 manifest, datasheet, re-read"),
+    ("qa_index", "session", ("qa",),
+     "the session's QA index page: sequences sorted by how much is flagged"),
     ("evaluate", "session", ("release",),
      "the CHI3D benchmark of the release against the session's ground truth"),
 )

@@ -8,7 +8,8 @@ writes
 - ``datasheet.json`` and ``datasheet.md``: subjects, sequences, frames per sequence, contact
   events, interaction classes (action names without the take number), which person-frames
   are not valid and why (counts per reason and person, and the frames as ranges), the fitting
-  figures per sequence (each export's ``figures.json``);
+  figures per sequence (each export's ``figures.json``), and the QA summary (each sequence's
+  ``qa`` report: frames flagged, spans and reasons, cameras out of sync; :func:`qa_summary`);
 - ``MANIFEST.sha256``: every file of the folder (``sha256sum -c MANIFEST.sha256`` passes in it);
 - ``verification.json``: the re-read pass (:func:`verify_release`): every file through its
   reader (``formats.chi3d``, ``formats.anny_json``, ``formats.release``,
@@ -98,9 +99,32 @@ def merge_exports(exports: dict, root: Path) -> dict[str, str]:
 
 
 # ---------------------------------------------------------------------------------- datasheet
-def datasheet(session: str, subjects: list[str], sequences: dict, exports: dict) -> dict:
+def qa_summary(reports: dict[str, dict]) -> dict:
+    """The release's QA summary from every sequence's ``qa`` ``report.json``: per sequence the
+    frames flagged, their share, the spans (frames and reasons) and sequence-level findings
+    (a camera out of sync), and the totals. A sequence whose QA is missing is listed as such."""
+    seqs = {}
+    for unit, rep in sorted(reports.items()):
+        s = rep["summary"]
+        seqs[unit] = {"frames": s["frames"], "flagged": s["flagged"], "rate": s["rate"],
+                      "reasons": s.get("reasons", {}),
+                      "spans": [[sp["start"], sp["end"], sp["reasons"]] for sp in rep["spans"]],
+                      "sync_offset_frames": {c: v for c, v in
+                                             (s.get("sync_offset_frames") or {}).items() if v}}
+    frames = sum(v["frames"] for v in seqs.values())
+    flagged = sum(v["flagged"] for v in seqs.values())
+    return {"sequences": seqs, "frames": frames, "flagged": flagged,
+            "rate": flagged / max(frames, 1),
+            "what": "frames whose QA metrics (stage qa: marker residuals, reprojection, "
+                    "interpenetration, ground, skating, contact, jerk, validity) pass a recipe "
+                    "threshold; a flagged frame is not necessarily wrong: it is the one to look at"}
+
+
+def datasheet(session: str, subjects: list[str], sequences: dict, exports: dict,
+              qa: dict | None = None) -> dict:
     """The datasheet as JSON (see the module doc) from the recipe's session view and each
-    export's ``export.json``, ``figures.json`` and ``valid/<action>.json``."""
+    export's ``export.json``, ``figures.json`` and ``valid/<action>.json``; ``qa``: the
+    :func:`qa_summary` (None: no QA ran)."""
     from formats.release import read_valid
 
     seqs: dict[str, dict] = {}
@@ -160,6 +184,7 @@ def datasheet(session: str, subjects: list[str], sequences: dict, exports: dict)
         "validity": "a person-frame is ground truth only when fitted from its own evidence "
                     "(reason 'fitted'); the others are written (the arrays are dense) and marked "
                     "false in valid/<action>.json with their reason",
+        "qa": qa,
     }
 
 
@@ -214,6 +239,20 @@ def datasheet_md(sheet: dict) -> str:
     if not any_nv:
         lines.append("- none")
     lines += ["", sheet["validity"], ""]
+    qa = sheet.get("qa")
+    if qa:
+        lines += ["## Quality checks (stage qa)", "",
+                  f"{qa['flagged']} of {qa['frames']} frames flagged ({100 * qa['rate']:.1f} %): "
+                  f"{qa['what']}.", "",
+                  "| sequence | frames | flagged | spans (video frames: reasons) |", "|---|---|---|---|"]
+        for q, s in qa["sequences"].items():
+            spans = "; ".join(f"{a}-{b}: {', '.join(r)}" for a, b, r in s["spans"][:6])
+            more = f" (+{len(s['spans']) - 6} more)" if len(s["spans"]) > 6 else ""
+            sync = ("; camera out of sync: " + ", ".join(f"{c} {v:+d}" for c, v in
+                                                          s["sync_offset_frames"].items())
+                    if s["sync_offset_frames"] else "")
+            lines.append(f"| {q} | {s['frames']} | {s['flagged']} | {spans or '-'}{more}{sync} |")
+        lines.append("")
     return "\n".join(lines)
 
 
@@ -363,8 +402,12 @@ def run(ctx: StageContext) -> None:
         raise InputError(ctx.recipe_path or "<recipe>", "sequences", "no sequence was exported")
     root = Path(ctx.out.dir).resolve()
     copied = merge_exports(exports, root)
+    qa_arts = ctx.inputs.get("qa") or {}
+    if not isinstance(qa_arts, dict):
+        qa_arts = {ctx.unit: qa_arts}
+    qa = qa_summary({u: a.json("report") for u, a in qa_arts.items()}) if qa_arts else None
     sheet = datasheet(rv.session.name, list(rv.session.subjects),
-                      rv.session.sequences.as_dict(), exports)
+                      rv.session.sequences.as_dict(), exports, qa)
     ctx.out.save_json("datasheet", sheet)
     ctx.out.path("datasheet.md").write_text(datasheet_md(sheet), encoding="utf-8")
     R.write_manifest(root)
@@ -385,7 +428,7 @@ def run(ctx: StageContext) -> None:
             "verified")
 
 
-STAGE = Stage(name="release", func=run, per="session", upstream=("export",), reads=READS,
+STAGE = Stage(name="release", func=run, per="session", upstream=("export", "qa"), reads=READS,
               version="1",
               doc="the release folder: every sequence's export, SHA-256 manifest, datasheet, "
                   "re-read")

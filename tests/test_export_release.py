@@ -387,7 +387,7 @@ def test_export_and_release_are_registered():
 
     st = {p[0]: _stage(*p) for p in PLANNED if p[0] in ("export", "release")}
     assert st["export"].implemented and st["release"].implemented
-    assert st["release"].per == "session" and st["release"].upstream == ("export",)
+    assert st["release"].per == "session" and st["release"].upstream == ("export", "qa")
 
 
 def test_release_into_a_relative_store_path(world, tmp_path, monkeypatch):

@@ -38,7 +38,7 @@ def test_marker_only_recipe_loads_and_plans_only_the_marker_stages(tmp_path):
         ids = {n.id for n in build_plan(reg, r, p, targets_for(reg, r, cmd)).nodes
                if n.stage.implemented}
         want = {("shape_fit", "s1"), ("marker_fit", "s1/Walk 1"), ("marker_loo", "s1/Walk 1"),
-                ("convert", "s1/Walk 1"), ("export", "s1/Walk 1")}  # the wearer alone, P = 1
+                ("convert", "s1/Walk 1"), ("export", "s1/Walk 1"), ("qa", "s1/Walk 1")}  # the wearer alone, P = 1
         if cmd == "release":
             want.add(("release", "session"))  # no evaluate: the recipe names no truth
         assert ids == want, (cmd, ids)

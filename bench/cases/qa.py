@@ -1,0 +1,262 @@
+"""The ``qa`` stage on the studio bench session, clean and with faults put in on purpose.
+
+Clean: the engine up to ``qa_index`` on the bench recipe (``recipes/bench.yaml`` with the
+partner_fit case's options, into that case's store: the fits are reused when cached). Every
+frame the qa stage flags there is a false alarm by construction (the studio's capture is
+clean), up to what the fits really got wrong (the Hug partner is marked not valid by
+partner_fit and so flagged).
+
+Faults, each planted where a lab meets it:
+
+- ``marker_swap``: a burst of ``SWAP_SAMPLES`` C3D samples (0.3 s) in which the wearer's
+  ``SWAP`` markers (left and right knee) trade places, written into a copy of the capture
+  (``formats.c3d.write_c3d``), through the engine (``marker_fit`` fits it, ``qa`` judges it);
+- ``sync_offset``: one camera's video delayed by ``SYNC_FRAMES`` frames (its first frames
+  repeated), a copy of the video, through the engine (keypoints are detected on it);
+- ``limb_rotation``: ``LIMB_FRAMES`` consecutive fit frames of the partner fit with the right
+  upper arm turned by ``LIMB_DEG`` degrees about its local x axis, planted into the
+  ``partner_fit`` result given to ``qa.metrics`` (an artifact cannot be edited in the store:
+  its manifest's hashes would make the engine rebuild it).
+
+Keys: ``qa.flag_recall`` (planted faults flagged by a reason of their kind, in their frames,
+that the clean run does not flag there; goal 1.0), ``qa.frame_recall`` (the faults' frames
+flagged), ``qa.flag_rate_clean`` (flagged frames over all frames of the clean session; goal
+<= 2 %), ``qa.flag_rate_clean_valid`` (the same without the frames a fit itself marks not
+valid), ``qa.s_per_frame`` (wall seconds of the whole qa stage per frame: metrics, plot,
+overlays, video, scene, report), ``qa.metrics_s_per_frame`` (the metrics alone).
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from bench.cases import partner_fit as P
+
+GOALS = {"qa.flag_recall": (">=", 1.0), "qa.flag_rate_clean": ("<=", 0.02)}
+
+SWAP_SEQUENCE, SWAP = "s01/Push 1", ("LKNE", "RKNE")
+SWAP_START_S, SWAP_SAMPLES = 1.0, 30  # 0.3 s at 100 Hz
+SYNC_SEQUENCE, SYNC_CAMERA, SYNC_FRAMES = "s01/Kick 1", "58860488", 2
+LIMB_SEQUENCE, LIMB_JOINT, LIMB_DEG, LIMB_FRAMES = "s01/Grab 1", "upperarm01.R", 45.0, 3
+FAULT_SESSION = "studio_bench_qa_faults"
+
+
+def _engine(recipe: Path, outputs: Path, until: str, work: Path, name: str) -> float:
+    from pipeline.cli import main
+
+    logs: list[str] = []
+    t0 = time.perf_counter()
+    rc = main(["release", "--recipe", str(recipe), "--outputs", str(outputs), "--until", until,
+               "--executor", "serial"], log=logs.append)
+    (work / f"{name}.log").write_text("\n".join(logs))
+    if rc != 0:
+        raise RuntimeError(f"engine failed ({name}):\n" + "\n".join(logs[-30:]))
+    return time.perf_counter() - t0
+
+
+def swap_capture(src: Path, dst: Path, names: tuple[str, str], start_s: float, n: int) -> dict:
+    """A copy of the C3D with ``names`` swapped over ``n`` samples from ``start_s`` seconds."""
+    from formats.c3d import read_c3d, write_c3d
+
+    mk = read_c3d(src)
+    i, j = (list(mk.names).index(x) for x in names)
+    a = int(round(start_s * mk.rate_hz))
+    xyz = np.array(mk.xyz)
+    xyz[a:a + n, [i, j]] = xyz[a:a + n, [j, i]]
+    import dataclasses
+
+    write_c3d(dst, dataclasses.replace(mk, xyz=xyz))
+    return {"first_sample": a, "samples": n, "rate_hz": float(mk.rate_hz),
+            "first_frame": int(mk.first_frame)}
+
+
+def delay_video(src: Path, dst: Path, frames: int) -> None:
+    """A copy of the video ``frames`` frames late: frame f shows what frame f - frames showed
+    (the first frame repeated at the start), same length and rate."""
+    from formats.video import VideoReader, video_info, write_mp4
+
+    info = video_info(src)
+    with VideoReader(src) as r:
+        imgs = [r[i] for i in range(info.n_frames)]
+    write_mp4(dst, [imgs[max(0, i - frames)] for i in range(info.n_frames)], info.fps)
+
+
+def fault_recipe(base: dict, work: Path) -> tuple[Path, dict]:
+    """The faults session's recipe (the three sequences, their planted raw inputs in
+    ``work/planted``) and where the faults are."""
+    rec = json.loads(json.dumps(base))
+    rec["session"] = FAULT_SESSION
+    keep = {SWAP_SEQUENCE, SYNC_SEQUENCE, LIMB_SEQUENCE}
+    rec["sequences"] = {k: v for k, v in rec["sequences"].items() if k in keep}
+    planted = work / "planted"
+    planted.mkdir(parents=True, exist_ok=True)
+    seq = rec["sequences"][SWAP_SEQUENCE]
+    dst = planted / "swap.c3d"
+    swap = swap_capture(Path(seq["c3d"]), dst, SWAP, SWAP_START_S, SWAP_SAMPLES)
+    seq["c3d"] = str(dst)
+    seq = rec["sequences"][SYNC_SEQUENCE]
+    dst = planted / f"sync_{SYNC_CAMERA}.mp4"
+    if not dst.exists():
+        delay_video(Path(seq["videos"][SYNC_CAMERA]), dst, SYNC_FRAMES)
+    seq["videos"][SYNC_CAMERA] = str(dst)
+    path = work / "faults.yaml"
+    path.write_text(yaml.safe_dump(rec, sort_keys=False))
+    return path, {"swap": swap}
+
+
+def _load_qa(outputs: Path, session: str, unit: str) -> tuple[dict, dict, dict]:
+    d = outputs / session / unit / "qa"
+    z = np.load(d / "qa.npz")
+    return ({k: z[k] for k in z.files}, json.loads((d / "report.json").read_text()),
+            json.loads((d / "flags.json").read_text()))
+
+
+def _flagged_by(qa: dict, frames, kind) -> np.ndarray:
+    """(len(frames),) whether each frame is flagged by a reason for which ``kind(reason)``."""
+    fr = np.asarray(qa["frames"])
+    cols = [i for i, r in enumerate(qa["reasons"]) if kind(str(r))]
+    rows = np.searchsorted(fr, frames)
+    ok = (rows < len(fr)) & (fr[np.minimum(rows, len(fr) - 1)] == frames)
+    out = np.zeros(len(frames), bool)
+    if cols:
+        out[ok] = np.asarray(qa["flagged"])[rows[ok]][:, cols].any(axis=1)
+    return out
+
+
+def limb_fault(recipe: Path, outputs: Path, session: str) -> dict:
+    """Plant the limb rotation into the partner fit of LIMB_SEQUENCE and run the QA metrics on
+    it and on the untouched fit; returns the frames and whether each is flagged (any reason)
+    with and without the fault."""
+    import dataclasses
+
+    from artifacts import BodyFit
+    from artifacts.keypoints import Keypoints2D
+    from body import load_model
+    from body.rotations import rodrigues, rotmat_to_rotvec
+    from calib.io import read_chi3d_camera
+    from fitting.contact_signature import load_contact
+    from formats.video import video_info
+    from qa.metrics import QAOptions, flag_frames, sequence_metrics
+    from recipes import load_recipe
+
+    rec = load_recipe(recipe)
+    seq = rec.sequences[LIMB_SEQUENCE]
+    root = outputs / session / LIMB_SEQUENCE
+    model = load_model("anny")
+    wearer = BodyFit.load(root / "marker_fit")
+    partner = BodyFit.load(root / "partner_fit")
+    kp = (Keypoints2D.load(root / "partner_fit") if (root / "partner_fit" / "keypoints.npz").exists()
+          else Keypoints2D.load(root / "keypoints"))
+    cams = [read_chi3d_camera(seq.calibration[c], name=c) for c in rec.cameras]
+    n = video_info(seq.videos[rec.cameras[0]]).n_frames
+    contact = load_contact(seq.contact, LIMB_SEQUENCE.split("/", 1)[1], model, n) if seq.contact else None
+    ground = (np.asarray(rec.ground_plane.normal, float), float(rec.ground_plane.offset))
+    opts = QAOptions(**((yaml.safe_load(recipe.read_text()).get("stages") or {}).get("qa") or {}))
+    fps = float(seq.fps)
+    F = len(partner.frames)
+    rows = np.arange(F // 2, F // 2 + LIMB_FRAMES)
+    j = list(model.joint_names).index(LIMB_JOINT)
+    pose = np.array(partner.body_pose)
+    delta = rodrigues(np.array([np.deg2rad(LIMB_DEG), 0.0, 0.0]))
+    pose[rows, j] = rotmat_to_rotvec(rodrigues(pose[rows, j]) @ delta)
+    bad = dataclasses.replace(partner, body_pose=pose)
+    out = {}
+    for name, p in (("clean", partner), ("planted", bad)):
+        m = sequence_metrics(model, wearer, p, kp, cams, contact, ground, fps, opts)
+        fl = flag_frames(m, opts)
+        fr = np.asarray(m.frames)
+        idx = np.searchsorted(fr, partner.frames[rows])
+        out[name] = {"flagged": np.asarray(fl.any)[idx],
+                     "reasons": sorted({str(r) for i in idx for r, x in
+                                        zip(fl.reasons, fl.flagged[i], strict=True) if x})}
+    out["frames"] = [int(f) for f in partner.frames[rows]]
+    return out
+
+
+def run(work: Path) -> dict[str, float]:
+    store_work = work.parent / "partner_fit"
+    store_work.mkdir(parents=True, exist_ok=True)
+    base_path = P.bench_recipe(store_work, P.STRIDE)
+    base = yaml.safe_load(base_path.read_text())
+    outputs = store_work / "outputs"
+    clean_path = work / "clean.yaml"
+    clean_path.write_text(yaml.safe_dump(base, sort_keys=False))
+    # the clean session: qa of every sequence and the index (fits cached from partner_fit)
+    _engine(clean_path, outputs, "partner_fit", work, "clean_fits")
+    qa_dirs = list((outputs / base["session"]).glob("*/*/qa"))
+    for d in qa_dirs:  # time the qa stage itself: rebuild it
+        shutil.rmtree(d)
+    wall = _engine(clean_path, outputs, "qa_index", work, "clean_qa")
+    summary = json.loads((outputs / base["session"] / "session" / "qa_index" / "summary.json").read_text())
+    frames = flagged = flagged_valid = frames_valid = 0
+    metrics_s = 0.0
+    per_seq = {}
+    for unit in base["sequences"]:
+        qa, rep, _ = _load_qa(outputs, base["session"], unit)
+        F = len(qa["frames"])
+        anyf = np.asarray(qa["flagged"]).any(axis=1)
+        names = [str(x) for x in qa["names"]]
+        nv = np.zeros(F, bool)
+        for k, nm in enumerate(names):
+            if nm.endswith(".not_valid"):
+                nv |= np.nan_to_num(qa["values"][:, k]) > 0.5
+        frames += F
+        flagged += int(anyf.sum())
+        frames_valid += int((~nv).sum())
+        flagged_valid += int((anyf & ~nv).sum())
+        metrics_s += rep["timing"]["metrics_s"]
+        per_seq[unit] = {"frames": F, "flagged": int(anyf.sum()),
+                         "reasons": rep["summary"]["reasons"]}
+    (work / "clean.json").write_text(json.dumps({"summary": summary, "per_sequence": per_seq}, indent=1))
+
+    # the faults session
+    fpath, where = fault_recipe(base, work)
+    _engine(fpath, outputs, "qa_index", work, "faults")
+    faults = {}
+    # marker swap: the burst's video frames (capture sample s at s / rate - offset on the video clock)
+    seq = base["sequences"][SWAP_SEQUENCE]
+    sw = where["swap"]
+    off = float((seq.get("mocap") or {}).get("sync_offset_s") or 0.0)
+    t0 = (sw["first_frame"] + sw["first_sample"]) / sw["rate_hz"]
+    t1 = (sw["first_frame"] + sw["first_sample"] + sw["samples"]) / sw["rate_hz"]
+    fps = float(seq["fps"])
+    qa_f, _, _ = _load_qa(outputs, FAULT_SESSION, SWAP_SEQUENCE)
+    qa_c, _, _ = _load_qa(outputs, base["session"], SWAP_SEQUENCE)
+    fr = np.asarray(qa_f["frames"])
+    inside = fr[((fr / fps + off) >= t0) & ((fr / fps + off) < t1)]
+    kind = lambda r: r.startswith("wearer.")  # noqa: E731
+    hit = _flagged_by(qa_f, inside, kind) & ~_flagged_by(qa_c, inside, kind)
+    faults["marker_swap"] = {"frames": inside.tolist(), "flagged": hit.tolist()}
+    # sync offset: the sequence-level estimate for that camera, and the frames it flags
+    qa_f, rep_f, _ = _load_qa(outputs, FAULT_SESSION, SYNC_SEQUENCE)
+    qa_c, rep_c, _ = _load_qa(outputs, base["session"], SYNC_SEQUENCE)
+    est = (rep_f["summary"].get("sync_offset_frames") or {}).get(SYNC_CAMERA)
+    est_clean = (rep_c["summary"].get("sync_offset_frames") or {}).get(SYNC_CAMERA)
+    kind = lambda r: r.startswith("sync_offset_frames.") and r.endswith(SYNC_CAMERA)  # noqa: E731
+    fr = np.asarray(qa_f["frames"])
+    hit = _flagged_by(qa_f, fr, kind) & ~_flagged_by(qa_c, fr, kind)
+    faults["sync_offset"] = {"estimated_frames": est, "clean_estimate": est_clean,
+                             "frames": fr.tolist(), "flagged": hit.tolist()}
+    # limb rotation: planted into the partner fit handed to the metrics
+    limb = limb_fault(clean_path, outputs, base["session"])
+    hit = np.asarray(limb["planted"]["flagged"]) & ~np.asarray(limb["clean"]["flagged"])
+    faults["limb_rotation"] = {"frames": limb["frames"], "flagged": hit.tolist(),
+                               "reasons": limb["planted"]["reasons"]}
+    (work / "faults.json").write_text(json.dumps(faults, indent=1, default=str))
+    caught = [bool(np.any(f["flagged"])) for f in faults.values()]
+    n_frames = sum(len(f["flagged"]) for f in faults.values())
+    n_hit = sum(int(np.sum(f["flagged"])) for f in faults.values())
+    return {
+        "qa.flag_recall": float(np.mean(caught)),
+        "qa.frame_recall": float(n_hit / max(n_frames, 1)),
+        "qa.flag_rate_clean": float(flagged / max(frames, 1)),
+        "qa.flag_rate_clean_valid": float(flagged_valid / max(frames_valid, 1)),
+        "qa.frames_clean": float(frames),
+        "qa.s_per_frame": float(wall / max(frames, 1)),
+        "qa.metrics_s_per_frame": float(metrics_s / max(frames, 1)),
+    }

@@ -1,0 +1,378 @@
+"""Stage ``qa`` (per sequence): what a person reviewing the sequence looks at, prepared.
+
+Thin adapter around ``qa.metrics.sequence_metrics`` / ``flag_frames``: reads the fits of both
+people (``marker_fit`` of the wearer, ``partner_fit`` when the sequence has a partner), the
+keypoints they were fitted to (the partner fit's refined ones when its second pass ran), the
+cameras, the contact annotation and, for the 3D scene, the wearer's markers from the C3D.
+Per frame and person it measures marker residuals and the markers the cleaning step repaired
+(un-swapped or removed samples: ``marker_fit`` cleans the capture before fitting, so a swap
+burst leaves good residuals but a repaired capture), 2D reprojection per view and keypoint
+group, interpenetration (deepest point and volume), self-penetration, ground penetration and
+foot skating, the contact gap in annotated frames and unexpected contact outside them,
+temporal jerk and frames not valid; a per-view time shift against the wearer's fit finds a
+camera out of sync. Every frame beyond a threshold (the stage options = ``qa.metrics.QAOptions``,
+recipe ``stages.qa.<name>``) is flagged with its reason; flagged frames close together are one
+span. Writes
+
+- ``qa.npz``: ``frames (F,)``, ``names (N,)``, ``values (F, N)`` (NaN = not applicable),
+  ``reasons (R,)``, ``flagged (F, R)``;
+- ``flags.json``: the spans (start, end, reasons, peak frame, worst values) and per flagged
+  frame its reasons;
+- ``report.json``: the summary (frames, flagged frames and rate, spans, frames per reason,
+  frames not valid per person, the sequence-level findings such as camera sync offsets),
+  the thresholds, what was rendered, and timings (``s_per_frame``: the metrics' wall time per
+  frame);
+- ``qa.png``: the per-frame curves with thresholds and flagged spans shaded
+  (``drawing.qa_plots.qa_plot``);
+- ``overlays/overlay_<frame>.png``: both meshes over the four views (``drawing.overlay``: the
+  renderer's camera model, distortion included) at every span's start, peak and end and at a
+  sample of the unflagged frames; ``overlay.mp4``: the four views tiled over the sequence;
+- ``scene.mcap``: the 3D scene in Foxglove's schemas (``formats.foxglove_scene``): both bodies
+  as decimated triangle meshes, the markers, the keypoints triangulated, the cameras as frame
+  transforms with their images, the metrics as plot topics;
+- ``figures/``: the upstream stages' pictures (marker residuals, partner-fit curves, keypoint
+  overlays) copied so that the report is one folder;
+- ``report.html``: the sequence's report (``qa.report.write_sequence_report``).
+
+A marker-only sequence (no video) gets the marker, ground, skating and jerk metrics of the
+wearer, the plot and the report; no overlays, video or images in the scene.
+"""
+from __future__ import annotations
+
+import shutil
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.spec import Stage, StageContext
+from qa.metrics import QAOptions
+from stages import common
+
+READS = ("body_model.kind", "cameras", "ground_plane", "sequence.fps", "sequence.mocap",
+         "sequence.markers_on", "sequence.partner", "sequence.has_video", "wearer.markerset",
+         "wearer.label_prefix", "wearer.marker_labels")
+
+
+@dataclass(frozen=True)
+class Options(QAOptions):
+    """The thresholds (``qa.metrics.QAOptions``) and what is drawn: overlay_sample :
+    unflagged frames rendered as a sample of the rest; overlay_max : at most this many overlay
+    images in all (spans first, by their peak excess); video : write ``overlay.mp4``;
+    video_max_frames : at most this many frames in it (evenly spaced); scene : write
+    ``scene.mcap``; scene_faces : triangles per body in the scene; scene_images : put the
+    camera images into the scene; image_scale : scale of overlay and scene images."""
+
+    overlay_sample: int = 4
+    overlay_max: int = 24
+    video: bool = True
+    video_max_frames: int = 240
+    scene: bool = True
+    scene_faces: int = 4000
+    scene_images: bool = True
+    image_scale: float = 0.5
+
+    def __post_init__(self):
+        thresholds(self)  # QAOptions validates its own fields
+        for f in ("overlay_sample", "overlay_max", "video_max_frames", "scene_faces"):
+            if getattr(self, f) < 0:
+                raise ValueError(f"{f}: must be >= 0, got {getattr(self, f)}")
+        if not 0 < self.image_scale <= 1:
+            raise ValueError(f"image_scale: must be in (0, 1], got {self.image_scale}")
+
+
+def thresholds(o: Options) -> QAOptions:
+    """The ``QAOptions`` part of the stage options."""
+    names = {f.name for f in fields(QAOptions)}
+    return QAOptions(**{k: v for k, v in asdict(o).items() if k in names})
+
+
+def raw_inputs(recipe, unit: str) -> dict[str, Path]:
+    seq = recipe.sequence(unit)
+    out = {"body_model": common.body_model_file(recipe), "c3d": Path(seq.c3d)}
+    out.update(common.markerset_file(recipe.subjects[seq.markers_on]))
+    for cam in recipe.cameras:
+        if cam in seq.calibration:
+            out[f"calibration:{cam}"] = Path(seq.calibration[cam])
+        if cam in seq.videos:
+            out[f"video:{cam}"] = Path(seq.videos[cam])
+    if seq.contact is not None:
+        out["contact"] = Path(seq.contact)
+    return out
+
+
+# ------------------------------------------------------------------------------ pure helpers
+def overlay_frames(frames, flags, peak_excess: dict[int, float], sample: int,
+                   cap: int) -> tuple[list[int], list[int]]:
+    """Which frames get an overlay image: each span's start, peak and end (spans with the
+    largest excess first, at most ``cap`` frames in all), then ``sample`` unflagged frames
+    evenly spread. Returns ``(span frames, sample frames)``, each sorted."""
+    frames = np.asarray(frames)
+    chosen: list[int] = []
+    for sp in sorted(flags.spans, key=lambda s: -peak_excess.get(id(s), 0.0)):
+        for f in (sp.peak_frame, sp.start, sp.end):
+            if f not in chosen and len(chosen) < cap:
+                chosen.append(int(f))
+    rest = frames[~np.asarray(flags.any, bool)]
+    k = min(sample, len(rest), max(cap - len(chosen), 0))
+    picks = [int(rest[i]) for i in np.linspace(0, len(rest) - 1, k).round().astype(int)] if k else []
+    return sorted(chosen), sorted(set(picks))
+
+
+def span_excess(m, sp) -> float:
+    """How far a span's worst value is beyond its threshold (value / threshold; sync and
+    validity count as 1)."""
+    best = 1.0
+    for r, v in sp.worst.items():
+        t = m.thresholds.get(r)
+        if t and np.isfinite(v) and t > 0:
+            best = max(best, abs(float(v)) / float(t))
+    return best
+
+
+def summary(m, flags) -> dict:
+    """The figures a reviewer sorts by: frames, flagged frames and rate, spans, frames per
+    reason, frames not valid per person, the sequence-level findings."""
+    per_reason = {r: int(flags.flagged[:, i].sum()) for i, r in enumerate(flags.reasons)
+                  if flags.flagged[:, i].any()}
+    not_valid = {p: int(np.nansum(m.values[f"{p}.not_valid"]))
+                 for p in m.people if f"{p}.not_valid" in m.values}
+    seq = {("people_detail" if k == "people" else k): v for k, v in m.sequence.items()}
+    return {"frames": int(len(m.frames)), "flagged": int(flags.any.sum()),
+            "rate": float(flags.rate), "spans": len(flags.spans), "reasons": per_reason,
+            "not_valid": not_valid, **seq, "people": list(m.people)}
+
+
+def _json(art, name):
+    try:
+        return art.json(name)
+    except FileNotFoundError:
+        return None
+
+
+def _describe(m, reason: str, value: float) -> str:
+    unit = m.units.get(reason, "")
+    t = m.thresholds.get(reason)
+    return (f"{reason} = {value:.3g} {unit} > {t:.3g} {unit}".replace("  ", " ")
+            if t is not None and np.isfinite(value) else f"{reason}")
+
+
+# ------------------------------------------------------------------------------------- stage
+def run(ctx: StageContext) -> None:
+    from artifacts import BodyFit
+    from artifacts.keypoints import Keypoints2D
+    from calib.io import read_chi3d_camera
+    from drawing.qa_plots import qa_plot
+    from fitting.contact_signature import load_contact
+    from formats.video import video_info
+    from qa.metrics import capture_repairs, flag_frames, sequence_metrics
+    from qa.report import write_sequence_report
+
+    o: Options = ctx.params or Options()
+    rv = ctx.recipe
+    out = Path(ctx.out.path("report.html")).parent
+    model = common.load_body(ctx)
+    cams = [read_chi3d_camera(ctx.raw[f"calibration:{c}"], name=c) for c in rv.cameras
+            if f"calibration:{c}" in ctx.raw]
+    videos = [ctx.raw[f"video:{c.name}"] for c in cams if f"video:{c.name}" in ctx.raw]
+    has_video = bool(rv.sequence.has_video) and len(videos) == len(cams) and len(cams) > 0
+    contact = None
+    if "contact" in ctx.raw and has_video:
+        action = ctx.unit.split("/", 1)[1]
+        family = "smplx" if model.name == "smplx" else "anny"
+        contact = load_contact(ctx.raw["contact"], action, model, video_info(videos[0]).n_frames,
+                               family=family)
+    wearer = BodyFit.load(ctx.inputs["marker_fit"])
+    pf_art = ctx.inputs.get("partner_fit")
+    partner = BodyFit.load(pf_art) if pf_art is not None else None
+    keypoints = None
+    if pf_art is not None and (Path(pf_art.path("keypoints.npz"))).exists():
+        keypoints = Keypoints2D.load(pf_art)  # the keypoints the partner fit used
+    elif ctx.inputs.get("keypoints") is not None:
+        keypoints = Keypoints2D.load(ctx.inputs["keypoints"])
+    ground = (np.asarray(rv.ground_plane.normal, float), float(rv.ground_plane.offset))
+    raw_markers, markers, clock = wearer_markers(ctx, videos)
+    fps = float(clock.fps)
+    repaired = capture_repairs(raw_markers, markers, wearer.frames, clock)
+    qo = thresholds(o)
+
+    t0 = time.perf_counter()
+    m = sequence_metrics(model, wearer, partner, keypoints, cams if has_video else [], contact,
+                         ground, fps, qo, progress=ctx.progress, repaired=repaired)
+    flags = flag_frames(m, qo)
+    metrics_s = time.perf_counter() - t0
+    F = len(m.frames)
+    names = sorted(m.values)
+    ctx.out.save_arrays("qa", frames=np.asarray(m.frames), names=np.array(names),
+                        values=np.stack([np.asarray(m.values[n], float) for n in names], axis=1)
+                        if names else np.zeros((F, 0)),
+                        reasons=np.array(flags.reasons), flagged=np.asarray(flags.flagged, bool))
+    per_frame = {str(int(f)): [r for r, x in zip(flags.reasons, row, strict=True) if x]
+                 for f, row in zip(m.frames, flags.flagged, strict=True) if row.any()}
+    ctx.out.save_json("flags", {"spans": [s.to_json() for s in flags.spans],
+                                "frames": per_frame, "thresholds": m.thresholds,
+                                "units": {k: m.units.get(k, "") for k in m.thresholds}})
+    ctx.log(f"{ctx.unit}: {int(flags.any.sum())}/{F} frames flagged in {len(flags.spans)} spans"
+            + (": " + ", ".join(sorted({r for s in flags.spans for r in s.reasons}))
+               if flags.spans else ""))
+
+    # the plot
+    t1 = time.perf_counter()
+    qa_plot(out / "qa.png", np.asarray(m.frames), fps, m.values, m.units, m.thresholds,
+            [(s.start, s.end, ", ".join(s.reasons)) for s in flags.spans],
+            f"{ctx.unit}: {int(flags.any.sum())}/{F} frames flagged")
+
+    # overlays and the tiled video
+    excess = {id(s): span_excess(m, s) for s in flags.spans}
+    span_frames, sample_frames = overlay_frames(m.frames, flags, excess, o.overlay_sample,
+                                                o.overlay_max)
+    images: dict[int, Path] = {}
+    rendered = {"overlays": 0, "video_frames": 0}
+    index = {int(f): i for i, f in enumerate(m.frames)}
+    if has_video and m.vertices:
+        from drawing.overlay import overlay_video, render_overlays
+
+        titles = {f: f"{ctx.unit} frame {f}: " + (", ".join(per_frame.get(str(f), [])) or "not flagged")
+                  for f in span_frames + sample_frames}
+        images = render_overlays(cams, videos, span_frames + sample_frames, m.vertices,
+                                 np.asarray(model.faces), index, out / "overlays", titles=titles,
+                                 scale=o.image_scale, progress=ctx.progress)
+        rendered["overlays"] = len(images)
+        if o.video and o.video_max_frames:
+            pick = np.unique(np.linspace(0, F - 1, min(F, o.video_max_frames)).round().astype(int))
+            step = max(1, int(np.median(np.diff(m.frames))) if F > 1 else 1)
+            overlay_video(out / "overlay.mp4", cams, videos, [int(m.frames[i]) for i in pick],
+                          m.vertices, np.asarray(model.faces), index,
+                          fps / step * (len(pick) / F if F else 1), scale=o.image_scale,
+                          progress=ctx.progress)
+            rendered["video_frames"] = len(pick)
+            # Chromium plays VP8 WebM, not the MPEG-4 Part 2 that OpenCV writes: a copy beside it
+            from qa.report import webm_copy
+
+            webm_copy(out / "overlay.mp4")
+    draw_s = time.perf_counter() - t1
+
+    # the 3D scene
+    t2 = time.perf_counter()
+    scene = None
+    if o.scene and m.vertices:
+        scene = _write_scene(out / "scene.mcap", model, m, flags, cams, videos, has_video,
+                             keypoints, markers, clock, fps, o)
+    scene_s = time.perf_counter() - t2
+
+    # upstream pictures, the report
+    figures = [("QA metrics per frame, flagged spans shaded", "qa.png")]
+    (out / "figures").mkdir(exist_ok=True)
+    for stage in ("marker_fit", "partner_fit", "keypoints"):
+        art = ctx.inputs.get(stage)
+        if art is None:
+            continue
+        for png in sorted(Path(art.path("manifest.json")).parent.glob("*.png")):
+            dst = out / "figures" / f"{stage}_{png.name}"
+            shutil.copyfile(png, dst)
+            figures.append((f"{stage}: {png.stem.replace('_', ' ')}", f"figures/{dst.name}"))
+    spans_html = []
+    for s in flags.spans:
+        shown = [f for f in (s.start, s.peak_frame, s.end) if f in images]
+        spans_html.append({**s.to_json(),
+                           "described": [_describe(m, r, s.worst.get(r, np.nan)) for r in s.reasons],
+                           "images": [str(images[f].relative_to(out)) for f in dict.fromkeys(shown)]})
+    for f in sample_frames:
+        if f in images:
+            spans_html.append({"start": f, "end": f, "reasons": [], "peak_frame": f, "worst": {},
+                               "sample": True, "images": [str(images[f].relative_to(out))]})
+    summ = {**summary(m, flags), "thresholds": m.thresholds, "units": m.units}
+    stage_reports = {}
+    for stage in ("shape_fit", "keypoints", "marker_fit", "partner_fit"):
+        art = ctx.inputs.get(stage)
+        if isinstance(art, dict):
+            for unit, a in art.items():
+                stage_reports[f"{stage} [{unit}]"] = _json(a, "report")
+        elif art is not None:
+            stage_reports[stage] = _json(art, "report")
+    report = {"sequence": ctx.unit, "summary": summ, "spans": [s.to_json() for s in flags.spans],
+              "thresholds": m.thresholds, "rendered": rendered,
+              "overlay_frames": {"spans": span_frames, "sample": sample_frames},
+              "scene": scene,
+              "timing": {"metrics_s": round(metrics_s, 3), "draw_s": round(draw_s, 3),
+                         "scene_s": round(scene_s, 3),
+                         "s_per_frame": round(metrics_s / max(F, 1), 4)}}
+    stage_reports = {k: v for k, v in stage_reports.items() if v is not None}
+    write_sequence_report(out, sequence=ctx.unit, title=f"QA: {ctx.unit}", summary=summ,
+                          spans=spans_html, figures=figures,
+                          video="overlay.mp4" if (out / "overlay.mp4").exists() else None,
+                          stage_reports={"qa": {k: report[k] for k in ("summary", "timing", "rendered")},
+                                         **stage_reports},
+                          links={"3D scene (open in Foxglove)": "scene.mcap"} if scene else None)
+    ctx.out.save_json("report", report)
+
+
+def wearer_markers(ctx, videos):
+    """The wearer's capture as read, as cleaned, and its clock onto the fit's frames (as
+    ``marker_fit`` reads them): ``(raw markers, cleaned markers, clock)``."""
+    from artifacts import ShapeFit
+
+    sh = ctx.inputs["shape_fit"]
+    shape = ShapeFit.load(sh[ctx.recipe.sequence.markers_on] if isinstance(sh, dict) else sh)
+    raw = common.read_subject_markers(ctx.raw["c3d"], shape.names, ctx.recipe.wearer.label_prefix,
+                                      ctx.recipe.wearer.marker_labels)
+    mk, _ = common.clean_capture(raw, ctx.raw["c3d"])
+    _, clock, _ = common.marker_timeline(ctx.recipe.sequence, {"video": videos[0]} if videos else {},
+                                         mk, None)
+    return raw, mk, clock
+
+
+def _write_scene(path: Path, model, m, flags, cams, videos, has_video, keypoints, markers, clock,
+                 fps, o):
+    """The Foxglove scene: decimated bodies, the wearer's markers at the QA frames, both
+    people's body keypoints triangulated, the cameras with their images, the metrics."""
+    from calib.convert import convert_distortion
+    from calib.geometry import triangulate
+    from fitting.mocap import video_observations
+    from formats.foxglove_scene import CameraView, MeshTrack, decimate_for_scene, write_scene
+    from formats.video import VideoReader
+
+    ids, tri = decimate_for_scene(np.asarray(model.v_template, float), np.asarray(model.faces),
+                                  o.scene_faces)
+    colors = {"wearer": (0.85, 0.25, 0.2, 0.9), "partner": (0.2, 0.45, 0.85, 0.9)}
+    meshes = [MeshTrack(p, np.asarray(V)[:, ids], tri, colors.get(p, (0.7, 0.7, 0.7, 0.9)))
+              for p, V in zip(m.people, m.vertices, strict=True)]
+    frames = np.asarray(m.frames)
+    marker_xyz, _visible = video_observations(markers, frames, clock)
+    points = {}
+    if keypoints is not None and has_video:
+        rows = np.searchsorted(np.asarray(keypoints.frames), frames)
+        ok = (rows < len(keypoints.frames))
+        rows = np.minimum(rows, len(keypoints.frames) - 1)
+        ok &= np.asarray(keypoints.frames)[rows] == frames
+        ci = [keypoints.camera(c.name) for c in cams]
+        for p, who in enumerate(("wearer", "partner")):
+            kp = np.asarray(keypoints.kp, float)[ci][:, rows, p, :23]  # (C, F, 23, 3) body
+            xyz = triangulate(cams, kp).xyz
+            xyz[~ok] = np.nan
+            points[f"{who}_keypoints"] = xyz
+    views = []
+    for c in cams:  # Foxglove's plumb_bob: the lens in OpenCV's 5 coefficients (fitted if h36m)
+        cv = convert_distortion(c, "opencv").camera
+        views.append(CameraView(c.name, np.asarray(c.R), np.asarray(c.T), np.asarray(cv.K),
+                                np.array([*cv.k[:2], *cv.p, cv.k[2]]), int(c.width), int(c.height)))
+    images = None
+    readers = []
+    if has_video and o.scene_images:
+        readers = [VideoReader(v) for v in videos]
+        images = {c.name: (lambda f, r=r: r[int(f)]) for c, r in zip(cams, readers, strict=True)}
+    try:
+        res = write_scene(path, fps, frames, meshes, views, markers=marker_xyz, marker_names=list(markers.names),
+                          points3d=points, images=images, metrics=m.values, flags=flags.any,
+                          image_scale=o.image_scale)
+    finally:
+        for r in readers:
+            r.close()
+    return {"file": path.name, **res, "faces_per_body": int(len(tri))}
+
+
+STAGE = Stage(name="qa", func=run, per="sequence",
+              upstream=("shape_fit", "keypoints", "marker_fit", "partner_fit"),
+              params=Options, raw_inputs=raw_inputs, reads=READS, version="1",
+              doc="per-frame quality flags, overlays on the four views, plots, HTML report, 3D scene")
