@@ -6,6 +6,17 @@
     python -m pipeline release  --recipe recipes/demo.yaml [--force shape_fit]
     python -m pipeline status   --recipe recipes/demo.yaml
     python -m pipeline demo     [--recipe recipes/demo.yaml]
+    python -m pipeline release  --recipe ... [--executor dask] [--cluster recipes/cluster/slurm.yaml]
+                                [--scheduler tcp://host:8786] [--workers N]
+    python -m pipeline cluster-script --cluster recipes/cluster/slurm.yaml
+
+Executors (``--executor``): ``serial`` (in this process; default for ``sequence`` and
+``demo``) or ``dask`` (default for ``release``; ``$PIPELINE_EXECUTOR`` changes the default):
+a ``LocalCluster`` of ``os.cpu_count()`` single-threaded workers unless ``--cluster`` (a
+YAML of :mod:`pipeline.cluster`: local, SLURM, PBS) or ``--scheduler ADDRESS`` (join a
+running cluster) says otherwise; ``--workers N`` overrides the worker count. The dashboard
+address is printed; at the end a table lists the failed nodes (stage, unit, last line of the
+error) and the file holding their full tracebacks.
 
 ``--registry`` names the domain package (default ``stages``; a module name or a path to a
 ``.py`` file) whose ``registry()`` returns a :class:`pipeline.spec.Registry`.
@@ -17,6 +28,7 @@ failed, 2 bad command, recipe, registry or input file.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib
 import importlib.util
 import os
@@ -24,6 +36,7 @@ import sys
 from pathlib import Path
 
 from pipeline.engine import Engine, RunReport, stderr_log
+from pipeline.executors import EngineSpec
 from pipeline.plan import PlanError
 from pipeline.spec import Registry
 from pipeline.store import StoreError
@@ -77,6 +90,16 @@ def parser() -> argparse.ArgumentParser:
                      help="override a stage option of the recipe for this run (VALUE in YAML, "
                      "e.g. marker_fit.loo=all); it enters that stage's key like the recipe's "
                      "own options; repeatable")
+    run.add_argument("--executor", choices=("serial", "dask"), default=None,
+                     help="serial (this process) or dask (one task per stage and unit); "
+                     "default: dask for release, serial otherwise ($PIPELINE_EXECUTOR)")
+    run.add_argument("--cluster", metavar="YAML",
+                     help="Dask cluster configuration (kind local|slurm|pbs|scheduler); "
+                     "implies --executor dask")
+    run.add_argument("--scheduler", metavar="ADDRESS",
+                     help="join a running Dask scheduler (tcp://host:8786); implies --executor dask")
+    run.add_argument("--workers", type=int, metavar="N",
+                     help="number of Dask workers (default: the configuration's, or one per core)")
 
     p = argparse.ArgumentParser(prog="python -m pipeline", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -88,14 +111,21 @@ def parser() -> argparse.ArgumentParser:
     st = sub.add_parser("status", parents=[common],
                         help="list each stage of each unit as cached / stale / missing")
     st.add_argument("--until", metavar="STAGE", help="only STAGE and what it needs")
+    cs = sub.add_parser("cluster-script",
+                        help="print the batch job script a SLURM/PBS cluster configuration submits")
+    cs.add_argument("--cluster", required=True, metavar="YAML")
+    cs.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                    help="scheduler address written into the script (default a placeholder)")
     return p
 
 
 def main(argv: list[str] | None = None, log=stderr_log) -> int:
+    from pipeline.cluster import ClusterConfigError
+
     args = parser().parse_args(argv)
     try:
         return _main(args, log)
-    except (CliError, PlanError, StoreError) as e:
+    except (CliError, PlanError, StoreError, ClusterConfigError) as e:
         log(f"error: {e}")
         return 2
 
@@ -117,12 +147,30 @@ def overrides(items: list[str]) -> dict[str, dict]:
     return out
 
 
-def _load(args, log, prepare: bool):
-    reg = load_registry(args.registry)
-    extra = overrides(getattr(args, "overrides", []) or [])
-    if extra:
-        import dataclasses
+def _registry_name(spec: str) -> str:
+    """The ``--registry`` value as a worker in another folder can use it (paths made absolute)."""
+    if spec.endswith(".py") or os.sep in spec:
+        return str(Path(spec).resolve())
+    return spec
 
+
+def engine_spec(args) -> EngineSpec:
+    """The picklable description of the engine of ``args`` (what Dask workers rebuild)."""
+    seqs = getattr(args, "sequences", None)
+    return EngineSpec(
+        registry=_registry_name(args.registry), recipe=str(Path(args.recipe).resolve()),
+        outputs=str(Path(args.outputs).resolve()),
+        overrides=tuple(getattr(args, "overrides", []) or []), command=args.command,
+        sequences=tuple(seqs) if seqs is not None else None,
+        until=getattr(args, "until", None), force=tuple(getattr(args, "force", []) or []))
+
+
+def build_engine(spec: EngineSpec, log=stderr_log, prepare: bool = False) -> Engine:
+    """The engine of ``spec``: its registry (with the ``--set`` overrides), its recipe loaded
+    (after ``Registry.prepare`` when ``prepare``). CliError for a bad registry or recipe."""
+    reg = load_registry(spec.registry)
+    extra = overrides(list(spec.overrides))
+    if extra:
         names = {s.name for s in reg.stages}
         for stage in extra:
             if stage not in names:
@@ -130,7 +178,7 @@ def _load(args, log, prepare: bool):
         base = reg.stage_params
         reg = dataclasses.replace(reg, stage_params=lambda r, st: {**base(r, st),
                                                                    **extra.get(st, {})})
-    recipe_path = Path(args.recipe)
+    recipe_path = Path(spec.recipe)
     if prepare and reg.prepare is not None:
         try:
             reg.prepare(recipe_path)
@@ -142,10 +190,24 @@ def _load(args, log, prepare: bool):
         recipe = reg.load_recipe(recipe_path)
     except (ValueError, OSError) as e:  # RecipeError / InputError are ValueErrors
         raise CliError(str(e)) from None
-    return Engine(reg, recipe, recipe_path, Path(args.outputs), log=log)
+    return Engine(reg, recipe, recipe_path, Path(spec.outputs), log=log, spec=spec)
+
+
+def _load(args, log, prepare: bool):
+    spec = engine_spec(args)
+    # messages name the recipe as given; the workers get the absolute path
+    eng = build_engine(dataclasses.replace(spec, recipe=args.recipe, outputs=args.outputs),
+                       log=log, prepare=prepare)
+    eng.spec = spec
+    return eng
 
 
 def _main(args, log) -> int:
+    if args.command == "cluster-script":
+        from pipeline.cluster import PLACEHOLDER_SCHEDULER, job_script, load_cluster_config
+
+        print(job_script(load_cluster_config(args.cluster), args.scheduler or PLACEHOLDER_SCHEDULER))
+        return 0
     if args.command == "status":
         eng = _load(args, log, prepare=False)
         plan = eng.plan("status", until=args.until)
@@ -172,11 +234,76 @@ def _main(args, log) -> int:
     if problems:
         raise CliError(f"{len(problems)} problem(s) in the recipe or its inputs; nothing was run:\n"
                        + "\n".join(problems))
-    report = eng.run(plan, force=args.force)
+    kind = executor_kind(args)
+    if kind == "dask":
+        report = _run_dask(eng, plan, args, log)
+    else:
+        report = eng.run(plan, force=args.force)
     log(f"{args.command}: {report.summary()}")
+    if report.failed:
+        from datetime import datetime
+
+        tb = report.write_failures(eng.store.root / ".failures"
+                                   / f"{datetime.now():%Y%m%d-%H%M%S}-{os.getpid()}.txt")
+        log(report.failure_table(tb))
     if args.command == "demo":
         print(where_to_look(eng, report))
     return 1 if report.failed else 0
+
+
+def executor_kind(args) -> str:
+    """``serial`` or ``dask``: ``--executor``, implied by ``--cluster``/``--scheduler``/
+    ``--workers``, else ``$PIPELINE_EXECUTOR``, else dask for ``release`` and serial for the rest."""
+    if args.executor:
+        if args.executor == "serial" and (args.cluster or args.scheduler):
+            raise CliError("--executor serial: --cluster and --scheduler need --executor dask")
+        return args.executor
+    if args.cluster or args.scheduler or args.workers:
+        return "dask"
+    env = os.environ.get("PIPELINE_EXECUTOR", "")
+    if env:
+        if env not in ("serial", "dask"):
+            raise CliError(f"$PIPELINE_EXECUTOR={env!r}: expected serial or dask")
+        return env
+    return "dask" if args.command == "release" else "serial"
+
+
+def _run_dask(eng: Engine, plan, args, log) -> RunReport:
+    """Run ``plan`` on the Dask cluster of ``args`` (started here, closed at the end)."""
+    from pipeline.cluster import (
+        config_from_dict,
+        load_cluster_config,
+        make_client,
+        worker_resources,
+    )
+    from pipeline.executors import DaskExecutor
+
+    if args.cluster and args.scheduler:
+        raise CliError("--cluster and --scheduler: give one of them")
+    if args.workers is not None and args.workers < 1:
+        raise CliError(f"--workers {args.workers}: expected at least 1")
+    if args.scheduler:
+        config = config_from_dict({"kind": "scheduler", "address": args.scheduler}, "--scheduler")
+    elif args.cluster:
+        config = load_cluster_config(args.cluster)
+    else:
+        config = config_from_dict({"kind": "local"}, "the default LocalCluster")
+    n = args.workers or config.n_workers()
+    what = {"local": f"LocalCluster of {n} worker(s)", "scheduler": f"scheduler {config.address}",
+            "slurm": f"SLURM cluster ({n} worker(s))", "pbs": f"PBS cluster ({n} worker(s))"}
+    log(f"dask: starting {what[config.kind]}")
+    client, cluster, dashboard = make_client(config, workers=args.workers)
+    try:
+        log(f"dask: dashboard {dashboard}" + ("" if importlib.util.find_spec("bokeh") else
+                                             " (served once bokeh is installed)"))
+        res = None if config.kind == "scheduler" else worker_resources(
+            config, n if config.kind == "local" else None)
+        eng.executor = DaskExecutor(client, progress=True, worker_resources=res, log=log)
+        return eng.run(plan, force=args.force)
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
 
 
 def where_to_look(eng: Engine, report: RunReport) -> str:

@@ -11,18 +11,23 @@ it is a hit too), and builds it into a temporary folder that is renamed into pla
 """
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import platform
 import socket
 import sys
+import threading
 import time
 import traceback
+import warnings
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
 
-from pipeline.executors import Executor, Outcome, SerialExecutor
+from pipeline.executors import EngineSpec, Executor, Outcome, SerialExecutor
 from pipeline.hashing import FileHasher
+from pipeline.lease import LeaseLost
 from pipeline.plan import Node, NodeId, Plan, PlanError, build_plan, check_registry
 from pipeline.procs import Interrupted, end_children, signals_raise
 from pipeline.spec import RecipeView, Registry, StageContext
@@ -33,15 +38,16 @@ def stderr_log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def make_progress(label: str) -> Callable[..., Any]:
+def make_progress(label: str, enabled: bool = True) -> Callable[..., Any]:
     """``progress(iterable, total=None, desc="")``: a tqdm bar on stderr, disabled (a plain
-    pass-through) when stderr is not a terminal."""
+    pass-through) when stderr is not a terminal or ``enabled`` is False (a Dask worker: its
+    stderr is not the user's, the executor shows one bar over the tasks instead)."""
 
     def progress(iterable: Iterable | None = None, total: int | None = None, desc: str = "", **kw):
         from tqdm import tqdm
 
         return tqdm(iterable, total=total, desc=f"{label} {desc}".strip(), leave=False,
-                    disable=not sys.stderr.isatty(), file=sys.stderr, **kw)
+                    disable=not (enabled and sys.stderr.isatty()), file=sys.stderr, **kw)
 
     return progress
 
@@ -54,7 +60,9 @@ def package_versions() -> dict[str, str]:
     for name, mod in list(sys.modules.items()):
         if "." in name or name.startswith("_") or name in sys.stdlib_module_names:
             continue
-        v = getattr(mod, "__version__", None)
+        with warnings.catch_warnings():  # some packages deprecate __version__ (click, markupsafe)
+            warnings.simplefilter("ignore")
+            v = getattr(mod, "__version__", None)
         if isinstance(v, str):
             out[name] = v
     return dict(sorted(out.items()))
@@ -78,6 +86,40 @@ class RunReport:
     @property
     def failed(self) -> bool:
         return self.count("failed") > 0
+
+    def failures(self) -> list[tuple[str, str, str]]:
+        """``(stage, unit, last line of the error)`` of every failed node, in plan order."""
+        out = []
+        for (s, u), o in self.outcomes.items():
+            if o.status == "failed":
+                lines = [ln for ln in o.detail.strip().splitlines() if ln.strip()]
+                out.append((s, u, lines[-1].strip() if lines else "(no message)"))
+        return out
+
+    def write_failures(self, path: Path) -> Path:
+        """Write every failed node's full error (traceback) to ``path``; returns it."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        parts = []
+        for (s, u), o in self.outcomes.items():
+            if o.status == "failed":
+                parts.append(f"=== {s} [{u}] ({o.seconds:.2f} s)\n{o.detail.rstrip()}\n")
+        path.write_text("\n".join(parts))
+        return path
+
+    def failure_table(self, traceback_file: Path | None = None) -> str:
+        """The failures as a table: stage, unit, the last line of the error; then where the
+        full tracebacks are. "" when nothing failed."""
+        rows = self.failures()
+        if not rows:
+            return ""
+        ws = max(len(r[0]) for r in rows + [("stage", "", "")])
+        wu = max(len(r[1]) for r in rows + [("", "unit", "")])
+        lines = [f"{len(rows)} FAILED:", f"  {'stage':<{ws}}  {'unit':<{wu}}  error",
+                 *(f"  {s:<{ws}}  {u:<{wu}}  {e}" for s, u, e in rows)]
+        if traceback_file is not None:
+            lines.append(f"  full tracebacks: {traceback_file}")
+        return "\n".join(lines)
 
     def planned_stages(self) -> list[str]:
         seen: dict[str, None] = {}
@@ -132,6 +174,20 @@ def _manifest_of(inputs: Mapping[str, Any], err: CorruptArtifactError) -> dict |
     return next((a.manifest for a in arts if getattr(a, "unit", None) == err.unit), None)
 
 
+class _NodeRunner:
+    """``run_node(node, done)`` for the executors: the engine's cache check, lock and atomic
+    write of one node. ``spec`` (an :class:`EngineSpec`, or None) lets an executor rebuild
+    the same engine in another process; ``log`` is the engine's log."""
+
+    def __init__(self, engine: "Engine", forced: set[NodeId]):
+        self.engine, self.forced = engine, forced
+        self.spec: EngineSpec | None = None
+        self.log = engine.log
+
+    def __call__(self, node: Node, done: Mapping[NodeId, Outcome]) -> Outcome:
+        return self.engine._run_logged(node, done, node.id in self.forced)
+
+
 class Engine:
     """Runs stages of ``registry`` for one recipe, storing artifacts under
     ``outputs/<session>/``.
@@ -141,7 +197,8 @@ class Engine:
     """
 
     def __init__(self, registry: Registry, recipe: Any, recipe_path: Path, outputs: Path,
-                 executor: Executor | None = None, log: Callable[[str], None] = stderr_log):
+                 executor: Executor | None = None, log: Callable[[str], None] = stderr_log,
+                 spec: EngineSpec | None = None):
         check_registry(registry)
         self.registry = registry
         self.recipe = recipe
@@ -153,6 +210,12 @@ class Engine:
         self.hasher = FileHasher(self.store.root / ".filehashes.json")
         self._packages: dict[str, str] | None = None
         self.stage_names = [s.name for s in registry.stages]
+        # How to rebuild this engine in another process (a Dask worker); the CLI sets it.
+        self.spec = spec
+        # The cores a stage is granted (StageContext.cores): 0 = the whole machine (serial
+        # run); a Dask worker sets it to min(Stage.cores, the worker's "cores" resource).
+        self.cores_of: Callable[[Any], int] = lambda _stage: 0
+        self.stage_bars = True  # per-frame bars of the stages (off on Dask workers)
 
     # -- planning ---------------------------------------------------------------------------
     def plan(self, command: str, sequences: list[str] | None = None,
@@ -198,8 +261,10 @@ class Engine:
         seeds = {n.id for n in plan.nodes if "all" in force or n.stage.name in force}
         forced = plan.descendants(seeds)
         self._plan = plan  # a corrupt upstream artifact is rebuilt from its node
-        outcomes = self.executor.run(
-            plan.nodes, lambda node, done: self._run_logged(node, done, node.id in forced))
+        runner = _NodeRunner(self, forced)
+        if self.spec is not None:  # what a remote executor ships to its workers
+            runner.spec = dataclasses.replace(self.spec, force=tuple(sorted(force)))
+        outcomes = self.executor.run(plan.nodes, runner)
         return RunReport(plan, outcomes)
 
     def _run_logged(self, node: Node, done: Mapping[NodeId, Outcome], force: bool) -> Outcome:
@@ -253,6 +318,11 @@ class Engine:
                 elif not force and e.state == "complete" and e.manifest["key"] == node.key:
                     return Outcome("hit", detail="built by another process")
                 return self._build(node)
+        except LeaseLost as lost:  # paused past the lease: another builder took the artifact
+            self.log(f"WARNING: {st.name} [{node.unit}]: {lost}; this build is discarded")
+            if not retry:
+                return Outcome("failed", detail=f"lease lost twice: {lost}")
+            return self._run_node(node, done, force, retry=False)  # waits for it, then a hit
         except _UpstreamCorrupt as c:  # the stage could not read an upstream file
             if not retry:
                 return Outcome("failed", detail=c.detail)
@@ -326,14 +396,20 @@ class Engine:
         ctx = StageContext(
             stage=st.name, unit=node.unit, recipe=RecipeView(node.recipe_view, st.name),
             params=node.params, recipe_path=self.recipe_path,
-            inputs=inputs, raw=dict(node.raw), out=writer, progress=make_progress(label),
+            inputs=inputs, raw=dict(node.raw), out=writer,
+            progress=make_progress(label, self.stage_bars),
             log=lambda msg: self.log(f"          {label}: {msg}"),
             extras={"key": node.key, "session": self.session, "outputs": self.store.root},
+            cores=int(self.cores_of(st)),
         )
+        # Signal handlers can only be set in the main thread: a Dask worker runs stages in
+        # its task threads, where SIGTERM is the nanny's business (no Interrupted cleanup).
+        in_main = threading.current_thread() is threading.main_thread()
         started = datetime.now(timezone.utc)
         t0 = time.perf_counter()
         try:
-            with signals_raise():  # SIGTERM/SIGINT -> Interrupted (exit code 128 + signum)
+            # SIGTERM/SIGINT -> Interrupted (exit code 128 + signum)
+            with signals_raise() if in_main else contextlib.nullcontext():
                 st.func(ctx)
         except BaseException as exc:  # noqa: BLE001 - the temp folder must go in every case
             self.store.abort(writer)
