@@ -13,10 +13,16 @@ MARKERS ?=
 STRIDE ?=
 PRED ?=
 GT ?=
+# scale-out (make release): EXECUTOR=serial|dask, CLUSTER=recipes/cluster/slurm.yaml, SCHEDULER=tcp://host:8786, WORKERS=N
+EXECUTOR ?=
+CLUSTER ?=
+SCHEDULER ?=
+WORKERS ?=
+DASK_ARGS = $(if $(EXECUTOR),--executor $(EXECUTOR),) $(if $(CLUSTER),--cluster $(CLUSTER),) $(if $(SCHEDULER),--scheduler $(SCHEDULER),) $(if $(WORKERS),--workers $(WORKERS),)
 export PYTHONPATH := $(CURDIR)
 export ANNY_CACHE_DIR ?= $(CURDIR)/assets/cache/anny
 
-.PHONY: setup browser demo test test-fast sequence loo release evaluate status bench studio lint clean
+.PHONY: cluster-script setup browser demo test test-fast sequence loo release evaluate status bench studio lint clean
 
 setup:
 	@bash scripts/setup.sh
@@ -24,7 +30,7 @@ setup:
 demo: setup
 	@$(PY) -m pipeline demo --recipe $(RECIPE) $(foreach f,$(FORCE),--force $(f))
 	@# the session stages over every sequence: qa, the release, the QA index, the benchmark
-	@$(PY) -m pipeline release --recipe $(RECIPE)
+	@$(PY) -m pipeline release --recipe $(RECIPE) $(DASK_ARGS)
 	@$(PY) -m evaluate.session --recipe $(RECIPE)
 
 sequence: setup
@@ -36,8 +42,13 @@ loo: setup
 	@$(PY) -m pipeline sequence "$(SEQ)" --recipe $(RECIPE) --until marker_loo $(if $(MARKERS),--set "marker_loo.markers=[$(MARKERS)]",) $(if $(STRIDE),--set marker_loo.stride=$(STRIDE),) $(foreach f,$(FORCE),--force $(f))
 
 release: setup
-	@$(PY) -m pipeline release --recipe $(RECIPE) $(if $(STAGE),--until $(STAGE),) $(foreach f,$(FORCE),--force $(f))
+	@$(PY) -m pipeline release --recipe $(RECIPE) $(if $(STAGE),--until $(STAGE),) $(foreach f,$(FORCE),--force $(f)) $(DASK_ARGS)
 	@$(PY) -m evaluate.session --recipe $(RECIPE)
+
+# the job script a SLURM/PBS cluster configuration submits (printed, not submitted)
+cluster-script: setup
+	@test -n "$(CLUSTER)" || { echo "usage: make cluster-script CLUSTER=recipes/cluster/slurm.yaml"; exit 2; }
+	@$(PY) -m pipeline cluster-script --cluster $(CLUSTER)
 
 # make evaluate RECIPE=...: the recipe's release scored against its ground truth (stages.evaluate.truth);
 # make evaluate PRED=dir GT=dir: any two folders in the CHI3D layout

@@ -68,7 +68,7 @@ def run(work: Path) -> dict[str, float]:
         recipe = P.bench_recipe(store, P.STRIDE)
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     cmd = [sys.executable, "-m", "pipeline", "release", "--recipe", str(recipe), "--outputs",
-           str(outputs), "--until", "convert"]
+           str(outputs), "--until", "convert", "--executor", "serial"]
     proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True)
     work.mkdir(parents=True, exist_ok=True)
     (work / "engine.log").write_text(proc.stdout + proc.stderr)
