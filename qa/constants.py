@@ -58,6 +58,8 @@ SYNC_MIN_MOTION_PX = 3.0
 SYNC_CAP_PX = 25.0
 #: Informative detections needed to estimate a view's shift.
 SYNC_MIN_POINTS = 30
+SYNC_MAX_COST_PX = 12.0  # a view whose best shift still costs more (the wearer badly seen) is not judged
+SYNC_MARKER_RADIUS_M = 0.15  # a keypoint follows its nearest marker within this (sync)
 
 # ---------------------------------------------------------------- geometry
 #: Penetrating volume: grid cell edge (m) and the largest grid (cells); a larger overlap gets
@@ -89,7 +91,7 @@ REPROJ_FACE_PX = 55.0
 REPROJ_VIEWS_BODY_PX = 48.0
 REPROJ_VIEWS_HANDS_PX = 45.0
 REPROJ_VIEWS_FACE_PX = 21.0
-SYNC_MAX_FRAMES = 1
+SYNC_MAX_FRAMES = 0  # any shift the check finds is flagged (0 on every clean view of the bench and the demo)
 PENETRATION_MM = 40.0
 PENETRATION_VOLUME_CM3 = 70.0
 SELF_PENETRATION_MM = 40.0

@@ -452,8 +452,15 @@ def _reprojection(person: str, pidx: int, P3: np.ndarray, frames, keypoints, cam
         units[n] = "px"
 
 
-def _sync_people(model, fits, keypoints):
-    """For each (fit, person index): (kp65 function of video time, usable detection frames)."""
+def _sync_people(model, fits, keypoints, marker_track=None):
+    """For each (fit, person index): (``at(t0, s)`` -> kp65 (n, 65, 3) at video frames
+    ``t0 + s`` (t0 fit frames), usable detection frames, person index).
+
+    The wearer with ``marker_track`` (``marker_track(frames float (n,)) -> (n, M, 3)`` the
+    capture resampled on the video clock, NaN = gap): each keypoint moves from its fitted
+    position at t0 as its nearest marker (within ``SYNC_MARKER_RADIUS_M``) moved between t0
+    and t0 + s: the capture's own rate (100 Hz and more) resolves the shift even when the fit
+    has a stride. Else a cubic spline through the fit's frames (exact at stride 1)."""
     from scipy.interpolate import CubicSpline
 
     kf = np.asarray(keypoints.frames)
@@ -465,18 +472,38 @@ def _sync_people(model, fits, keypoints):
             continue
         P = _kp65_all(model, fit)
         valid = np.asarray(fit.valid, bool)
-        if np.all(np.diff(wf) == 1):
-            at = lambda t, P=P, wf=wf: P[_rows(wf, t)]  # noqa: E731
+        if marker_track is not None and pidx == 0:
+            def at(t0, s, P=P, wf=wf):
+                t0 = np.asarray(t0)
+                base = P[_rows(wf, t0)]  # (n, 65, 3)
+                m0 = marker_track(t0.astype(float))
+                m1 = marker_track((t0 + s).astype(float))
+                d = np.linalg.norm(base[:, :, None] - m0[:, None], axis=-1)  # (n, 65, M)
+                d = np.where(np.isfinite(d), d, np.inf)
+                near = np.argmin(d, axis=-1)
+                close = np.take_along_axis(d, near[..., None], -1)[..., 0] <= K.SYNC_MARKER_RADIUS_M
+                idx = np.arange(len(t0))[:, None]
+                move = m1[idx, near] - m0[idx, near]
+                move[~close] = np.nan
+                return base + move
+            use = np.isin(kf, wf)
+        elif np.all(np.diff(wf) == 1):
+            def at(t0, s, P=P, wf=wf):
+                return P[_rows(wf, np.asarray(t0) + s)]
+            use = (kf + shifts.min() >= wf[0]) & (kf + shifts.max() <= wf[-1])
         else:
-            at = CubicSpline(wf, P, axis=0)
-        use = (kf + shifts.min() >= wf[0]) & (kf + shifts.max() <= wf[-1])
+            spline = CubicSpline(wf, P, axis=0)
+
+            def at(t0, s, spline=spline):
+                return spline(np.asarray(t0) + s)
+            use = (kf + shifts.min() >= wf[0]) & (kf + shifts.max() <= wf[-1])
         vi = np.searchsorted(wf, kf).clip(0, len(wf) - 1)  # the fit frames around are valid
         use &= valid[vi] & valid[(vi - 1).clip(0)]
         out.append((at, use, pidx))
     return out
 
 
-def _sync(model, fits, keypoints, cams, opts, seq):
+def _sync(model, fits, keypoints, cams, opts, seq, marker_track=None):
     """Per view the best time shift of the detections against the fits (the wearer first; see
     the module doc) and the cost of each shift. fits: [(BodyFit, person index)]."""
     from calib import project
@@ -484,8 +511,9 @@ def _sync(model, fits, keypoints, cams, opts, seq):
     kf = np.asarray(keypoints.frames)
     shifts = [int(s) for s in K.SYNC_SHIFTS]
     pts = list(K.BODY + K.HANDS)
-    offsets, costs, points = {}, {}, {}
-    people = _sync_people(model, fits, keypoints)
+    offsets, costs, points, unmeasured = {}, {}, {}, []
+    people = _sync_people(model, fits, keypoints, marker_track)
+    seq["sync_from"] = "markers" if marker_track is not None else "fit"
     for cam in cams:
         try:
             c = keypoints.camera(cam.name)
@@ -494,13 +522,19 @@ def _sync(model, fits, keypoints, cams, opts, seq):
         err = {s: [] for s in shifts}
         for at, use, pidx in people:
             det = np.asarray(keypoints.kp[c][:, pidx][:, pts], float)  # (Fk, n, 3)
-            ok = (det[..., 2] >= opts.min_conf) & use[:, None]
+            # the detector's own confidences: the cross-view check zeroes exactly the
+            # keypoints a view out of sync gets wrong (its pixels are kept)
+            conf = np.asarray(keypoints.conf_raw[c][:, pidx][:, pts], float)
+            ok = (conf >= opts.min_conf) & np.isfinite(det[..., :2]).all(-1) & use[:, None]
             fr = np.flatnonzero(ok.any(1))
             if not len(fr):
                 continue
-            U = {s: project(cam, at(kf[fr] + s)[:, pts]) for s in shifts}
-            motion = np.max([np.linalg.norm(U[s] - U[0], axis=-1) for s in shifts], axis=0)
-            inf = ok[fr] & (motion >= K.SYNC_MIN_MOTION_PX)
+            U = {s: project(cam, at(kf[fr], s)[:, pts].reshape(-1, 3)).reshape(len(fr), len(pts), 2)
+                 for s in shifts}
+            with np.errstate(invalid="ignore"):
+                motion = np.max([np.linalg.norm(U[s] - U[0], axis=-1) for s in shifts], axis=0)
+            known = np.all([np.isfinite(U[s]).all(-1) for s in shifts], axis=0)
+            inf = ok[fr] & known & (np.nan_to_num(motion) >= K.SYNC_MIN_MOTION_PX)
             for s in shifts:
                 err[s].append(np.linalg.norm(U[s] - det[fr, :, :2], axis=-1)[inf])
         e = {s: np.concatenate(v) if v else np.zeros(0) for s, v in err.items()}
@@ -508,14 +542,18 @@ def _sync(model, fits, keypoints, cams, opts, seq):
         if len(e[0]) < K.SYNC_MIN_POINTS:
             continue
         cost = {s: float(np.minimum(e[s], K.SYNC_CAP_PX).mean()) for s in shifts}
+        costs[cam.name] = {str(k): round(v, 3) for k, v in cost.items()}
+        if min(cost.values()) > K.SYNC_MAX_COST_PX:  # the wearer's detections fit at no shift
+            unmeasured.append(cam.name)
+            continue
         best = min(cost, key=cost.get)
         if best != 0 and not cost[best] < K.SYNC_MIN_GAIN * cost[0]:
             best = 0
         offsets[cam.name] = int(best)
-        costs[cam.name] = {str(k): round(v, 3) for k, v in cost.items()}
     seq["sync_offset_frames"] = offsets
     seq["sync_cost"] = costs
     seq["sync_points"] = points
+    seq["sync_not_measurable"] = unmeasured
     return offsets
 
 
@@ -693,9 +731,24 @@ def capture_repairs(raw, cleaned, frames: np.ndarray, clock) -> np.ndarray:
     return (changed[lo] | changed[hi]).sum(axis=1).astype(float)
 
 
+def marker_track(markers, clock):
+    """``track(frames float (n,)) -> (n, M, 3)``: the capture linearly resampled at (fractional)
+    video frames on ``clock`` (``fitting.mocap.VideoClock``), NaN where a marker is not seen."""
+    from fitting.mocap import resample
+
+    rate = clock.rate_hz or markers.rate_hz
+    t_src = (markers.first_frame + np.arange(len(markers.xyz))) / rate
+
+    def track(frames):
+        t = np.asarray(frames, float) / clock.fps - clock.sync_offset_s
+        obs, vis = resample(t_src, markers.xyz, t)
+        return np.where(vis[..., None], obs, np.nan)
+    return track
+
+
 def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, fps: float,
                      opts: QAOptions = QAOptions(), progress=None,
-                     repaired: np.ndarray | None = None) -> QAMetrics:
+                     repaired: np.ndarray | None = None, marker_track=None) -> QAMetrics:
     """Every per-frame metric of a sequence (module doc), with the thresholds they are flagged
     against.
 
@@ -705,7 +758,9 @@ def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, f
     ``fitting.contact_signature.ContactAnnotation`` or None; ground : ``(normal (3,), offset)``
     or None; fps : video rate; progress : ``ctx.progress``-like wrapper or None;
     repaired : (F_w,) on the wearer's fit frames, markers repaired per frame
-    (:func:`capture_repairs`), giving ``wearer.markers_repaired``. QA frames: the partner's frames that the wearer's fit also has (all of them without a
+    (:func:`capture_repairs`), giving ``wearer.markers_repaired``; marker_track :
+    ``marker_track(video frames float (n,)) -> (n, M, 3)`` the wearer's cleaned capture on the
+    video clock (NaN = gap), which the sync check follows between fit frames. QA frames: the partner's frames that the wearer's fit also has (all of them without a
     wearer), else the wearer's frames."""
     from fitting.collision import ProxyMesh
 
@@ -749,7 +804,7 @@ def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, f
     # sync: the wearer (the marker fit does not depend on the videos)
     if keypoints is not None:
         sync_fits = [(f, PEOPLE.index(n)) for n, f in fits if n == "wearer"]
-        offs = _sync(model, sync_fits, keypoints, cams, opts, seq)
+        offs = _sync(model, sync_fits, keypoints, cams, opts, seq, marker_track)
         for cam, s in offs.items():
             values[f"sync_offset_frames.{cam}"] = np.full(F, float(s))
             units[f"sync_offset_frames.{cam}"] = "frames"

@@ -166,7 +166,7 @@ def run(ctx: StageContext) -> None:
     from drawing.qa_plots import qa_plot
     from fitting.contact_signature import load_contact
     from formats.video import video_info
-    from qa.metrics import capture_repairs, flag_frames, sequence_metrics
+    from qa.metrics import capture_repairs, flag_frames, marker_track, sequence_metrics
     from qa.report import write_sequence_report
 
     o: Options = ctx.params or Options()
@@ -199,7 +199,8 @@ def run(ctx: StageContext) -> None:
 
     t0 = time.perf_counter()
     m = sequence_metrics(model, wearer, partner, keypoints, cams if has_video else [], contact,
-                         ground, fps, qo, progress=ctx.progress, repaired=repaired)
+                         ground, fps, qo, progress=ctx.progress, repaired=repaired,
+                         marker_track=marker_track(markers, clock) if has_video else None)
     flags = flag_frames(m, qo)
     metrics_s = time.perf_counter() - t0
     F = len(m.frames)
