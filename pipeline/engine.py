@@ -25,6 +25,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
 
+from threadpoolctl import threadpool_limits
+
 from pipeline.executors import EngineSpec, Executor, Outcome, SerialExecutor
 from pipeline.hashing import FileHasher
 from pipeline.lease import LeaseLost
@@ -32,6 +34,8 @@ from pipeline.plan import Node, NodeId, Plan, PlanError, build_plan, check_regis
 from pipeline.procs import Interrupted, end_children, signals_raise
 from pipeline.spec import RecipeView, Registry, StageContext
 from pipeline.store import CorruptArtifactError, Store
+
+BLAS_THREADS = 1  # threads of numpy's BLAS/LAPACK inside a stage (see Engine._build)
 
 
 def stderr_log(msg: str) -> None:
@@ -409,7 +413,11 @@ class Engine:
         t0 = time.perf_counter()
         try:
             # SIGTERM/SIGINT -> Interrupted (exit code 128 + signum)
-            with signals_raise() if in_main else contextlib.nullcontext():
+            # one BLAS thread in every stage, whatever runs it: the fits' results depend on
+            # the summation order (shape_fit's betas moved by 0.4 between 1 and 2 threads), and
+            # an artifact's numbers must not depend on the executor or the machine's cores
+            with signals_raise() if in_main else contextlib.nullcontext(), \
+                    threadpool_limits(limits=BLAS_THREADS):
                 st.func(ctx)
         except BaseException as exc:  # noqa: BLE001 - the temp folder must go in every case
             self.store.abort(writer)

@@ -13,17 +13,9 @@ import numpy as np
 import pytest
 import yaml
 
+from bench.cases.partner_fit import absolute_paths
+
 pytestmark = pytest.mark.slow
-
-
-def _absolute(v, root: Path):
-    if isinstance(v, dict):
-        return {k: _absolute(x, root) for k, x in v.items()}
-    if isinstance(v, list):
-        return [_absolute(x, root) for x in v]
-    if isinstance(v, str) and not Path(v).is_absolute() and (root / v).exists():
-        return str((root / v).resolve())
-    return v
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +23,7 @@ def qa_run(small_session, tmp_path_factory):
     from pipeline.cli import main
 
     root = Path(small_session).parent
-    rec = _absolute(yaml.safe_load(Path(small_session).read_text()), root)
+    rec = absolute_paths(yaml.safe_load(Path(small_session).read_text()), root)
     rec["stages"] = {"keypoints": {"stride": 6}, "partner_fit": {"use_hands": False},
                      "qa": {"video_max_frames": 4, "overlay_sample": 1, "overlay_max": 6}}
     tmp = tmp_path_factory.mktemp("qa")

@@ -55,11 +55,13 @@ GOALS = {
 }
 
 
-def _absolute(v, root: Path):
+def absolute_paths(v, root: Path):
+    """A recipe's values with every relative path that exists under ``root`` made absolute
+    (so that a copy of the recipe elsewhere names the same files)."""
     if isinstance(v, dict):
-        return {k: _absolute(x, root) for k, x in v.items()}
+        return {k: absolute_paths(x, root) for k, x in v.items()}
     if isinstance(v, list):
-        return [_absolute(x, root) for x in v]
+        return [absolute_paths(x, root) for x in v]
     if isinstance(v, str) and not Path(v).is_absolute() and (root / v).exists():
         return str((root / v).resolve())
     return v
@@ -72,7 +74,7 @@ def bench_recipe(work: Path, stride: int) -> Path:
     from studio import ensure_generated
 
     ensure_generated(RECIPE)
-    rec = _absolute(yaml.safe_load(RECIPE.read_text()), RECIPE.parent)
+    rec = absolute_paths(yaml.safe_load(RECIPE.read_text()), RECIPE.parent)
     rec["stages"] = {**(rec.get("stages") or {}), "keypoints": {"stride": stride}}
     path = work / "recipe.yaml"
     path.write_text(yaml.safe_dump(rec, sort_keys=False))

@@ -22,7 +22,10 @@ Keys: ``qa.flag_recall`` (planted faults flagged by a reason of their kind, in t
 that the clean run does not flag there; goal 1.0), ``qa.frame_recall`` (the faults' frames
 flagged), ``qa.flag_rate_clean`` (flagged frames over all frames of the clean session; goal
 <= 2 %), ``qa.flag_rate_clean_valid`` (the same without the frames a fit itself marks not
-valid), ``qa.s_per_frame`` (wall seconds of the whole qa stage per frame: metrics, plot,
+valid), ``qa.false_flag_rate`` (flagged frames among those whose fits are right by the studio's
+truth: every H36M-17 joint of both people within ``DEFECT_MM`` and both valid),
+``qa.defect_recall`` (flagged frames among those with a joint farther than ``DEFECT_MM``: the
+clean session's own fit defects), ``qa.defect_frames_clean``, ``qa.s_per_frame`` (wall seconds of the whole qa stage per frame: metrics, plot,
 overlays, video, scene, report), ``qa.metrics_s_per_frame`` (the metrics alone).
 """
 from __future__ import annotations
@@ -178,6 +181,32 @@ def limb_fault(recipe: Path, outputs: Path, session: str) -> dict:
     return out
 
 
+DEFECT_MM = 100.0  # a fit frame whose worst H36M joint is farther from the truth is a defect
+
+
+def truth_errors(outputs: Path, session: str, unit: str, frames: np.ndarray, model, R) -> np.ndarray:
+    """(F,) per QA frame the worst H36M-17 joint error (mm) over both people's fits against the
+    studio's truth (``data/bench/gt``: person 0 = the wearer, 1 = the partner); NaN where a fit
+    is missing."""
+    from artifacts import BodyFit
+    from body import forward
+
+    gt = np.load(P.REPO / "data" / "bench" / "gt" / f"{unit}.npz")
+    worst = np.zeros(len(frames))
+    for p, stage in enumerate(("marker_fit", "partner_fit")):
+        d = outputs / session / unit / stage
+        if not (d / "fit.npz").exists():
+            continue
+        fit = BodyFit.load(d)
+        rows = np.searchsorted(fit.frames, frames)
+        est = forward(model, fit.betas, fit.body_pose[rows], fit.global_orient[rows], fit.transl[rows])
+        pred = np.einsum("kn,fnd->fkd", R, np.concatenate([est.vertices, est.joints], 1))
+        true = np.einsum("kn,fnd->fkd", R, np.concatenate(
+            [gt["vertices"][p][frames].astype(float), gt["joints"][p][frames]], 1))
+        worst = np.maximum(worst, np.linalg.norm(pred - true, axis=-1).max(-1) * 1000)
+    return worst
+
+
 def run(work: Path) -> dict[str, float]:
     store_work = work.parent / "partner_fit"
     store_work.mkdir(parents=True, exist_ok=True)
@@ -193,7 +222,14 @@ def run(work: Path) -> dict[str, float]:
         shutil.rmtree(d)
     wall = _engine(clean_path, outputs, "qa_index", work, "clean_qa")
     summary = json.loads((outputs / base["session"] / "session" / "qa_index" / "summary.json").read_text())
+    from body import load_model
+    from body.joints import regressor
+
+    model = load_model("anny")
+    R = regressor(model, "h36m17")
+    R = R.toarray() if hasattr(R, "toarray") else np.asarray(R)
     frames = flagged = flagged_valid = frames_valid = 0
+    correct = flagged_correct = defects = flagged_defects = 0
     metrics_s = 0.0
     per_seq = {}
     for unit in base["sequences"]:
@@ -210,8 +246,18 @@ def run(work: Path) -> dict[str, float]:
         frames_valid += int((~nv).sum())
         flagged_valid += int((anyf & ~nv).sum())
         metrics_s += rep["timing"]["metrics_s"]
+        err = truth_errors(outputs, base["session"], unit, np.asarray(qa["frames"]), model, R)
+        ok = (err <= DEFECT_MM) & ~nv
+        bad = err > DEFECT_MM
+        correct += int(ok.sum())
+        flagged_correct += int((anyf & ok).sum())
+        defects += int(bad.sum())
+        flagged_defects += int((anyf & bad).sum())
         per_seq[unit] = {"frames": F, "flagged": int(anyf.sum()),
-                         "reasons": rep["summary"]["reasons"]}
+                         "reasons": rep["summary"]["reasons"],
+                         "defect_frames": int(bad.sum()), "flagged_defects": int((anyf & bad).sum()),
+                         "flagged_correct": int((anyf & ok).sum()),
+                         "worst_joint_mm": [round(float(x), 1) for x in err]}
     (work / "clean.json").write_text(json.dumps({"summary": summary, "per_sequence": per_seq}, indent=1))
 
     # the faults session
@@ -228,7 +274,8 @@ def run(work: Path) -> dict[str, float]:
     qa_f, _, _ = _load_qa(outputs, FAULT_SESSION, SWAP_SEQUENCE)
     qa_c, _, _ = _load_qa(outputs, base["session"], SWAP_SEQUENCE)
     fr = np.asarray(qa_f["frames"])
-    inside = fr[((fr / fps + off) >= t0) & ((fr / fps + off) < t1)]
+    mocap_t = fr / fps - off  # video frame f is at mocap time f / fps - sync_offset_s
+    inside = fr[(mocap_t >= t0) & (mocap_t < t1)]
     kind = lambda r: r.startswith("wearer.")  # noqa: E731
     hit = _flagged_by(qa_f, inside, kind) & ~_flagged_by(qa_c, inside, kind)
     faults["marker_swap"] = {"frames": inside.tolist(), "flagged": hit.tolist()}
@@ -256,6 +303,9 @@ def run(work: Path) -> dict[str, float]:
         "qa.frame_recall": float(n_hit / max(n_frames, 1)),
         "qa.flag_rate_clean": float(flagged / max(frames, 1)),
         "qa.flag_rate_clean_valid": float(flagged_valid / max(frames_valid, 1)),
+        "qa.false_flag_rate": float(flagged_correct / max(correct, 1)),
+        "qa.defect_recall": float(flagged_defects / max(defects, 1)),
+        "qa.defect_frames_clean": float(defects),
         "qa.frames_clean": float(frames),
         "qa.s_per_frame": float(wall / max(frames, 1)),
         "qa.metrics_s_per_frame": float(metrics_s / max(frames, 1)),
