@@ -456,11 +456,12 @@ def _sync_people(model, fits, keypoints, marker_track=None):
     """For each (fit, person index): (``at(t0, s)`` -> kp65 (n, 65, 3) at video frames
     ``t0 + s`` (t0 fit frames), usable detection frames, person index).
 
-    The wearer with ``marker_track`` (``marker_track(frames float (n,)) -> (n, M, 3)`` the
-    capture resampled on the video clock, NaN = gap): each keypoint moves from its fitted
+    A fit on every video frame is read as it is. The wearer's fit on a stride, with
+    ``marker_track`` (``marker_track(frames float (n,)) -> (n, M, 3)`` the capture resampled on
+    the video clock, NaN = gap): each keypoint moves from its fitted
     position at t0 as its nearest marker (within ``SYNC_MARKER_RADIUS_M``) moved between t0
     and t0 + s: the capture's own rate (100 Hz and more) resolves the shift even when the fit
-    has a stride. Else a cubic spline through the fit's frames (exact at stride 1)."""
+    has a stride. Else a cubic spline through the fit's frames."""
     from scipy.interpolate import CubicSpline
 
     kf = np.asarray(keypoints.frames)
@@ -472,7 +473,8 @@ def _sync_people(model, fits, keypoints, marker_track=None):
             continue
         P = _kp65_all(model, fit)
         valid = np.asarray(fit.valid, bool)
-        if marker_track is not None and pidx == 0:
+        full_rate = bool(np.all(np.diff(wf) == 1))
+        if marker_track is not None and pidx == 0 and not full_rate:
             def at(t0, s, P=P, wf=wf):
                 t0 = np.asarray(t0)
                 base = P[_rows(wf, t0)]  # (n, 65, 3)
@@ -487,7 +489,7 @@ def _sync_people(model, fits, keypoints, marker_track=None):
                 move[~close] = np.nan
                 return base + move
             use = np.isin(kf, wf)
-        elif np.all(np.diff(wf) == 1):
+        elif full_rate:
             def at(t0, s, P=P, wf=wf):
                 return P[_rows(wf, np.asarray(t0) + s)]
             use = (kf + shifts.min() >= wf[0]) & (kf + shifts.max() <= wf[-1])
@@ -547,6 +549,9 @@ def _sync(model, fits, keypoints, cams, opts, seq, marker_track=None):
             unmeasured.append(cam.name)
             continue
         best = min(cost, key=cost.get)
+        if best in (min(shifts), max(shifts)):  # no minimum inside the range: a trend, not a shift
+            unmeasured.append(cam.name)
+            continue
         if best != 0 and not cost[best] < K.SYNC_MIN_GAIN * cost[0]:
             best = 0
         offsets[cam.name] = int(best)

@@ -41,6 +41,15 @@ import yaml
 from bench.cases import partner_fit as P
 
 GOALS = {"qa.flag_recall": (">=", 1.0), "qa.flag_rate_clean": ("<=", 0.02)}
+LIMITS = {
+    "qa.flag_rate_clean": (
+        "the clean session's fits, not false alarms: by the studio's truth 61 of the 160 bench "
+        "frames have a joint more than 10 cm off (qa.defect_frames_clean: the Hug partner on all "
+        "20, Posing, Push, Handshake), and the flags fall on them (qa.defect_recall); among the "
+        "frames whose joints are right, the few flagged (qa.false_flag_rate) are all "
+        "wearer.marker_max_mm on the Handshake/HoldingHands wearer's finger marker, fitted 50-100 "
+        "mm off: a marker the fit really misses. The goal assumes a session whose fits are right."),
+}
 
 SWAP_SEQUENCE, SWAP = "s01/Push 1", ("LKNE", "RKNE")
 SWAP_START_S, SWAP_SAMPLES = 1.0, 30  # 0.3 s at 100 Hz
