@@ -206,14 +206,15 @@ class QAMetrics:
 @dataclass
 class Span:
     """Flagged video frames ``start..end`` (inclusive), the reasons flagged inside, the frame of
-    the worst excess (value / threshold; below-threshold metrics: threshold / value) and each
-    reason's worst value."""
+    the worst excess (value / threshold; below-threshold metrics: threshold / value), each
+    reason's worst value, and that worst excess (``peak_excess``, > 1)."""
 
     start: int
     end: int
     reasons: list[str]
     peak_frame: int
     worst: dict[str, float]
+    peak_excess: float = 1.0
 
     def to_json(self) -> dict:
         return {"start": int(self.start), "end": int(self.end), "reasons": list(self.reasons),
@@ -290,6 +291,7 @@ def flag_frames(m: QAMetrics, opts: QAOptions = QAOptions()) -> Flags:
             rs = [reasons[r] for r in range(len(reasons)) if sub[:, r].any()]
             e = np.where(flagged[a:b + 1], exc[a:b + 1], 0.0)
             peak = a + int(np.unravel_index(int(np.argmax(e)), e.shape)[0])
+            peak_excess = float(e.max())
             worst = {}
             for n in rs:
                 v = np.asarray(m.values[n][a:b + 1], float)
@@ -301,7 +303,8 @@ def flag_frames(m: QAMetrics, opts: QAOptions = QAOptions()) -> Flags:
                     worst[n] = float(v[np.argmax(np.abs(v))])
                 else:
                     worst[n] = float(v.max())
-            spans.append(Span(int(m.frames[a]), int(m.frames[b]), rs, int(m.frames[peak]), worst))
+            spans.append(Span(int(m.frames[a]), int(m.frames[b]), rs, int(m.frames[peak]), worst,
+                              peak_excess))
     return Flags(reasons, flagged, spans)
 
 

@@ -103,14 +103,13 @@ def raw_inputs(recipe, unit: str) -> dict[str, Path]:
 
 
 # ------------------------------------------------------------------------------ pure helpers
-def overlay_frames(frames, flags, peak_excess: dict[int, float], sample: int,
-                   cap: int) -> tuple[list[int], list[int]]:
+def overlay_frames(frames, flags, sample: int, cap: int) -> tuple[list[int], list[int]]:
     """Which frames get an overlay image: each span's start, peak and end (spans with the
-    largest excess first, at most ``cap`` frames in all), then ``sample`` unflagged frames
-    evenly spread. Returns ``(span frames, sample frames)``, each sorted."""
+    largest ``peak_excess`` first, at most ``cap`` frames in all), then ``sample`` unflagged
+    frames evenly spread. Returns ``(span frames, sample frames)``, each sorted."""
     frames = np.asarray(frames)
     chosen: list[int] = []
-    for sp in sorted(flags.spans, key=lambda s: -peak_excess.get(id(s), 0.0)):
+    for sp in sorted(flags.spans, key=lambda s: -s.peak_excess):
         for f in (sp.peak_frame, sp.start, sp.end):
             if f not in chosen and len(chosen) < cap:
                 chosen.append(int(f))
@@ -118,17 +117,6 @@ def overlay_frames(frames, flags, peak_excess: dict[int, float], sample: int,
     k = min(sample, len(rest), max(cap - len(chosen), 0))
     picks = [int(rest[i]) for i in np.linspace(0, len(rest) - 1, k).round().astype(int)] if k else []
     return sorted(chosen), sorted(set(picks))
-
-
-def span_excess(m, sp) -> float:
-    """How far a span's worst value is beyond its threshold (value / threshold; sync and
-    validity count as 1)."""
-    best = 1.0
-    for r, v in sp.worst.items():
-        t = m.thresholds.get(r)
-        if t and np.isfinite(v) and t > 0:
-            best = max(best, abs(float(v)) / float(t))
-    return best
 
 
 def summary(m, flags) -> dict:
@@ -149,13 +137,6 @@ def _json(art, name):
         return art.json(name)
     except FileNotFoundError:
         return None
-
-
-def _describe(m, reason: str, value: float) -> str:
-    unit = m.units.get(reason, "")
-    t = m.thresholds.get(reason)
-    return (f"{reason} = {value:.3g} {unit} > {t:.3g} {unit}".replace("  ", " ")
-            if t is not None and np.isfinite(value) else f"{reason}")
 
 
 # ------------------------------------------------------------------------------------- stage
@@ -225,9 +206,7 @@ def run(ctx: StageContext) -> None:
             f"{ctx.unit}: {int(flags.any.sum())}/{F} frames flagged")
 
     # overlays and the tiled video
-    excess = {id(s): span_excess(m, s) for s in flags.spans}
-    span_frames, sample_frames = overlay_frames(m.frames, flags, excess, o.overlay_sample,
-                                                o.overlay_max)
+    span_frames, sample_frames = overlay_frames(m.frames, flags, o.overlay_sample, o.overlay_max)
     images: dict[int, Path] = {}
     rendered = {"overlays": 0, "video_frames": 0}
     index = {int(f): i for i, f in enumerate(m.frames)}
@@ -277,7 +256,6 @@ def run(ctx: StageContext) -> None:
     for s in flags.spans:
         shown = [f for f in (s.start, s.peak_frame, s.end) if f in images]
         spans_html.append({**s.to_json(),
-                           "described": [_describe(m, r, s.worst.get(r, np.nan)) for r in s.reasons],
                            "images": [str(images[f].relative_to(out)) for f in dict.fromkeys(shown)]})
     for f in sample_frames:
         if f in images:
