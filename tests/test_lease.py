@@ -21,9 +21,9 @@ import toy_registry
 from pipeline.engine import Engine
 from pipeline.lease import Lease, LeaseLost, default_grace, read_lease
 from pipeline.store import Store, StoreError
+from tests.test_engine_cli import cli, counts, wait_for_line
 
 REPO = Path(__file__).resolve().parents[1]
-TOY = str(REPO / "tests" / "toy_registry.py")
 TTL = 1.0
 GRACE = default_grace(TTL)
 
@@ -336,41 +336,24 @@ def test_the_engine_with_leases_builds_and_reuses_artifacts_as_with_flock(tmp_pa
     assert keys["lease"] == keys["flock"] and len(keys["lease"]) == 9
 
 
-def _cli(folder: Path, *args: str) -> list[str]:
-    return [sys.executable, "-m", "pipeline", *args, "--recipe", str(folder / "toy.yaml"),
-            "--registry", TOY, "--outputs", str(folder / "outputs")]
-
-
 def _lease_env() -> dict:
     return {**os.environ, "PYTHONPATH": str(REPO), "PIPELINE_LOCKS": "lease",
             "PIPELINE_LEASE_TTL_S": str(TTL)}
-
-
-def _counts(folder: Path) -> list[str]:
-    p = folder / "counts.txt"
-    return p.read_text().splitlines() if p.exists() else []
-
-
-def _wait_for_line(folder: Path, line: str, proc: subprocess.Popen, timeout: float = 20) -> None:
-    t_end = time.monotonic() + timeout
-    while line not in _counts(folder):
-        assert proc.poll() is None and time.monotonic() < t_end, f"no {line!r}"
-        time.sleep(0.02)
 
 
 def test_two_concurrent_cli_runs_with_leases_compute_each_artifact_once(tmp_path):
     toy_registry.write_toy(tmp_path, {"detect": {"sleep_s": 1.5}}, n_seq=1)
 
     def start() -> subprocess.Popen:
-        return subprocess.Popen(_cli(tmp_path, "sequence", "g/x"), env=_lease_env(), text=True,
+        return subprocess.Popen(cli(tmp_path, "sequence", "g/x"), env=_lease_env(), text=True,
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE)
 
     first = start()
-    _wait_for_line(tmp_path, "start detect g/x", first)
+    wait_for_line(tmp_path, "start detect g/x", first)
     procs = [first, start()]
     outs = [p.communicate(timeout=60) for p in procs]
     assert [p.returncode for p in procs] == [0, 0], outs
-    lines = _counts(tmp_path)
+    lines = counts(tmp_path)
     for node in ("scale a", "scale b", "detect g/x", "fit g/x", "report g/x"):
         assert lines.count(f"start {node}") == 1 and lines.count(f"end {node}") == 1, (node, lines)
     words = [[ln.split()[3] for ln in err.splitlines() if " detect " in ln] for _, err in outs]
@@ -380,12 +363,12 @@ def test_two_concurrent_cli_runs_with_leases_compute_each_artifact_once(tmp_path
 def test_a_builder_paused_past_its_lease_loses_the_artifact_to_the_one_that_took_over(tmp_path):
     toy_registry.write_toy(tmp_path, {"detect": {"sleep_s": 1.5}}, n_seq=1)
     unit = tmp_path / "outputs" / "toy" / "g" / "x"
-    a = subprocess.Popen(_cli(tmp_path, "sequence", "g/x"), env=_lease_env(),
+    a = subprocess.Popen(cli(tmp_path, "sequence", "g/x"), env=_lease_env(),
                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
-        _wait_for_line(tmp_path, "start detect g/x", a)
+        wait_for_line(tmp_path, "start detect g/x", a)
         os.kill(a.pid, signal.SIGSTOP)
-        b = subprocess.run(_cli(tmp_path, "sequence", "g/x"), env=_lease_env(),
+        b = subprocess.run(cli(tmp_path, "sequence", "g/x"), env=_lease_env(),
                            capture_output=True, text=True, timeout=60)
         assert b.returncode == 0, b.stderr
         assert "waiting" in b.stderr
@@ -399,6 +382,6 @@ def test_a_builder_paused_past_its_lease_loses_the_artifact_to_the_one_that_took
     assert built_by_b["host"]["pid"] != a.pid
     assert Store(tmp_path / "outputs" / "toy").entry("g/x", "detect").state == "complete"
     assert not list(unit.glob(".tmp-*")) and not list(unit.glob(".trash-*")), a_err
-    lines = _counts(tmp_path)
+    lines = counts(tmp_path)
     assert lines.count("start detect g/x") == 2 and lines.count("end detect g/x") == 2, lines
     assert "lost while building" in a_err and "not committed" in a_err, a_err
