@@ -7,6 +7,12 @@ import numpy as np
 
 from drawing import constants as C
 
+# worst-frame labels: offsets tried (points from the marked point), in order, until a label's
+# box keeps LABEL_GAP_PX from every label placed before it and stays inside the axes
+# (above, then beside it on alternate sides, then higher, then below)
+LABEL_OFFSETS_PT = tuple((dx, dy) for dy in (6, 16, 26, -14, 36, -24, 46)
+                         for dx in (0, -45, 45, -90, 90))
+LABEL_GAP_PX = 2.0
 
 def worst_frames(values: np.ndarray, count: int, separation: int) -> np.ndarray:
     """Indices of the ``count`` largest finite ``values`` (F,), largest first, each at least
@@ -21,14 +27,58 @@ def worst_frames(values: np.ndarray, count: int, separation: int) -> np.ndarray:
     return np.array(picked, dtype=np.int64)
 
 
+def _overlaps(box, others, gap: float) -> bool:
+    return any(box.x0 < o.x1 + gap and o.x0 < box.x1 + gap and box.y0 < o.y1 + gap
+               and o.y0 < box.y1 + gap for o in others)
+
+
+def separate_labels(fig, texts, gap: float = LABEL_GAP_PX) -> None:
+    """Move ``texts`` (annotations in ``offset points``, most important first) among
+    ``LABEL_OFFSETS_PT`` so that no two bounding boxes come closer than ``gap`` pixels: each
+    takes the first offset clear of the labels placed before it and inside its axes, else the
+    first clear one, else the first. Run after ``tight_layout`` (the boxes are measured on
+    the final layout)."""
+    renderer = fig.canvas.get_renderer()
+    placed = []
+
+    def put(t, off):
+        t.xyann = off
+        t.set_va("bottom" if off[1] >= 0 else "top")
+        return t.get_window_extent(renderer)
+
+    for t in texts:
+        inside = t.axes.get_window_extent(renderer)
+        clear = None
+        for off in LABEL_OFFSETS_PT:
+            box = put(t, off)
+            if _overlaps(box, placed, gap):
+                continue
+            if (box.x0 >= inside.x0 and box.x1 <= inside.x1 and box.y0 >= inside.y0
+                    and box.y1 <= inside.y1):
+                clear = off
+                break
+            clear = clear or off
+        placed.append(put(t, clear or LABEL_OFFSETS_PT[0]))
+
+
+def text_boxes(fig):
+    """Display-pixel bounding boxes of every text drawn in ``fig``'s axes (tests: no two
+    labels overlap)."""
+    renderer = fig.canvas.get_renderer()
+    return [t.get_window_extent(renderer) for ax in fig.axes for t in ax.texts]
+
+
 def residual_plot(path: str | Path, res_mm: np.ndarray, fps: float, title: str,
                   frames: np.ndarray | None = None, worst: int = C.WORST_FRAMES):
     """PNG of per-frame marker residuals: median, p90 and max over the visible markers, on a
     logarithmic axis (residuals span ~0.5 mm to ~600 mm on real data), with the ``worst``
-    frames of the max curve marked and labelled (``f<frame>: <mm> mm``).
+    frames of the max curve marked and labelled (``f<frame>: <mm> mm``); labels of close
+    frames are moved apart (:func:`separate_labels`), never stacked on each other.
 
     res_mm: (F, M) marker residuals, mm, NaN where a marker is not seen; fps: frame rate of
-    its rows (x axis in seconds); frames: (F,) frame numbers for the labels (default 0..F-1).
+    its rows (x axis in seconds); frames: (F,) frame numbers for the labels, in the capture's
+    own numbering (callers pass the C3D frame number ``first_frame + sample + 1`` of a
+    marker-only fit, the video frame otherwise; default 0..F-1).
     Values below constants.RESIDUAL_FLOOR_MM are drawn on the floor. Writes ``path`` and
     returns the matplotlib ``Figure`` (its one axes: ``fig.axes[0]``).
     """
@@ -62,10 +112,10 @@ def residual_plot(path: str | Path, res_mm: np.ndarray, fps: float, title: str,
     if len(top):
         y = np.maximum(curves["max"][top], C.RESIDUAL_FLOOR_MM)
         ax.plot(t[top], y, "v", color="crimson", ms=5, label=f"worst {len(top)}")
-        for i, yi in zip(top, y, strict=True):
-            ax.annotate(f"f{frames[i]}: {curves['max'][i]:.0f} mm", (t[i], yi),
-                        textcoords="offset points", xytext=(0, 6), ha="center", fontsize=7,
-                        color="crimson")
+        labels = [ax.annotate(f"f{frames[i]}: {curves['max'][i]:.0f} mm", (t[i], yi),
+                              textcoords="offset points", xytext=LABEL_OFFSETS_PT[0],
+                              ha="center", fontsize=7, color="crimson")
+                  for i, yi in zip(top, y, strict=True)]
         ax.set_ylim(top=C.PLOT_HEADROOM * y.max())  # room for the labels on a log axis
     ax.set_xlabel("time (s)")
     ax.set_ylabel("marker residual (mm, log)")
@@ -73,6 +123,8 @@ def residual_plot(path: str | Path, res_mm: np.ndarray, fps: float, title: str,
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8, loc="upper right")
     fig.tight_layout()
+    if len(top):
+        separate_labels(fig, labels)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
@@ -83,12 +135,13 @@ def marker_residual_plot(path: str | Path, res_mm: np.ndarray, names, title: str
                          frames: np.ndarray | None = None, warn_mm: float | None = None):
     """PNG of each marker's residuals over the sequence on a logarithmic axis: per marker (x)
     the median (dot), the p90 (bar top) and the max (cross) over its visible frames, with
-    the frame of its max written over the worst markers (``f<frame>``). Markers whose median
+    the frame of its max written over the worst markers (``f<frame>``, moved apart when they
+    would overlap: :func:`separate_labels`). Markers whose median
     exceeds ``warn_mm`` are drawn in red, with the threshold as a dashed line: one glance
     shows a lost arm that a median over all markers hides.
 
     res_mm: (F, M) mm, NaN where not seen; names: (M,) labels; frames: (F,) frame numbers for
-    the labels (default 0..F-1). Writes ``path``, returns the ``Figure`` (``fig.axes[0]``).
+    the labels in the capture's own numbering (as :func:`residual_plot`; default 0..F-1). Writes ``path``, returns the ``Figure`` (``fig.axes[0]``).
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -126,15 +179,15 @@ def marker_residual_plot(path: str | Path, res_mm: np.ndarray, names, title: str
     if warn_mm is not None:
         ax.axhline(warn_mm, ls="--", color="crimson", lw=0.8, label=f"warning: median > {warn_mm:g} mm")
     worst = np.argsort(-np.nan_to_num(mx, nan=-1))[:C.WORST_FRAMES]
-    for m in worst:
-        if np.isfinite(mx[m]):
-            ax.annotate(f"f{frames[arg[m]]}", (m, max(mx[m], floor)), textcoords="offset points",
-                        xytext=(0, 5), ha="center", fontsize=6, color="crimson")
+    labels = [ax.annotate(f"f{frames[arg[m]]}", (m, max(mx[m], floor)),
+                          textcoords="offset points", xytext=LABEL_OFFSETS_PT[0], ha="center",
+                          fontsize=6, rotation=90, color="crimson")  # one marker column wide
+              for m in worst if np.isfinite(mx[m])]
     for m in np.flatnonzero(~seen):
         ax.annotate("not seen", (m, floor), rotation=90, fontsize=6, ha="center", va="bottom")
     ax.set_yscale("log")
-    if np.isfinite(mx).any():
-        ax.set_ylim(floor, C.PLOT_HEADROOM * np.nanmax(np.maximum(mx, floor)))
+    if np.isfinite(mx).any():  # headroom for the upright frame labels
+        ax.set_ylim(floor, C.PLOT_HEADROOM ** 2 * np.nanmax(np.maximum(mx, floor)))
     ax.set_xticks(x)
     ax.set_xticklabels(names, rotation=90, fontsize=7)
     ax.set_ylabel("residual (mm, log): median, p90, max")
@@ -143,6 +196,7 @@ def marker_residual_plot(path: str | Path, res_mm: np.ndarray, names, title: str
     if warn_mm is not None:
         ax.legend(fontsize=7, loc="upper right")
     fig.tight_layout()
+    separate_labels(fig, labels)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)

@@ -179,3 +179,59 @@ def test_marker_residual_plot_shows_the_lost_arm_the_median_hides(tmp_path):
     texts = [t.get_text() for t in ax.texts]
     assert "f1123" in texts and "not seen" in texts
     assert [tick.get_text() for tick in ax.get_xticklabels()] == names
+
+
+def _apart(boxes, gap=0.0):
+    """No two display boxes overlap (closer than ``gap`` pixels)."""
+    for i, a in enumerate(boxes):
+        for b in boxes[i + 1:]:
+            if (a.x0 < b.x1 + gap and b.x0 < a.x1 + gap and a.y0 < b.y1 + gap
+                    and b.y0 < a.y1 + gap):
+                return False
+    return True
+
+
+def test_residual_plot_worst_frame_labels_never_stack(tmp_path):
+    """Five spikes of similar height 0.3 s apart in a 60 s capture are a few pixels apart on
+    the time axis: their labels (C3D frame numbers, as the caller passes them) are moved
+    apart, no two text boxes of the figure overlap, and each still names its frame."""
+    from drawing.plots import residual_plot, text_boxes
+
+    rng = np.random.default_rng(3)
+    F, M, fps = 3000, 20, 50.0
+    res = rng.lognormal(np.log(2.0), 0.3, (F, M))
+    spikes = 1500 + 15 * np.arange(5)  # 0.3 s apart (> the 0.2 s separation): five marks
+    res[spikes, 2] = [160.0, 150.0, 155.0, 148.0, 152.0]
+    frames = 4821 + np.arange(F)  # first_frame + sample + 1 of a capture starting at 4820
+    fig = residual_plot(tmp_path / "r.png", res, fps, "stacked", frames=frames, worst=5)
+    texts = [t.get_text() for t in fig.axes[0].texts]
+    assert sorted(texts) == sorted(f"f{frames[i]}: {res[i, 2]:.0f} mm" for i in spikes)
+    boxes = text_boxes(fig)
+    assert len(boxes) == 5 and _apart(boxes)
+    # without the separation they would have stacked: the marked points are < 10 px apart
+    ax = fig.axes[0]
+    px = ax.transData.transform(np.c_[spikes / fps, res[spikes, 2]])
+    assert np.ptp(px[:, 0]) < 20  # a label is ~70 px wide
+    inside = ax.get_window_extent(fig.canvas.get_renderer())  # and none over the title
+    assert all(b.y1 <= inside.y1 and b.x0 >= inside.x0 for b in boxes)
+
+
+def test_marker_residual_plot_frame_labels_never_stack(tmp_path):
+    """Neighbouring markers with maxima of the same height: their frame labels (wider than a
+    marker's column) do not overlap."""
+    from drawing.plots import marker_residual_plot, text_boxes
+
+    rng = np.random.default_rng(4)
+    F, M = 400, 39
+    res = rng.lognormal(np.log(2.0), 0.3, (F, M))
+    for k, m in enumerate(range(10, 15)):
+        res[100 + k, m] = 200.0 + k
+    frames = 123456 + np.arange(F)  # long frame numbers: wide labels
+    fig = marker_residual_plot(tmp_path / "m.png", res, [f"M{i}" for i in range(M)], "t",
+                               frames=frames, warn_mm=15.0)
+    texts = [t.get_text() for t in fig.axes[0].texts]
+    assert sorted(texts) == sorted(f"f{frames[100 + k]}" for k in range(5))
+    assert _apart(text_boxes(fig))
+    inside = fig.axes[0].get_window_extent(fig.canvas.get_renderer())
+    assert all(b.x0 >= inside.x0 and b.x1 <= inside.x1 and b.y1 <= inside.y1
+               for b in text_boxes(fig))
