@@ -81,12 +81,15 @@ def run(ctx: StageContext) -> None:
             + ", ".join(f"{n} {r}" for r, n in cleaned["removed_by_reason"].items() if n)
             + " (report: cleaned.runs)")
     ctx.out.save_json("report", report)
+    # plots name frames in the capture's own numbering: the C3D frame number of a
+    # marker-only fit (its frames are 0-based capture frames), the video frame otherwise
+    shown = fit.frames + (0 if rv.sequence.has_video else 1)
     residual_plot(ctx.out.path("residuals.png"), fit.marker_residual_m * 1000, fps,
                   f"{ctx.unit}: marker residuals ({'with' if report['hands'] else 'no'} hand "
-                  "keypoints)", frames=fit.frames)
+                  "keypoints)", frames=shown)
     marker_residual_plot(ctx.out.path("marker_residuals.png"), fit.marker_residual_m * 1000,
                          fit.marker_names, f"{ctx.unit}: residual per marker "
-                         f"({len(report['warnings'])} warnings)", frames=fit.frames,
+                         f"({len(report['warnings'])} warnings)", frames=shown,
                          warn_mm=WARN_MARKER_MEDIAN_MM)
     for w in report["warnings"]:
         ctx.log(f"{ctx.unit}: WARNING {w}")
