@@ -8,6 +8,9 @@ face normal, ``fitting.skinned.SkinnedPoints``, the same marker definition as
 ``body.markers.marker_positions``). The distance to the observed ``m`` is what a marker the
 fit never saw is off by: placement error + pose error + soft tissue.
 
+The refits run with the marker fit's own options (``opts``: the recipe's
+``stages.marker_fit`` section), so leave-one-out scores the fit the stage made.
+
 ``stride`` fits every k-th video frame only, each warm-started from the previous fitted frame
 (``fit_sequence``'s warm start across a k-frame step). Measured on a synthetic 39-marker
 capture of 1,000 video frames at 50 Hz (bench/fitting_synth.py, compiled graph, a shared
@@ -63,8 +66,11 @@ def leave_one_out(model, shape: ShapeFit, template: Placement, markers: Markers,
                   progress=None, source: str = "markers") -> dict:
     """Leave-one-out error of each held-out marker.
 
-    model, shape, template, markers, clock, frames, opts : as :func:`fit_markers` (``frames``
-    the video frames to score; ``opts.max_frames`` applies after the stride); held : marker
+    model, shape, template, markers, clock, frames : as :func:`fit_markers` (``frames`` the
+    video frames to score); opts : the :class:`MarkerFitOptions` every refit runs with: pass
+    the ones the recipe gives ``stages.marker_fit`` (weights, robust scale, iterations,
+    compile mode), so the figure scores the fit the stage made (no keypoints are passed:
+    ``use_hands`` has no effect here); ``opts.max_frames`` applies after the stride; held : marker
     names to hold out (default every marker of the shape's placement); stride : fit every
     k-th frame (>= 1); progress : optional iterable wrapper over the held markers; source :
     the capture's file, named in input errors.

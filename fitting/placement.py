@@ -159,7 +159,11 @@ class PlacementOptions:
     Levenberg-Marquardt steps per round); wand_offset_m: the offset bound of a marker left at
     ``max_offset_m`` with a median residual above ``WAND_MIN_MM`` (a marker on a wand, e.g.
     Plug-in Gait's thigh and tibia wands: refitted with this bound); track_step: every
-    k-th frame of a capture is tracked; frames: placement frames."""
+    k-th frame of a capture is tracked; frames: placement frames; placement_from: with static
+    trials, where the placement and the shape come from: ``"all"`` (the static trials first,
+    alone, then refined on ``frames`` movement frames plus ``static_frames`` static ones),
+    ``"static"`` (the static trials alone), ``"movement"`` (the movement captures alone, the
+    static trials unused); static_frames: static frames kept in the movement refinement."""
 
     rounds: int = 6
     slide_sd_m: float = 0.02
@@ -180,6 +184,11 @@ class PlacementOptions:
     beta_steps: int = 3
     track_step: int = 2
     frames: int = 12
+    placement_from: str = "all"
+    static_frames: int = 4
+
+
+PLACEMENT_FROM = ("all", "static", "movement")
 
 
 # ---------------------------------------------------------------------------- tracking
@@ -560,7 +569,11 @@ class PlacementFit:
     """placement; betas (S,); frames: the placement frames as (capture, frame index into that
     capture); X (K, n) their poses; residual_mm (K, M) NaN where not visible or an outlier;
     off_segment: names of markers that left their segment (refitted with the tight cap); tracks: the captures tracked
-    with the final shape and placement; slide_m, offset_m (M,); outliers: flagged marker-frames of the first tracking."""
+    with the final shape and placement; slide_m, offset_m (M,); outliers: flagged marker-frames of the first tracking;
+    static: what the static trials contributed (None without static trials):
+    ``placement_from``, ``static_residual_mm`` (the static-only placement on its static frames,
+    (K_s, M)), ``static_placement``/``static_betas`` (placed from the static trials alone),
+    ``movement_tracking_static_m`` (per movement capture (T, M): tracked with that placement)."""
 
     placement: Placement
     betas: np.ndarray
@@ -573,21 +586,34 @@ class PlacementFit:
     offset_m: np.ndarray
     outliers: int
     on_wand: list[str] = field(default_factory=list)
+    static: dict | None = None
 
 
 def refine_placement(model: BodyModel, betas: np.ndarray, template: Placement, captures,
                      make_solver, opts: PlacementOptions = PlacementOptions(),
-                     fit_betas: bool = False, log=None) -> PlacementFit:
+                     fit_betas: bool = False, log=None, static=()) -> PlacementFit:
     """MoSh stage I on a subject's captures (module docstring).
 
     betas : the starting shape (a scan fit's, or zeros with ``fit_betas``); template : the
-    marker set's template placement; captures : list of (F_i, M, 3) metres, NaN gaps;
-    make_solver(rest, skel, u, Hm) -> ``marker_fit.FrameSolver`` over the body joints."""
+    marker set's template placement; captures : list of (F_i, M, 3) metres, NaN gaps (the
+    movement captures); static : the same for the subject's static trials;
+    make_solver(rest, skel, u, Hm) -> ``marker_fit.FrameSolver`` over the body joints.
+
+    With static trials and ``opts.placement_from`` ``"all"`` (default): the shape and the
+    placement are fitted to the static trials alone first (size grid, alternation, segment
+    and wand checks, from the template), then refined from there on ``opts.frames`` movement
+    frames chosen by the pose tracked with the static placement plus ``opts.static_frames``
+    static frames (no size grid: the static shape is the start). ``"static"`` stops after
+    the first step; ``"movement"`` ignores the static trials. ``PlacementFit.frames`` index
+    the static trials first, then the captures."""
     from threadpoolctl import threadpool_limits
 
+    if opts.placement_from not in PLACEMENT_FROM:
+        raise ValueError(f"placement_from: must be one of {', '.join(PLACEMENT_FROM)}, "
+                         f"got {opts.placement_from!r}")
     with threadpool_limits(limits=1):
-        return _refine(model, np.array(betas, float), template, captures, make_solver, opts,
-                       fit_betas, log)
+        return _refine(model, np.array(betas, float), template, list(static), list(captures),
+                       make_solver, opts, fit_betas, log)
 
 
 def _solver(model, skel, betas, pl, make_solver):
@@ -669,17 +695,25 @@ def _stage_one(model, skel, betas, pl, template, X, obs, vis, make_solver, opts,
     return betas, pl, X, left
 
 
-def _refine(model, betas, template, captures, make_solver, opts, fit_betas, log):
-    say = log or (lambda _s: None)
-    skel = skinned.fit_skeleton(model, body_joints(model))
-    groups = segment_groups(skel)
-    captures = [np.asarray(c, float) for c in captures]
-    pl = template
-    _, _, solver = _solver(model, skel, betas, pl, make_solver)
+def _no_track(skel, M) -> Track:
+    """An unused capture's empty track."""
+    return Track(np.zeros(0, int), np.zeros((0, skel.n)), np.zeros((0, M)),
+                 np.zeros((0, M), bool), np.zeros((0, M), bool))
+
+
+def _track_all(solver, captures, opts):
     tracks = [track(solver, c, opts.track_step) for c in captures]
     n_out = int(sum((outlier_mask(t.residual_m) | t.ghost).sum() for t in tracks))
-    say(f"tracked {sum(len(t.frames) for t in tracks)} frames, {n_out} outlier marker-frames")
-    chosen = select_frames(tracks, opts.frames)
+    return tracks, n_out
+
+
+def _place(model, skel, groups, betas, pl, template, captures, tracks, chosen, make_solver,
+           opts, fit_betas, size, say):
+    """Placement (and with ``fit_betas`` the shape) from the ``chosen`` (capture, track row)
+    frames, starting at ``pl`` / ``betas``: size grid (``size``), alternation, markers off
+    their segment refitted with the tight cap, markers on a wand refitted with the wand's
+    bound. Returns (betas, placement, X, residual_mm (K, M), frames [(capture, frame)],
+    left (M,), on_wand)."""
     if not chosen:
         raise ValueError("no capture frame sees 3 markers: cannot place the markers")
     frames = [(c, int(tracks[c].frames[i])) for c, i in chosen]
@@ -688,7 +722,7 @@ def _refine(model, betas, template, captures, make_solver, opts, fit_betas, log)
     vis = np.stack([tracks[c].visible[i] & ~o for (c, i), o in zip(chosen, out, strict=True)]
                    ).astype(float)
     X = np.stack([tracks[c].X[i] for c, i in chosen])
-    if fit_betas:
+    if fit_betas and size:
         betas, X = size_start(model, skel, betas, template, X, obs, vis, make_solver, opts,
                               groups, say)
     betas, pl, X, left = _stage_one(model, skel, betas, pl, template, X, obs, vis, make_solver,
@@ -720,9 +754,61 @@ def _refine(model, betas, template, captures, make_solver, opts, fit_betas, log)
             f"{', '.join(n for n, b in zip(template.names, wand, strict=True) if b)}")
         _, _, solver = _solver(model, skel, betas, pl, make_solver)
         X = _poses(solver, X, obs, vis)
-    res = _residual_mm(solver, X, obs, vis)
-    final = [track(solver, c, opts.track_step) for c in captures]
+    return betas, pl, X, _residual_mm(solver, X, obs, vis), frames, left, on_wand
+
+
+def _refine(model, betas, template, static, captures, make_solver, opts, fit_betas, log):
+    say = log or (lambda _s: None)
+    skel = skinned.fit_skeleton(model, body_joints(model))
+    groups = segment_groups(skel)
+    static = [np.asarray(c, float) for c in static]
+    captures = [np.asarray(c, float) for c in captures]
+    mode = opts.placement_from if static else "movement"
+    if static and not captures:
+        mode = "static"
+    use_static = mode in ("static", "all")
+    S = len(static)
+    every = static + captures  # the frames' capture index runs over both
+    info = None
+    if use_static:  # 1. shape and placement from the static trials alone
+        _, _, solver = _solver(model, skel, betas, template, make_solver)
+        st_tracks, n_out = _track_all(solver, static, opts)
+        say(f"static trials: tracked {sum(len(t.frames) for t in st_tracks)} frames, "
+            f"{n_out} outlier marker-frames")
+        chosen = select_frames(st_tracks, opts.frames)
+        betas, pl, X, res, frames, left, on_wand = _place(
+            model, skel, groups, betas, template, template, static, st_tracks, chosen,
+            make_solver, opts, fit_betas, True, lambda t: say(f"static: {t}"))
+        info = {"placement_from": mode, "static_residual_mm": res,
+                "static_placement": pl, "static_betas": betas.copy(),
+                "movement_tracking_static_m": []}
+    else:
+        pl = template
+    if mode == "static":
+        _, _, solver = _solver(model, skel, betas, pl, make_solver)
+        if captures:
+            info["movement_tracking_static_m"] = [
+                t.residual_m for t in _track_all(solver, captures, opts)[0]]
+        final = [track(solver, c, opts.track_step) for c in every]
+    else:  # 2. the movement captures, tracked with the current placement and shape
+        _, _, solver = _solver(model, skel, betas, pl, make_solver)
+        mv_tracks, n_out = _track_all(solver, captures, opts)
+        say(f"tracked {sum(len(t.frames) for t in mv_tracks)} frames, {n_out} outlier "
+            "marker-frames")
+        chosen = [(c + S, i) for c, i in select_frames(mv_tracks, opts.frames)]
+        if use_static:
+            info["movement_tracking_static_m"] = [t.residual_m for t in mv_tracks]
+            chosen = select_frames(st_tracks, opts.static_frames) + chosen
+            tracks = st_tracks + mv_tracks
+        else:
+            tracks = [_no_track(skel, len(template.names)) for _ in static] + mv_tracks
+        betas, pl, X, res, frames, left, on_wand = _place(
+            model, skel, groups, betas, pl, template, every, tracks, chosen, make_solver,
+            opts, fit_betas, not use_static, say)
+        _, _, solver = _solver(model, skel, betas, pl, make_solver)
+        final = [track(solver, c, opts.track_step) if (use_static or k >= S)
+                 else _no_track(skel, len(template.names)) for k, c in enumerate(every)]
     slide, offset = slides_and_offsets(model, betas, pl, template)
     return PlacementFit(pl, betas, frames, X, res,
                         [n for n, b in zip(template.names, left, strict=True) if b], final,
-                        slide, offset, n_out, on_wand)
+                        slide, offset, n_out, on_wand, info)

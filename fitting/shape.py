@@ -48,6 +48,7 @@ from fitting.marker_graph import (  # noqa: F401 - re-exported (bench/fitting_sy
     to_shape_fit,
 )
 from fitting.placement import (  # noqa: F401 - re-exported
+    PLACEMENT_FROM,
     PlacementFit,
     PlacementOptions,
     project_to_surface,
@@ -349,6 +350,12 @@ class ShapeFitOptions:
     alternations; slide_sd_mm / offset_sd_mm : prior spread of a marker's slide from the
     template and of its skin offset around the nominal 9.5 mm (millimetres); max_slide_mm /
     max_offset_mm : their hard bounds; track_step : every k-th capture frame is tracked;
+    placement_from : with static trials, ``"all"`` (placed and shaped on the static trials
+    first, then refined with the movement frames), ``"static"`` (the static trials alone) or
+    ``"movement"`` (the static trials unused; ``fitting.placement.PlacementOptions``);
+    static_frames : static frames kept beside ``frames`` movement frames in the refinement;
+    static_compare : also place from the movement alone and report both placements' movement
+    residuals (the static trial's contribution; twice the work);
     compile : how the residual function runs; seed : sampling of scan points."""
 
     # defaults stated once, in the options of the functions they feed (metres there)
@@ -363,6 +370,9 @@ class ShapeFitOptions:
     max_slide_mm: float = PlacementOptions.max_slide_m * 1000
     max_offset_mm: float = PlacementOptions.max_offset_m * 1000
     track_step: int = PlacementOptions.track_step
+    placement_from: Literal["all", "static", "movement"] = "all"
+    static_frames: int = PlacementOptions.static_frames
+    static_compare: bool = False
     compile: Literal["auto", "compiled", "interpreted"] = "auto"
     seed: int = 0
 
@@ -375,6 +385,11 @@ class ShapeFitOptions:
         for name in ("slide_sd_mm", "offset_sd_mm", "max_slide_mm", "max_offset_mm"):
             if not getattr(self, name) > 0:
                 problems.append(f"{name}: must be > 0, got {getattr(self, name)}")
+        if self.static_frames < 0:
+            problems.append(f"static_frames: must be >= 0, got {self.static_frames}")
+        if self.placement_from not in PLACEMENT_FROM:
+            problems.append(f"placement_from: must be one of {', '.join(PLACEMENT_FROM)}, "
+                            f"got {self.placement_from!r}")
         if self.compile not in marker_fit.COMPILE_MODES:
             problems.append(f"compile: must be one of {', '.join(marker_fit.COMPILE_MODES)}, "
                             f"got {self.compile!r}")
@@ -391,7 +406,8 @@ class ShapeFitOptions:
                                 max_slide_m=self.max_slide_mm / 1000,
                                 max_offset_m=self.max_offset_mm / 1000,
                                 num_betas=self.marker_num_betas, frames=self.frames,
-                                track_step=self.track_step)
+                                track_step=self.track_step, placement_from=self.placement_from,
+                                static_frames=self.static_frames)
 
 
 def _mm_stats(d: np.ndarray) -> dict[str, float]:
@@ -426,19 +442,24 @@ def shape_from_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | 
 
 
 def fit_placement(model: BodyModel, shape, captures, opts: ShapeFitOptions, log=None,
-                  names=None):
+                  names=None, static=(), static_names=None):
     """MoSh stage I on a subject's captures (``fitting.placement.refine_placement``):
     ``shape``'s placement (the template) refined, and, when ``shape.shape_source ==
     "markers"``, its betas fitted too.
 
     shape : :class:`artifacts.ShapeFit` to start from; captures : sequence of (F_i, M, 3)
-    marker arrays (metres, NaN gaps, the placement's marker order); names : the captures'
-    names in the report (default their index as a string). Returns ``(ShapeFit with
-    placement_source "refined", report)`` (residuals, slides and offsets in mm; every float
-    finite, None where a marker was not seen)."""
+    marker arrays (metres, NaN gaps, the placement's marker order) of movement; static : the
+    same for static trials (placed from first, ``opts.placement_from``); names /
+    static_names : the captures' names in the report (default their index as a string,
+    ``static<i>``). Returns ``(ShapeFit with placement_source "refined", report)``
+    (residuals, slides and offsets in mm; every float finite, None where a marker was not
+    seen; with static trials ``static_trial``: what they contributed)."""
     template = placement_of(shape)
     captures = [np.asarray(c, float) for c in captures]
+    static = [np.asarray(c, float) for c in static]
     names = [str(i) for i in range(len(captures))] if names is None else [str(n) for n in names]
+    snames = ([f"static{i}" for i in range(len(static))] if static_names is None
+              else [str(n) for n in static_names])
     skel = skinned.fit_skeleton(model, body_joints(model))
     graph = MarkerGraph(GraphSpec(skel.topology, marker_support(model, skel, template)),
                         compiled.CompileOptions(mode=opts.compile), log=log)
@@ -449,7 +470,8 @@ def fit_placement(model: BodyModel, shape, captures, opts: ShapeFitOptions, log=
 
     fit_betas = str(shape.shape_source) == "markers"
     pf = refine_placement(model, shape.betas, template, captures, make_solver,
-                          opts.placement(), fit_betas=fit_betas, log=log)
+                          opts.placement(), fit_betas=fit_betas, log=log, static=static)
+    names = snames + names  # PlacementFit.frames index the static trials first
     M = len(template.names)
     rest0 = rest_state(model, pf.betas)
     faces = np.asarray(model.faces)
@@ -482,7 +504,55 @@ def fit_placement(model: BodyModel, shape, captures, opts: ShapeFitOptions, log=
         "tracking_outlier_marker_frames": int(pf.outliers),
         "betas_norm": float(np.linalg.norm(pf.betas)),
     }
+    if static:
+        report["static_trial"] = static_contribution(model, pf, template, names, len(static),
+                                                     opts.placement_from)
     return to_shape_fit(pf.betas, pf.placement, str(shape.shape_source), "refined"), report
+
+
+def _pooled_mm(tracks_m) -> dict[str, float | None]:
+    """Median / p90 / frames of tracked residuals (list of (T, M) metres, NaN unseen)."""
+    a = (np.concatenate([np.asarray(t, float).reshape(-1) for t in tracks_m]) * 1000
+         if tracks_m else np.zeros(0))
+    return {**_stats(a), "marker_frames": int(np.isfinite(a).sum())}
+
+
+def static_contribution(model: BodyModel, pf: PlacementFit, template: Placement, names,
+                        n_static: int, placement_from: str) -> dict:
+    """What the static trials contributed to a placement (``refine_placement(static=...)``):
+    the placement frames taken from each capture and the static trials' share of them; the
+    placement from the static trials alone (its residual on its static frames, the movement
+    tracked with it) against the final one (the movement tracked with it, how far the
+    movement frames moved each marker from it, the change of betas)."""
+    used = {n: 0 for n in names}
+    for c, _ in pf.frames:
+        used[names[c]] += 1
+    n_st = sum(1 for c, _ in pf.frames if c < n_static)
+    out = {"placement_from": pf.static["placement_from"] if pf.static else "movement",
+           "option": placement_from, "frames_used": used,
+           "static_share_of_placement_frames": n_st / max(len(pf.frames), 1),
+           "final": {"movement_tracking_mm": _pooled_mm(
+               [t.residual_m for t in pf.tracks[n_static:]]),
+               "static_tracking_mm": _pooled_mm([t.residual_m for t in pf.tracks[:n_static]])}}
+    if pf.static is None:
+        out["note"] = "placement_from movement: the static trials were not used"
+        return out
+    faces = np.asarray(model.faces)
+    rv = rest_state(model, pf.betas).vertices[0]
+    moved = np.linalg.norm(marker_rest_points(rv, faces, pf.placement)
+                           - marker_rest_points(rv, faces, pf.static["static_placement"]),
+                           axis=1) * 1000
+    sb, fb = pf.static["static_betas"], np.asarray(pf.betas, float)
+    out["static_only"] = {
+        "placement_residual_mm": _stats(pf.static["static_residual_mm"]),
+        "movement_tracking_mm": _pooled_mm(pf.static["movement_tracking_static_m"]),
+        "betas_norm": float(np.linalg.norm(sb))}
+    out["moved_by_movement_mm"] = {"median": float(np.median(moved)),
+                                   "max": float(np.max(moved)),
+                                   "per_marker": {n: float(v) for n, v in
+                                                  zip(template.names, moved, strict=True)}}
+    out["betas_change_norm"] = float(np.linalg.norm(fb - sb[:len(fb)]))
+    return out
 
 
 def fit_shape(model: BodyModel, template: Placement, scan, captures, opts: ShapeFitOptions,
@@ -492,9 +562,11 @@ def fit_shape(model: BodyModel, template: Placement, scan, captures, opts: Shape
     template : the marker set's template placement; scan : ``(points (N, 3), normals (N, 3) or
     None)`` metres, or None; captures : sequence of (F_i, M, 3) marker arrays of the
     sequences the subject wears markers in (template order, NaN gaps), possibly empty;
-    static : the same for static trials (used first: listed before the captures);
-    names / static_names : their names in the report (default ``"0"``, ``"1"``, ... and
-    ``"static0"``, ...).
+    static : the same for static trials (``opts.placement_from``: placed from first, then
+    refined with the captures, by default); names / static_names : their names in the report
+    (default ``"0"``, ``"1"``, ... and ``"static0"``, ...). With ``opts.static_compare`` the
+    placement is also fitted from the captures alone and the report's ``static_trial.
+    without_static`` gives its movement residual beside the final one's.
     The shape comes from the scan, else from the markers (MoSh stage I, less accurate),
     else it is the mean shape; the placement is refined on the captures when there are any.
     Returns ``(artifacts.ShapeFit, report)``.
@@ -505,12 +577,15 @@ def fit_shape(model: BodyModel, template: Placement, scan, captures, opts: Shape
     names = [str(i) for i in range(len(captures))] if names is None else list(names)
     snames = ([f"static{i}" for i in range(len(static))] if static_names is None
               else list(static_names))
-    pairs = [(c, n) for c, n in zip(static + captures, snames + names, strict=True) if len(c)]
-    captures = [c for c, _ in pairs]
+    st_pairs = [(c, n) for c, n in zip(static, snames, strict=True) if len(c)]
+    mv_pairs = [(c, n) for c, n in zip(captures, names, strict=True) if len(c)]
+    static, snames = [c for c, _ in st_pairs], [n for _, n in st_pairs]
+    captures, names = [c for c, _ in mv_pairs], [n for _, n in mv_pairs]
+    anything = static + captures
     if scan is not None:
         betas, rep = shape_from_scan(model, scan[0], scan[1], opts, rng, log)
         report.update(rep)
-    elif captures:
+    elif anything:
         report["shape_source"] = "markers"
         report["note"] = ("no scan: the shape is fitted to the markers of well-spread, "
                           "well-tracked frames (MoSh stage I), less accurate than a scan fit")
@@ -520,9 +595,22 @@ def fit_shape(model: BodyModel, template: Placement, scan, captures, opts: Shape
         report["note"] = "no scan and no marker capture: mean shape"
         betas = np.zeros(opts.num_betas)
     out = to_shape_fit(betas, template, report["shape_source"], "template")
-    if captures:
-        out, rep = fit_placement(model, out, captures, opts, log, names=[n for _, n in pairs])
+    if anything:
+        start = out
+        out, rep = fit_placement(model, start, captures, opts, log, names=names, static=static,
+                                 static_names=snames)
         report.update(rep)
+        if opts.static_compare and static and captures and opts.placement_from != "movement":
+            from dataclasses import replace as _replace
+
+            _, alone = fit_placement(model, start, captures,
+                                     _replace(opts, placement_from="movement"), log,
+                                     names=names, static=static, static_names=snames)
+            report["static_trial"]["without_static"] = {
+                "movement_tracking_mm": alone["static_trial"]["final"]["movement_tracking_mm"],
+                "placement_residual_mm": {k: alone["placement_residual_mm"][k]
+                                          for k in ("median", "p90")},
+                "betas_norm": alone["betas_norm"]}
     else:
         report["placement"] = "template (no capture to refine it)"
     report["num_betas"] = int(len(out.betas))

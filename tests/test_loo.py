@@ -91,3 +91,21 @@ def test_bad_held_names_and_stride(anny, capture):
         leave_one_out(anny, sf, tpl, m, mocap.VideoClock(FPS), np.arange(F), held=["NOPE"])
     with pytest.raises(ValueError, match="stride"):
         leave_one_out(anny, sf, tpl, m, mocap.VideoClock(FPS), np.arange(F), stride=0)
+
+
+def test_refits_run_with_the_given_marker_fit_options(anny, capture):
+    """The refits use the options passed (the recipe's stages.marker_fit): ``max_frames``
+    limits the frames fitted, and a pose prior weighted to pin the pose at zero makes the
+    held-out markers far worse than the default options do."""
+    from fitting.marker_fit import MarkerFitOptions
+
+    betas, tpl, m = capture
+    sf = to_shape_fit(betas, tpl, "given", "given")
+    r = leave_one_out(anny, sf, tpl, m, mocap.VideoClock(FPS), np.arange(F), held=HELD[:2],
+                      opts=MarkerFitOptions(max_frames=8), stride=1)
+    assert r["fitted_frames"] == 8 and r["per_marker"][HELD[0]]["frames"] == 8
+    assert r["median_mm"] < 5.0
+    stiff = leave_one_out(anny, sf, tpl, m, mocap.VideoClock(FPS), np.arange(F), held=HELD[:2],
+                          opts=MarkerFitOptions(max_frames=8, weights={"L_theta": 10.0}),
+                          stride=1)
+    assert stiff["median_mm"] > 3 * r["median_mm"], (stiff["median_mm"], r["median_mm"])

@@ -7,12 +7,16 @@ did not see.
 
 Keys, per capture ``<tag>`` (``pycgm_movement``, ``ktk_serve``, ``ktk2_derrick``,
 ``ktk2_viktor``, ``cmu_walk``, ``opensim_jogging``):
-- ``real.<tag>.residual_median_mm`` / ``residual_p90_mm``: marker residuals over all
-  marker-frames of the valid frames;
+- ``real.<tag>.residual_median_mm`` / ``residual_p90_mm`` / ``residual_max_mm``: marker
+  residuals over all marker-frames of the valid frames;
 - ``real.<tag>.loo_median_mm`` / ``loo_p90_mm``: each marker predicted by a fit without it;
 - ``real.<tag>.fps_per_cpu_s``: marker_fit frames per CPU-second;
 - ``real.<tag>.frames_valid_share``: valid frames / C3D samples (all frames: goal 1);
-- ``real.<tag>.warnings``: how many warnings the marker_fit report gives.
+- ``real.<tag>.warnings``: how many warnings the marker_fit report gives;
+- ``real.<tag>.cleaned_runs`` / ``cleaned_samples`` / ``cleaned_frames`` /
+  ``unswapped_samples``: what the capture cleaning (``fitting.marker_clean.clean_markers``,
+  the marker_fit report's ``cleaned``) repaired: runs removed or un-swapped, marker samples
+  removed, capture frames touched by any run, samples un-swapped.
 And the C3D format suite (the same capture by DEC, PC and SGI processors, int and real):
 ``real.c3d_suite_files_read`` (of 6) and ``real.c3d_suite_max_diff_mm`` (largest coordinate
 difference from ``pc_real``).
@@ -34,7 +38,9 @@ LIMITS = {}
 for _t in TAGS.values():
     GOALS.update({f"real.{_t}.residual_median_mm": ("<=", 2.5),
                   f"real.{_t}.residual_p90_mm": ("<=", 6.0),
+                  f"real.{_t}.residual_max_mm": ("<=", 15.0),
                   f"real.{_t}.loo_median_mm": ("<=", 9.0),
+                  f"real.{_t}.loo_p90_mm": ("<=", 25.0),
                   f"real.{_t}.fps_per_cpu_s": (">=", 100.0),
                   f"real.{_t}.frames_valid_share": ("==", 1.0)})
 GOALS["real.c3d_suite_files_read"] = ("==", 6.0)
@@ -105,6 +111,21 @@ def _suite() -> dict[str, float]:
     return {"real.c3d_suite_files_read": float(read), "real.c3d_suite_max_diff_mm": diff}
 
 
+def cleaning_counts(cleaned: dict | None) -> dict[str, float]:
+    """What the capture cleaning repaired, from its report (``CleanReport.to_json``): runs,
+    removed samples, frames touched by a run (union of their sample ranges), un-swapped
+    samples."""
+    cleaned = cleaned or {}
+    runs = cleaned.get("runs") or []
+    touched: set[int] = set()
+    for r in runs:
+        touched.update(range(int(r["first_sample"]), int(r["last_sample"]) + 1))
+    return {"cleaned_runs": float(len(runs)),
+            "cleaned_samples": float(cleaned.get("removed_samples") or 0),
+            "cleaned_frames": float(len(touched)),
+            "unswapped_samples": float(sum((cleaned.get("unswapped") or {}).values()))}
+
+
 def run(work: Path) -> dict[str, float]:
     from artifacts import BodyFit
     from pipeline.cli import main
@@ -129,6 +150,8 @@ def run(work: Path) -> dict[str, float]:
         mm = fit.marker_residual_m[fit.valid] * 1000
         out[f"real.{tag}.residual_median_mm"] = float(np.nanmedian(mm))
         out[f"real.{tag}.residual_p90_mm"] = float(np.nanpercentile(mm, 90))
+        out[f"real.{tag}.residual_max_mm"] = float(np.nanmax(mm))
+        out.update({f"real.{tag}.{k}": v for k, v in cleaning_counts(rep.get("cleaned")).items()})
         out[f"real.{tag}.fps_per_cpu_s"] = float(rep["fps_per_cpu_s"])
         out[f"real.{tag}.frames_valid_share"] = float(fit.valid.mean())
         out[f"real.{tag}.warnings"] = float(len(rep["warnings"]))
