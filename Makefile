@@ -18,7 +18,23 @@ EXECUTOR ?=
 CLUSTER ?=
 SCHEDULER ?=
 WORKERS ?=
-DASK_ARGS = $(if $(EXECUTOR),--executor $(EXECUTOR),) $(if $(CLUSTER),--cluster $(CLUSTER),) $(if $(SCHEDULER),--scheduler $(SCHEDULER),) $(if $(WORKERS),--workers $(WORKERS),)
+# Every user variable reaches the recipes verbatim, through the environment: `override X :=
+# $(value X)` keeps make from expanding it, and the recipe lines only say "$$X" (quoted), so no
+# value is ever read as make or shell syntax (`make sequence SEQ='x`touch y`'` runs nothing).
+USER_VARS := RECIPE SEQ STAGE FORCE OUT SEED FRAMES SCENARIOS MARKERS STRIDE PRED GT EXECUTOR CLUSTER SCHEDULER WORKERS
+$(foreach v,$(USER_VARS),$(eval override $(v) := $$(value $(v))))
+export $(USER_VARS)
+# bash arrays of the optional arguments, built from those variables (FORCE: words, no globbing)
+ARGS = force=(); read -ra _w <<< "$$FORCE"; for _s in "$${_w[@]}"; do force+=(--force "$$_s"); done; \
+  until=(); [ -z "$$STAGE" ] || until=(--until "$$STAGE"); \
+  dask=(); [ -z "$$EXECUTOR" ] || dask+=(--executor "$$EXECUTOR"); \
+  [ -z "$$CLUSTER" ] || dask+=(--cluster "$$CLUSTER"); \
+  [ -z "$$SCHEDULER" ] || dask+=(--scheduler "$$SCHEDULER"); \
+  [ -z "$$WORKERS" ] || dask+=(--workers "$$WORKERS"); \
+  loo=(); [ -z "$$MARKERS" ] || loo+=(--set "marker_loo.markers=[$$MARKERS]"); \
+  [ -z "$$STRIDE" ] || loo+=(--set "marker_loo.stride=$$STRIDE"); \
+  studio=(); [ -z "$$FRAMES" ] || studio+=(--frames "$$FRAMES"); \
+  [ -z "$$SCENARIOS" ] || studio+=(--scenarios "$$SCENARIOS");
 export PYTHONPATH := $(CURDIR)
 export ANNY_CACHE_DIR ?= $(CURDIR)/assets/cache/anny
 
@@ -28,40 +44,40 @@ setup:
 	@bash scripts/setup.sh
 
 demo: setup
-	@$(PY) -m pipeline demo --recipe $(RECIPE) $(foreach f,$(FORCE),--force $(f))
+	@$(ARGS) $(PY) -m pipeline demo --recipe "$$RECIPE" "$${force[@]}"
 	@# the session stages over every sequence: qa, the release, the QA index, the benchmark
-	@$(PY) -m pipeline release --recipe $(RECIPE) $(DASK_ARGS)
-	@$(PY) -m evaluate.session --recipe $(RECIPE)
+	@$(ARGS) $(PY) -m pipeline release --recipe "$$RECIPE" "$${dask[@]}"
+	@$(PY) -m evaluate.session --recipe "$$RECIPE"
 
 sequence: setup
-	@test -n "$(SEQ)" || { echo "usage: make sequence SEQ=<subject>/<action> [RECIPE=...]"; exit 2; }
-	@$(PY) -m pipeline sequence "$(SEQ)" --recipe $(RECIPE) $(if $(STAGE),--until $(STAGE),) $(foreach f,$(FORCE),--force $(f))
+	@test -n "$$SEQ" || { echo "usage: make sequence SEQ=<subject>/<action> [RECIPE=...]"; exit 2; }
+	@$(ARGS) $(PY) -m pipeline sequence "$$SEQ" --recipe "$$RECIPE" "$${until[@]}" "$${force[@]}"
 
 loo: setup
-	@test -n "$(SEQ)" || { echo "usage: make loo SEQ=<group>/<action> [RECIPE=...] [MARKERS=RELB,RWRA] [STRIDE=2]"; exit 2; }
-	@$(PY) -m pipeline sequence "$(SEQ)" --recipe $(RECIPE) --until marker_loo $(if $(MARKERS),--set "marker_loo.markers=[$(MARKERS)]",) $(if $(STRIDE),--set marker_loo.stride=$(STRIDE),) $(foreach f,$(FORCE),--force $(f))
+	@test -n "$$SEQ" || { echo "usage: make loo SEQ=<group>/<action> [RECIPE=...] [MARKERS=RELB,RWRA] [STRIDE=2]"; exit 2; }
+	@$(ARGS) $(PY) -m pipeline sequence "$$SEQ" --recipe "$$RECIPE" --until marker_loo "$${loo[@]}" "$${force[@]}"
 
 release: setup
-	@$(PY) -m pipeline release --recipe $(RECIPE) $(if $(STAGE),--until $(STAGE),) $(foreach f,$(FORCE),--force $(f)) $(DASK_ARGS)
-	@$(PY) -m evaluate.session --recipe $(RECIPE)
+	@$(ARGS) $(PY) -m pipeline release --recipe "$$RECIPE" "$${until[@]}" "$${force[@]}" "$${dask[@]}"
+	@$(PY) -m evaluate.session --recipe "$$RECIPE"
 
 # the job script a SLURM/PBS cluster configuration submits (printed, not submitted)
 cluster-script: setup
-	@test -n "$(CLUSTER)" || { echo "usage: make cluster-script CLUSTER=recipes/cluster/slurm.yaml"; exit 2; }
-	@$(PY) -m pipeline cluster-script --cluster $(CLUSTER)
+	@test -n "$$CLUSTER" || { echo "usage: make cluster-script CLUSTER=recipes/cluster/slurm.yaml"; exit 2; }
+	@$(PY) -m pipeline cluster-script --cluster "$$CLUSTER"
 
 # make evaluate RECIPE=...: the recipe's release scored against its ground truth (stages.evaluate.truth);
 # make evaluate PRED=dir GT=dir: any two folders in the CHI3D layout
 evaluate: setup
-	@if [ -n "$(PRED)" ]; then $(PY) -m evaluate "$(PRED)" "$(GT)"; else \
-	  $(PY) -m pipeline release --recipe $(RECIPE) --until evaluate $(foreach f,$(FORCE),--force $(f)) && \
-	  $(PY) -m evaluate.session --recipe $(RECIPE); fi
+	@$(ARGS) if [ -n "$$PRED" ]; then $(PY) -m evaluate "$$PRED" "$$GT"; else \
+	  $(PY) -m pipeline release --recipe "$$RECIPE" --until evaluate "$${force[@]}" && \
+	  $(PY) -m evaluate.session --recipe "$$RECIPE"; fi
 
 status: setup
-	@$(PY) -m pipeline status --recipe $(RECIPE)
+	@$(PY) -m pipeline status --recipe "$$RECIPE"
 
 studio: setup
-	@$(PY) -m studio --out $(OUT) --seed $(SEED) $(if $(FRAMES),--frames $(FRAMES),) $(if $(SCENARIOS),--scenarios $(SCENARIOS),)
+	@$(ARGS) $(PY) -m studio --out "$$OUT" --seed "$$SEED" "$${studio[@]}"
 
 # setup plus Debian's chromium (headless; the HTML report tests render with it)
 browser:

@@ -12,7 +12,14 @@ from pathlib import Path
 
 
 class InputError(ValueError):
-    """Bad input: ``file``, ``field``, optional ``frame`` and what is wrong."""
+    """Bad input: ``file``, ``field``, optional ``frame`` and what is wrong.
+
+    ``input_error = True`` is the engine's convention for bad data (``pipeline.engine.
+    is_input_error``, duck-typed: ``formats`` imports no engine): raised inside a stage it
+    fails the node with this one-line message and no traceback, and the CLI exits with 2.
+    """
+
+    input_error = True
 
     def __init__(self, file: str | Path, field: str, msg: str, frame: int | None = None):
         self.file = str(file)
@@ -23,6 +30,9 @@ class InputError(ValueError):
         if frame is not None:
             where += f" [frame {frame}]"
         super().__init__(f"{where}: {msg}")
+
+    def __reduce__(self):  # picklable across worker processes (args hold only the message)
+        return (type(self), (self.file, self.field, self.msg, self.frame))
 
 
 def expect_shape(x, spec: str, name: str, file: str | Path = "<memory>", frame: int | None = None):

@@ -23,7 +23,13 @@ error) and the file holding their full tracebacks.
 ``--outputs`` (default ``$PIPELINE_OUTPUTS`` or ``outputs``) is the artifact store root.
 
 Exit codes: 0 done (planned-but-unimplemented stages are reported, not failures), 1 a stage
-failed, 2 bad command, recipe, registry or input file.
+failed on a bug (its traceback is logged), 2 bad command, recipe, registry or input file. Every
+problem of the recipe is reported in one run, one line each, before anything runs: the schema's
+(every field), missing files, unknown stages and stage options, bad option values, the
+registry's checks (videos); ``status`` too. A stage that raises bad data while it runs (an
+exception with ``input_error = True``: ``formats.errors.InputError``) fails its node with that
+one line (``path: field [frame N]: what is wrong``), no traceback, no artifact; the run ends
+with exit code 2 when no stage failed on a bug.
 """
 from __future__ import annotations
 
@@ -165,9 +171,16 @@ def engine_spec(args) -> EngineSpec:
         until=getattr(args, "until", None), force=tuple(getattr(args, "force", []) or []))
 
 
-def build_engine(spec: EngineSpec, log=stderr_log, prepare: bool = False) -> Engine:
+def build_engine(spec: EngineSpec, log=stderr_log, prepare: bool = False,
+                 gather: bool = False) -> Engine:
     """The engine of ``spec``: its registry (with the ``--set`` overrides), its recipe loaded
-    (after ``Registry.prepare`` when ``prepare``). CliError for a bad registry or recipe."""
+    (after ``Registry.prepare`` when ``prepare``). CliError for a bad registry or recipe.
+
+    gather : a recipe that loads with problems but whose loader hands back the part it could
+        check (the error's ``recipe`` attribute; ``problems`` its lines) gives an engine of that
+        partial recipe with ``engine.recipe_problems`` set (``Engine.check`` reports them with
+        the later checks' problems, so all come out in one run; nothing may run). Without
+        ``gather``, or with no partial recipe: CliError with the problems."""
     reg = load_registry(spec.registry)
     extra = overrides(list(spec.overrides))
     if extra:
@@ -186,18 +199,29 @@ def build_engine(spec: EngineSpec, log=stderr_log, prepare: bool = False) -> Eng
             raise CliError(f"preparing {recipe_path}: {e}") from None
     if not recipe_path.is_file():
         raise CliError(f"{recipe_path}: recipe not found")
+    problems: list[str] = []
     try:
         recipe = reg.load_recipe(recipe_path)
     except (ValueError, OSError) as e:  # RecipeError / InputError are ValueErrors
-        raise CliError(str(e)) from None
-    return Engine(reg, recipe, recipe_path, Path(spec.outputs), log=log, spec=spec)
+        partial = getattr(e, "recipe", None)
+        if not gather or partial is None:
+            raise CliError(str(e)) from None
+        recipe = partial
+        problems = [str(p) for p in (getattr(e, "problems", None) or str(e).splitlines())]
+    eng = Engine(reg, recipe, recipe_path, Path(spec.outputs), log=log, spec=spec)
+    if problems:
+        from pipeline.hashing import FileHasher
+
+        eng.recipe_problems = problems
+        eng.hasher = FileHasher()  # nothing will run: write nothing under outputs/ either
+    return eng
 
 
 def _load(args, log, prepare: bool):
     spec = engine_spec(args)
     # messages name the recipe as given; the workers get the absolute path
     eng = build_engine(dataclasses.replace(spec, recipe=args.recipe, outputs=args.outputs),
-                       log=log, prepare=prepare)
+                       log=log, prepare=prepare, gather=True)
     eng.spec = spec
     return eng
 
@@ -211,6 +235,8 @@ def _main(args, log) -> int:
     if args.command == "status":
         eng = _load(args, log, prepare=False)
         plan = eng.plan("status", until=args.until)
+        if eng.recipe_problems:  # a partial recipe: its table would mislead
+            _stop(eng.check(plan), "nothing was checked further")
         rows = eng.status(plan)
         w = max([len(r.unit) for r in rows] + [4])
         print(f"{eng.store.root}  ({args.recipe})")
@@ -221,19 +247,23 @@ def _main(args, log) -> int:
         for r in rows:
             counts[r.state] = counts.get(r.state, 0) + 1
         print(", ".join(f"{v} {k}" for k, v in counts.items()))
+        _stop(eng.check(plan), "they must be fixed before a run")
         return 0
 
     eng = _load(args, log, prepare=True)
     if args.command == "sequence":
-        plan = eng.plan("sequence", sequences=args.sequences, until=args.until)
+        seqs = args.sequences
+        if eng.recipe_problems:  # a sequence with problems may be left out of the partial
+            known = set(eng.registry.units(eng.recipe, "sequence"))  # recipe: check the rest
+            seqs = [q for q in seqs if q in known]
+            if not seqs:
+                _stop(eng.recipe_problems, "nothing was run")
+        plan = eng.plan("sequence", sequences=seqs, until=args.until)
     elif args.command == "release":
         plan = eng.plan("release", until=args.until)
     else:
         plan = eng.plan("demo", until=args.until)
-    problems = eng.check(plan)
-    if problems:
-        raise CliError(f"{len(problems)} problem(s) in the recipe or its inputs; nothing was run:\n"
-                       + "\n".join(problems))
+    _stop(eng.check(plan), "nothing was run")
     kind = executor_kind(args)
     if kind == "dask":
         report = _run_dask(eng, plan, args, log)
@@ -243,12 +273,21 @@ def _main(args, log) -> int:
     if report.failed:
         from datetime import datetime
 
-        tb = report.write_failures(eng.store.root / ".failures"
-                                   / f"{datetime.now():%Y%m%d-%H%M%S}-{os.getpid()}.txt")
+        tb = None
+        if report.bugs:  # bad input alone has no traceback to keep
+            tb = report.write_failures(eng.store.root / ".failures"
+                                       / f"{datetime.now():%Y%m%d-%H%M%S}-{os.getpid()}.txt")
         log(report.failure_table(tb))
     if args.command == "demo":
         print(where_to_look(eng, report))
-    return 1 if report.failed else 0
+    return report.exit_code()
+
+
+def _stop(problems: list[str], what: str) -> None:
+    """CliError (exit code 2) listing ``problems`` one per line, if there are any."""
+    if problems:
+        raise CliError(f"{len(problems)} problem(s) in the recipe or its inputs; {what}:\n"
+                       + "\n".join(problems))
 
 
 def executor_kind(args) -> str:
@@ -327,5 +366,5 @@ def where_to_look(eng: Engine, report: RunReport) -> str:
                      + ", ".join(skipped) + ".")
     failed = sorted({f"{s} [{u}]" for (s, u), o in report.outcomes.items() if o.status == "failed"})
     if failed:
-        lines.append("FAILED: " + ", ".join(failed) + " (tracebacks above).")
+        lines.append("FAILED: " + ", ".join(failed) + " (errors above).")
     return "\n".join(lines)

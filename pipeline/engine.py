@@ -42,6 +42,27 @@ def stderr_log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
+def is_input_error(exc: BaseException) -> bool:
+    """Bad data, not a bug: ``exc``'s class says ``input_error = True`` (the convention
+    ``formats.errors.InputError`` follows without importing the engine; its message names file,
+    field and frame). Raised inside a stage it fails the node with that one line, no traceback,
+    and the CLI exits with 2 instead of 1."""
+    return getattr(exc, "input_error", False) is True
+
+
+def drop_repeats(problems: list[str]) -> list[str]:
+    """``problems`` without repeats, and without the later ones that name a path an earlier one
+    reported as ``file not found: <path>`` (the recipe says it first; the planned raw inputs and
+    the registry's checks of the same file would only say it again)."""
+    gone = [p.split("file not found: ", 1)[1].strip() for p in problems if "file not found: " in p]
+    out: list[str] = []
+    for p in dict.fromkeys(problems):
+        if "file not found: " not in p and any(g and g in p for g in gone):
+            continue
+        out.append(p)
+    return out
+
+
 def make_progress(label: str, enabled: bool = True) -> Callable[..., Any]:
     """``progress(iterable, total=None, desc="")``: a tqdm bar on stderr, disabled (a plain
     pass-through) when stderr is not a terminal or ``enabled`` is False (a Dask worker: its
@@ -91,6 +112,15 @@ class RunReport:
     def failed(self) -> bool:
         return self.count("failed") > 0
 
+    @property
+    def bugs(self) -> int:
+        """Failed nodes that are not bad input (their detail is a traceback)."""
+        return sum(o.status == "failed" and not o.input_error for o in self.outcomes.values())
+
+    def exit_code(self) -> int:
+        """0 nothing failed, 1 a stage failed on a bug, 2 only on bad input files."""
+        return 1 if self.bugs else 2 if self.failed else 0
+
     def failures(self) -> list[tuple[str, str, str]]:
         """``(stage, unit, last line of the error)`` of every failed node, in plan order."""
         out = []
@@ -121,7 +151,7 @@ class RunReport:
         wu = max(len(r[1]) for r in rows + [("", "unit", "")])
         lines = [f"{len(rows)} FAILED:", f"  {'stage':<{ws}}  {'unit':<{wu}}  error",
                  *(f"  {s:<{ws}}  {u:<{wu}}  {e}" for s, u, e in rows)]
-        if traceback_file is not None:
+        if traceback_file is not None and self.bugs:
             lines.append(f"  full tracebacks: {traceback_file}")
         return "\n".join(lines)
 
@@ -220,6 +250,9 @@ class Engine:
         # run); a Dask worker sets it to min(Stage.cores, the worker's "cores" resource).
         self.cores_of: Callable[[Any], int] = lambda _stage: 0
         self.stage_bars = True  # per-frame bars of the stages (off on Dask workers)
+        # Problems found while loading the recipe (the CLI loads a partial recipe to check the
+        # rest too); check() reports them first.
+        self.recipe_problems: list[str] = []
 
     # -- planning ---------------------------------------------------------------------------
     def plan(self, command: str, sequences: list[str] | None = None,
@@ -239,17 +272,18 @@ class Engine:
                           self.hasher)
 
     def check(self, plan: Plan) -> list[str]:
-        """Every problem that stops ``plan`` from running, one message each, before anything
-        runs: the nodes' planning errors (bad stage options, missing raw files, unknown recipe
-        fields; deduplicated) and the registry's own checks of the recipe (``Registry.check``)
-        for the sequences of the plan."""
+        """Every problem that stops ``plan`` from running, one line each, before anything
+        runs: the problems of loading the recipe (``recipe_problems``), the nodes' planning
+        errors (bad stage options, missing raw files, unknown recipe fields; deduplicated) and
+        the registry's own checks of the recipe (``Registry.check``) for the sequences of the
+        plan (:func:`drop_repeats`: a missing file is named once)."""
         errs = [n.error for n in plan.nodes if n.error]
         roots = [e for e in errs if not e.startswith("upstream ")]  # the rest follow from these
-        out = list(dict.fromkeys(roots or errs))
+        out = list(self.recipe_problems) + list(dict.fromkeys(roots or errs))
         if self.registry.check is not None:
             seqs = sorted({n.unit for n in plan.nodes if n.stage.per == "sequence"})
             out += list(self.registry.check(self.recipe, self.recipe_path, seqs))
-        return list(dict.fromkeys(out))
+        return drop_repeats([ln for p in out for ln in str(p).splitlines() if ln.strip()])
 
     # -- running ----------------------------------------------------------------------------
     def run(self, plan: Plan, force: Iterable[str] = ()) -> RunReport:
@@ -274,7 +308,7 @@ class Engine:
     def _run_logged(self, node: Node, done: Mapping[NodeId, Outcome], force: bool) -> Outcome:
         t0 = time.perf_counter()
         o = self._run_node(node, done, force)
-        o = Outcome(o.status, time.perf_counter() - t0, o.detail)
+        o = dataclasses.replace(o, seconds=time.perf_counter() - t0)
         word = {"hit": "hit", "computed": "miss", "failed": "FAILED", "skipped": "skipped",
                 "planned": "not implemented"}[o.status]
         line = f"{datetime.now():%H:%M:%S}  {node.stage.name:<12} {node.unit:<16} {word:<6}"
@@ -284,7 +318,7 @@ class Engine:
             line += f" ({o.detail})"
         self.log(line)
         if o.status == "failed":
-            self.log(o.detail.rstrip())
+            self.log(f"error: {o.detail}" if o.input_error else o.detail.rstrip())
         return o
 
     def _run_node(self, node: Node, done: Mapping[NodeId, Outcome], force: bool,
@@ -431,6 +465,9 @@ class Engine:
             bad = _corrupt_cause(exc)
             if bad is not None and (bad.stage, bad.unit) in node.upstream_ids():
                 raise _UpstreamCorrupt(bad, _manifest_of(inputs, bad), traceback.format_exc()) from exc
+            if is_input_error(exc):  # bad data: its one line (file, field, frame), no traceback
+                return Outcome("failed", detail="; ".join(
+                    ln.strip() for ln in str(exc).splitlines() if ln.strip()), input_error=True)
             return Outcome("failed", detail=traceback.format_exc())
         seconds = time.perf_counter() - t0
         if self._packages is None:

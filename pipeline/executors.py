@@ -47,11 +47,15 @@ STATUSES = ("hit", "computed", "failed", "skipped", "planned")
 class Outcome:
     """What happened to one node. ``status``: ``hit`` (cached artifact reused), ``computed``,
     ``failed`` (``detail`` holds the traceback), ``skipped`` (an upstream is unavailable),
-    ``planned`` (the stage is not implemented). ``seconds``: wall time spent on the node."""
+    ``planned`` (the stage is not implemented). ``seconds``: wall time spent on the node.
+    ``input_error``: a ``failed`` node whose stage raised bad data (an exception with
+    ``input_error = True``, see :func:`pipeline.engine.is_input_error`): ``detail`` is then
+    its one-line message, not a traceback."""
 
     status: str
     seconds: float = 0.0
     detail: str = ""
+    input_error: bool = False
 
     @property
     def ok(self) -> bool:

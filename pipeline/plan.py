@@ -199,11 +199,14 @@ def validate_params(stage: Stage, raw: dict, where: str) -> tuple[Any, Any]:
         known = list(cls.model_fields)
     else:
         known = None
-    if known is not None:
-        for k in raw:
-            if k not in known:
-                raise PlanError(f"{where}.{k}: unknown parameter (known: {', '.join(known)})")
-    obj = _construct(cls, raw, where)
+    unknown = [f"{where}.{k}: unknown parameter (known: {', '.join(known)})"
+               for k in raw if known is not None and k not in known]
+    try:  # the known keys' problems too: every problem, one line each
+        obj = _construct(cls, {k: v for k, v in raw.items() if known is None or k in known}, where)
+    except PlanError as e:
+        raise PlanError("\n".join([*unknown, str(e)])) from None
+    if unknown:
+        raise PlanError("\n".join(unknown))
     return obj, _canon(obj, where)
 
 
@@ -228,11 +231,13 @@ def _construct(cls: type, raw: dict, where: str) -> Any:
             return adapter.validate_python(raw)
         return cls(**raw)
     except pydantic.ValidationError as e:
-        err = e.errors()[0]
-        loc = ".".join(str(p) for p in err["loc"])
-        got = err.get("input")
-        got_s = "" if isinstance(got, (dict, list)) else f", got {got!r}"
-        raise PlanError(f"{where}.{loc}: {err['msg']}{got_s}") from None
+        lines = []
+        for err in e.errors():
+            loc = ".".join(str(p) for p in err["loc"])
+            got = err.get("input")
+            got_s = "" if isinstance(got, (dict, list)) else f", got {got!r}"
+            lines.append(f"{where}.{loc}: {err['msg']}{got_s}")
+        raise PlanError("\n".join(lines)) from None
     except (TypeError, ValueError) as e:
         raise PlanError(f"{where}: {e}") from None
 

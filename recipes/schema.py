@@ -7,10 +7,18 @@ the recipe's folder. Every error names the recipe file and the field, e.g.
 ``recipes/s03.yaml: sequences.s03/Hug 1.c3d: file not found``.
 
 Sequence ids are ``"<group>/<action>"``: the group is the CHI3D subject folder (``s02``), the
-action has a space and a take number (``"Grab 4"``).
+action has a space and a take number (``"Grab 4"``). The session name, subject ids, groups and
+actions become folder and file names, so each must fit the file system's ``NAME_MAX`` (of the
+recipe's folder) with :data:`NAME_RESERVE` bytes to spare.
+
+:func:`load_recipe` reports every problem at once (schema errors of every field, unknown
+subjects and cameras, missing files, unknown stages, names too long), one line each, and hands
+the part it could still check (``RecipeError.recipe``) to the engine's later checks.
 """
 from __future__ import annotations
 
+import copy
+import os
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -22,8 +30,28 @@ Finite = Annotated[float, Field(allow_inf_nan=False)]
 Rate = Annotated[float, Field(gt=0, le=100_000, allow_inf_nan=False)]
 
 
+# Bytes the pipeline adds to a name in the longest file name it makes of it (the release's
+# ``<action>.json`` written through ``<action>.json.tmp``: 9), with room to spare.
+NAME_RESERVE = 16
+NAME_MAX_DEFAULT = 255  # when the file system does not say (os.pathconf)
+_PLACEHOLDER = {"session": "invalid-session", "subjects": {}, "sequences": {}}
+
+
 class RecipeError(ValueError):
-    """A recipe that can't be used; the message names the file and the field."""
+    """A recipe that can't be used; the message names the file and the field, one line per
+    problem (``problems``, the same lines).
+
+    ``recipe`` : None, or the part of the recipe that could still be checked (fields with schema
+        errors fall back to their defaults; a subject or sequence that can't be kept is left
+        out) so that the engine's checks (stage options, raw files, videos) report their
+        problems in the same run. Only for checking: a recipe with problems never runs.
+    """
+
+    def __init__(self, message: str | list[str], recipe: "Session | None" = None):
+        lines = [message] if isinstance(message, str) else list(message)
+        self.problems = [ln for m in lines for ln in str(m).splitlines() if ln.strip()]
+        self.recipe = recipe
+        super().__init__("\n".join(self.problems))
 
 
 class _Strict(BaseModel):
@@ -203,39 +231,179 @@ def _resolve_paths(obj: Any, base: Path) -> Any:
     return obj
 
 
-def _check_refs(s: Session, src: Path) -> None:
+def _ref_problems(s: Session, src: Path, tainted: dict[str, set[str]],
+                  gone: set[str]) -> tuple[list[str], set[str]]:
+    """The problems of references between fields (subjects, cameras), and the sequences that
+    have one. ``tainted``: the fields of each sequence (``"*"``: all; key ``""``: top-level
+    fields) whose schema errors were reported and dropped: checks that involve them would only
+    repeat those errors, so they say nothing (the sequence still counts as bad). ``gone``:
+    subject ids reported and dropped for their names."""
+    out: list[str] = []
+    bad: set[str] = set()
+    top = tainted.get("", set())
+
+    def problem(sid: str, fields: set[str], msg: str) -> None:
+        bad.add(sid)
+        t = tainted.get(sid, set())
+        if not ("*" in t or t & fields or ("cameras" in fields and "cameras" in top)):
+            out.append(f"{src}: {msg}")
+
+    no_cameras_said = False
     for sid, seq in s.sequences.items():
         if seq.markers_on == seq.partner:
-            raise RecipeError(f"{src}: sequences.{sid}.partner: the same subject as markers_on "
-                              f"({seq.partner!r})")
+            problem(sid, {"markers_on", "partner"}, f"sequences.{sid}.partner: the same subject "
+                    f"as markers_on ({seq.partner!r})")
         for role in ("markers_on", "partner"):
             who = getattr(seq, role)
             if who is not None and who not in s.subjects:
-                raise RecipeError(f"{src}: sequences.{sid}.{role}: unknown subject {who!r} "
-                                  f"(subjects: {', '.join(s.subjects)})")
+                if who in gone:
+                    bad.add(sid)
+                else:
+                    problem(sid, {role}, f"sequences.{sid}.{role}: unknown subject {who!r} "
+                            f"(subjects: {', '.join(s.subjects)})")
         if seq.partner is not None and not seq.videos:
-            raise RecipeError(f"{src}: sequences.{sid}.partner: the partner is fitted to the "
-                              "videos, and this sequence has none (videos)")
+            problem(sid, {"partner", "videos"}, f"sequences.{sid}.partner: the partner is fitted "
+                    "to the videos, and this sequence has none (videos)")
         for field_name in ("videos", "calibration"):
             cams = set(getattr(seq, field_name))
             if (cams or field_name == "calibration" and seq.videos) and cams != set(s.cameras):
-                raise RecipeError(
-                    f"{src}: sequences.{sid}.{field_name}: cameras {sorted(cams)} "
-                    f"do not match cameras {sorted(s.cameras)}"
-                )
+                problem(sid, {field_name, "videos", "cameras"},
+                        f"sequences.{sid}.{field_name}: cameras {sorted(cams)} "
+                        f"do not match cameras {sorted(s.cameras)}")
         if seq.videos and not s.cameras:
-            raise RecipeError(f"{src}: cameras: a sequence has videos ({sid}) but no camera is "
-                              "named")
+            if no_cameras_said:
+                bad.add(sid)
+            else:
+                problem(sid, {"videos", "cameras"}, f"cameras: a sequence has videos ({sid}) but "
+                        "no camera is named")
+                no_cameras_said = True
         if seq.keypoints is not None and not seq.videos:
-            raise RecipeError(f"{src}: sequences.{sid}.keypoints: keypoints need the videos "
-                              "and calibration of the cameras")
+            problem(sid, {"keypoints", "videos"}, f"sequences.{sid}.keypoints: keypoints need the "
+                    "videos and calibration of the cameras")
         if seq.keypoints is not None:
             extra = set(seq.keypoints) - set(s.cameras)
             if extra:
-                raise RecipeError(f"{src}: sequences.{sid}.keypoints: unknown cameras {sorted(extra)}")
+                problem(sid, {"keypoints", "cameras"},
+                        f"sequences.{sid}.keypoints: unknown cameras {sorted(extra)}")
             if seq.keypoints_format is None:
-                raise RecipeError(f"{src}: sequences.{sid}.keypoints_format: required when "
-                                  "keypoints are given (openpose or coco)")
+                problem(sid, {"keypoints", "keypoints_format"}, f"sequences.{sid}.keypoints_format: "
+                        "required when keypoints are given (openpose or coco)")
+    return out, bad
+
+
+def name_max(folder: Path) -> int:
+    """The longest file name (bytes) the file system of ``folder`` (or its nearest existing
+    parent) allows: ``os.pathconf(folder, "PC_NAME_MAX")``, else 255."""
+    folder = Path(folder).resolve()
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    try:
+        return int(os.pathconf(folder, "PC_NAME_MAX"))
+    except (OSError, ValueError):
+        return NAME_MAX_DEFAULT
+
+
+def _name_problem(kind: str, name: Any, limit: int) -> str:
+    """What is wrong with ``name`` as a folder or file name ("" when nothing)."""
+    if not isinstance(name, str):
+        return f"{kind} {name!r}: expected a string"
+    try:
+        _folder_name(kind, name)
+    except ValueError as e:
+        return str(e)
+    n = len(name.encode("utf-8", "surrogateescape"))
+    if n + NAME_RESERVE > limit:
+        return (f"name too long: {kind} {name[:40]!r}... is {n} bytes; this file system allows "
+                f"{limit} per file name (NAME_MAX) and the pipeline adds up to {NAME_RESERVE} "
+                f"(e.g. '.json.tmp'), so at most {limit - NAME_RESERVE}")
+    return ""
+
+
+def _check_names(raw: dict, src: Path, limit: int) -> tuple[list[str], set[str]]:
+    """The session name, subject ids and sequence ids of ``raw`` (edited in place: a bad one
+    is left out, a bad session name replaced): one problem each, and the subject ids left out.
+    Other layouts (not a string, not a mapping) are left to the schema."""
+    out: list[str] = []
+    sess = raw.get("session")
+    if isinstance(sess, str):
+        why = _name_problem("session", sess, limit)
+        if why:
+            out.append(f"{src}: session: {why}")
+            raw["session"] = _PLACEHOLDER["session"]
+    gone: set[str] = set()
+    subjects = raw.get("subjects")
+    if isinstance(subjects, dict):
+        for sid in list(subjects):
+            why = _name_problem("subject id", sid, limit)
+            if why:
+                out.append(f"{src}: subjects.{sid}: {why}")
+                del subjects[sid]
+                gone.add(sid)
+    seqs = raw.get("sequences")
+    if isinstance(seqs, dict):
+        for sid in list(seqs):
+            if not isinstance(sid, str) or sid.count("/") != 1:
+                why = f"sequence id {sid!r}: expected '<group>/<action>'"
+            else:
+                group, action = sid.split("/")
+                why = _name_problem("group", group, limit) or _name_problem("action", action, limit)
+            if why:
+                out.append(f"{src}: sequences.{sid}: {why}")
+                del seqs[sid]
+    return out, gone
+
+
+def _drop(raw: Any, loc: tuple) -> None:
+    """Remove the value at ``loc`` from ``raw`` (so its default applies), or the nearest
+    enclosing value that exists; a required top-level field gets a placeholder."""
+    if not loc:
+        return
+    if len(loc) == 1 and loc[0] in _PLACEHOLDER:
+        raw[loc[0]] = copy.deepcopy(_PLACEHOLDER[loc[0]])
+        return
+    if len(loc) == 2 and loc[0] == "subjects" and isinstance(raw.get("subjects"), dict):
+        raw["subjects"][loc[1]] = {}  # every subject field has a default: keep the subject
+        return
+    node = raw
+    for k in loc[:-1]:
+        try:
+            node = node[k]
+        except (KeyError, IndexError, TypeError):
+            return _drop(raw, loc[:-1])
+    key = loc[-1]
+    if isinstance(node, dict) and key in node:
+        del node[key]
+    elif isinstance(node, list) and isinstance(key, int) and 0 <= key < len(node):
+        del node[key]
+    else:
+        _drop(raw, loc[:-1])
+
+
+def _validate(raw: dict, src: Path) -> tuple[list[str], Session | None, dict[str, set[str]]]:
+    """The schema's problems of ``raw`` (every field, one line each), the Session of what is
+    left once the bad values are dropped (None if nothing usable is left), and the fields
+    dropped per sequence (see :func:`_ref_problems`)."""
+    problems: list[str] = []
+    tainted: dict[str, set[str]] = {}
+    raw = copy.deepcopy(raw)
+    for round_ in range(50):
+        try:
+            return problems, Session.model_validate(raw), tainted
+        except ValidationError as e:
+            if round_ == 0:
+                problems = _describe(e, src).splitlines()
+            def order(x):  # later list items first: the indices of the rest stay valid
+                return [(0, k) if isinstance(k, int) else (1, str(k)) for k in x["loc"]]
+
+            for err in sorted(e.errors(), key=order, reverse=True):
+                loc = tuple(err["loc"])
+                if loc[:1] == ("sequences",) and len(loc) > 1:
+                    tainted.setdefault(str(loc[1]), set()).add(str(loc[2]) if len(loc) > 2 else "*")
+                elif loc:
+                    tainted.setdefault("", set()).add(str(loc[0]))
+                missing = err["type"] == "missing" and not (len(loc) == 1 and loc[0] in _PLACEHOLDER)
+                _drop(raw, loc[:-1] if missing else loc)
+    return problems, None, tainted
 
 
 def input_files(s: Session) -> list[tuple[str, Path]]:
@@ -286,13 +454,18 @@ def _describe(e: ValidationError, path: Path) -> str:
     return "\n".join(lines)
 
 
-def load_recipe(path: str | Path, check_files: bool = True) -> Session:
+def load_recipe(path: str | Path, check_files: bool = True, stages: list[str] | None = None,
+                max_name: int | None = None) -> Session:
     """Read, validate and resolve a recipe (relative paths against the recipe's folder).
 
     check_files : also require every file the recipe names to exist.
-    Raises RecipeError naming the file and the field (one line per problem found by the
-    schema, e.g. ``recipes/x.yaml: sequences.s02/Grab 4.fps: Input should be a valid number,
-    got 'fast'``).
+    stages : the stage names a ``stages.<name>`` section may have (None: any).
+    max_name : the file system's longest file name in bytes (default :func:`name_max` of the
+        recipe's folder).
+    Raises RecipeError naming the file and the field, one line for every problem found (the
+    schema's, e.g. ``recipes/x.yaml: sequences.s02/Grab 4.fps: Input should be a valid number,
+    got 'fast'``, names, references, missing files, unknown stages), with ``recipe`` the part
+    of the recipe that can still be checked (see :class:`RecipeError`).
     """
     path = Path(path)
     if not path.is_file():
@@ -303,15 +476,23 @@ def load_recipe(path: str | Path, check_files: bool = True) -> Session:
         raise RecipeError(f"{path}: not valid YAML: {e}") from None
     if not isinstance(raw, dict):
         raise RecipeError(f"{path}: expected a mapping at the top level")
-    try:
-        s = Session.model_validate(raw)
-    except ValidationError as e:
-        raise RecipeError(_describe(e, path)) from None
-    _check_refs(s, path)
+    raw = copy.deepcopy(raw)
+    limit = max_name if max_name is not None else name_max(path.resolve().parent)
+    problems, gone = _check_names(raw, path, limit)
+    schema, s, tainted = _validate(raw, path)
+    problems += schema
+    if s is None:
+        raise RecipeError(problems)
+    refs, bad = _ref_problems(s, path, tainted, gone)
+    problems += refs
     s = _resolve_paths(s, path.resolve().parent)
     s = s.model_copy(update={"source": path})
     if check_files:
-        missing = missing_files(s)
-        if missing:
-            raise RecipeError("\n".join(f"{path}: {f}: file not found: {p}" for f, p in missing))
+        problems += [f"{path}: {f}: file not found: {p}" for f, p in missing_files(s)]
+    if stages is not None:
+        problems += [f"{path}: stages.{name}: unknown stage (known: {', '.join(stages)})"
+                     for name in s.stages if name not in stages]
+    if problems:
+        keep = {q: v for q, v in s.sequences.items() if q not in bad}
+        raise RecipeError(problems, recipe=s.model_copy(update={"sequences": keep}))
     return s

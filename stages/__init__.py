@@ -216,12 +216,7 @@ def stage_params(recipe: Session, stage: str) -> dict:
 
 def load(path: Path) -> Session:
     """``recipes.load_recipe`` plus: every ``stages.<name>`` section names a planned stage."""
-    r = load_recipe(path)
-    known = [p[0] for p in PLANNED]
-    for name in r.stages:
-        if name not in known:
-            raise RecipeError(f"{path}: stages.{name}: unknown stage (known: {', '.join(known)})")
-    return r
+    return load_recipe(path, stages=[p[0] for p in PLANNED])  # every problem in one RecipeError
 
 
 def prepare(recipe_path: Path, demo_recipe: Path = DEMO_RECIPE, repo: Path = REPO) -> None:

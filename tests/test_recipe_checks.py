@@ -109,3 +109,47 @@ def test_a_short_video_stops_the_run_with_its_name(tmp_path, capsys):
     assert code == 2
     assert "c3.mp4: frames: 2 frames" in out and f"{p}: sequences.g/X 1.videos" in out
     assert not list((tmp_path / "out").rglob("manifest.json"))
+
+
+def test_every_layer_of_problems_comes_out_in_one_run(tmp_path, capsys):
+    """Schema errors of several fields, a missing file, unknown and bad stage options, an unknown
+    stage, a name too long and the video check: one run, one line each, exit 2, nothing written."""
+    long_action = "A" * 300
+    p = _recipe(tmp_path, stages={"marker_fit": {"max_frames": -2, "bogus": 1}, "nostage": {}})
+    raw = yaml.safe_load(p.read_text())
+    q = raw["sequences"]["g/X 1"]
+    q["fps"] = "fast"  # schema: a field's value
+    q["vidoes"] = {}  # schema: an unknown key
+    raw["subjects"]["sb"]["sex"] = "other"  # schema: another entry
+    raw["subjects"]["sa"]["scan"] = "files/none.ply"  # a missing file beside them
+    raw["sequences"][f"g/{long_action}"] = {**{k: v for k, v in q.items() if k != "vidoes"},
+                                            "fps": 50.0}
+    p.write_text(yaml.safe_dump(raw, sort_keys=False))
+    out_dir = tmp_path / "out"
+    for command in (["release"], ["sequence", "g/X 1"], ["status"]):
+        code, out = _run([*command, "--recipe", str(p), "--outputs", str(out_dir)], capsys)
+        assert code == 2, (command, out)
+        lines = [ln for ln in out.splitlines() if ln.startswith(f"{p}: ")]
+        for want in ("sequences.g/X 1.fps: Input should be a valid number",
+                     "sequences.g/X 1.vidoes: unknown key", "subjects.sb.sex: Input should be",
+                     f"subjects.sa.scan: file not found: {tmp_path / 'files' / 'none.ply'}",
+                     f"sequences.g/{long_action}: name too long",
+                     "stages.marker_fit.bogus: unknown parameter", "stages.nostage: unknown stage",
+                     "sequences.g/X 1.videos: "):
+            assert sum(ln.startswith(f"{p}: {want}") for ln in lines) == 1, (command, want, out)
+        assert any(ln.startswith(f"{p}: stages.marker_fit") and "max_frames" in ln
+                   for ln in lines), out  # the bad value beside the unknown key of one stage
+        assert sum("none.ply" in ln for ln in lines) == 1, out  # said once, not per stage
+        assert len(lines) == len(set(lines)) == 9, out
+        assert not out_dir.exists(), command  # not even the file-hash memo
+
+
+def test_a_missing_file_is_named_once_and_the_run_stops(tmp_path, capsys):
+    p = _recipe(tmp_path, videos={"c1": "files/v.mp4", "c2": "files/gone.mp4", "c3": "files/v.mp4"})
+    code, out = _run(["sequence", "g/X 1", "--recipe", str(p), "--outputs", str(tmp_path / "o")],
+                     capsys)
+    assert code == 2
+    gone = str(tmp_path / "files" / "gone.mp4")
+    assert [ln for ln in out.splitlines() if gone in ln] == \
+        [f"{p}: sequences.g/X 1.videos.c2: file not found: {gone}"], out
+    assert "v.mp4" in out  # the other views are still checked

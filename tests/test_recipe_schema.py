@@ -2,6 +2,7 @@
 recipe file and the field; the stages registry interprets a recipe for the engine."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -117,7 +118,7 @@ def test_camera_mismatch_bad_ids_and_keypoints_without_format(tmp_path):
     msg = bad(tmp_path, lambda r: seq(r)["calibration"].pop("c2"))
     assert "sequences.s01/Grab 1.calibration: cameras ['c1'] do not match" in msg
     msg = bad(tmp_path, lambda r: r["sequences"].update({"noslash": r["sequences"]["s01/Grab 1"]}))
-    assert "sequences:" in msg and "'<group>/<action>'" in msg
+    assert "sequences.noslash: sequence id 'noslash'" in msg and "'<group>/<action>'" in msg
     msg = bad(tmp_path, lambda r: r.update(session="../up"))
     assert "session:" in msg
     msg = bad(tmp_path, lambda r: seq(r).update(keypoints={"c1": "data"}))
@@ -178,6 +179,7 @@ def test_registry_placeholders_match_the_architecture_table():
 
 FAKE_STUDIO = '''
 import sys
+import os
 from pathlib import Path
 assert sys.argv[1:] == ["--recipe-preset", "demo"], sys.argv
 Path("recipes").mkdir(exist_ok=True)
@@ -211,3 +213,77 @@ def test_prepare_runs_the_studio_only_when_demo_data_is_missing(tmp_path):
     (repo / "data" / "made.c3d").unlink()
     stages.prepare(demo, demo_recipe=demo, repo=repo)  # a file went missing: regenerated
     assert (repo / "calls.txt").read_text() == "called\ncalled\n"
+
+
+# -- every problem at once, names that fit the file system ----------------------------------------
+
+def test_every_problem_at_once_with_the_checkable_rest(tmp_path):
+    r = good(tmp_path)
+    seq(r)["fps"] = "fast"
+    seq(r)["contact"] = "data/gone.json"  # a missing file of the same sequence
+    r["subjects"]["b"]["sex"] = "other"
+    r["sequences"]["s01/Hug 2"] = {**seq(r), "fps": 25, "markers_on": "zed"}
+    r["camras"] = []
+    p = write(tmp_path, r)
+    with pytest.raises(RecipeError) as e:
+        load_recipe(p)
+    probs = e.value.problems
+    assert str(e.value).splitlines() == probs
+    assert all(x.startswith(f"{p}: ") for x in probs), probs
+    for want in ("sequences.s01/Grab 1.fps:", "subjects.b.sex:", "camras: unknown key",
+                 "sequences.s01/Hug 2.markers_on: unknown subject 'zed'",
+                 "sequences.s01/Grab 1.contact: file not found:",
+                 "sequences.s01/Hug 2.contact: file not found:"):
+        assert sum(f"{p}: {want}" in x for x in probs) == 1, (want, probs)
+    assert len(probs) == 6, probs
+    part = e.value.recipe  # what the engine can still check: the bad values at their defaults
+    assert list(part.sequences) == ["s01/Grab 1"]  # Hug 2 names no known subject: left out
+    assert part.sequence("s01/Grab 1").fps is None and part.subjects["b"].sex == "unknown"
+    assert part.sequence("s01/Grab 1").c3d.is_file() and part.source == p
+
+
+def test_schema_errors_do_not_repeat_as_reference_errors(tmp_path):
+    r = good(tmp_path)
+    r["cameras"] = ["c1", "c1"]  # repeated: dropped, so every camera check would fail too
+    seq(r)["markers_on"] = 7
+    with pytest.raises(RecipeError) as e:
+        load_recipe(write(tmp_path, r))
+    probs = e.value.problems
+    assert len(probs) == 2 and "cameras: Value error, camera ids repeat" in probs[0] + probs[1]
+    assert any("sequences.s01/Grab 1.markers_on: Input should be a valid string" in x
+               for x in probs), probs
+    r = good(tmp_path)
+    r["subjects"]["b"] = "not a mapping"  # kept with its defaults: no 'unknown subject b'
+    with pytest.raises(RecipeError) as e:
+        load_recipe(write(tmp_path, r))
+    assert len(e.value.problems) == 1 and "subjects.b:" in e.value.problems[0]
+    assert list(e.value.recipe.sequences) == ["s01/Grab 1"]
+
+
+def test_names_too_long_for_the_file_system(tmp_path):
+    from recipes.schema import NAME_RESERVE, name_max
+
+    limit = name_max(tmp_path)
+    assert limit == os.pathconf(tmp_path, "PC_NAME_MAX")
+    fits = "a" * (limit - NAME_RESERVE)
+    r = good(tmp_path)
+    r["subjects"][fits] = {}
+    r["sequences"][f"s01/{fits}"] = {**seq(r), "markers_on": fits}
+    assert load_recipe(write(tmp_path, r)).sequence(f"s01/{fits}")  # exactly at the limit
+    long = fits + "é"  # bytes count, not characters
+    r = good(tmp_path)
+    r["session"] = "s" * (limit + 1)
+    r["subjects"][long] = {}
+    r["sequences"][f"{long}/Grab 1"] = dict(seq(r))
+    r["sequences"][f"s01/{long}"] = {**seq(r), "markers_on": long}
+    p = write(tmp_path, r)
+    with pytest.raises(RecipeError) as e:
+        load_recipe(p)
+    probs = e.value.problems
+    assert [x.split(": name too long")[0] for x in probs] == [
+        f"{p}: session", f"{p}: subjects.{long}", f"{p}: sequences.{long}/Grab 1",
+        f"{p}: sequences.s01/{long}"], probs
+    assert all(f"{limit} per file name (NAME_MAX)" in x for x in probs)
+    assert list(e.value.recipe.sequences) == ["s01/Grab 1"]  # the rest is still checked
+    with pytest.raises(RecipeError, match=r"sequences.s01/Grab 1: name too long: action"):
+        load_recipe(write(tmp_path, good(tmp_path)), max_name=NAME_RESERVE + 5)
