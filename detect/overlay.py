@@ -9,10 +9,14 @@ from detect import layout
 
 #: RGB per person: marker wearer orange, partner cyan.
 PERSON_RGB = ((255, 140, 0), (0, 200, 255))
+#: drawn coordinates are clipped to this many pixels (a point far off the image, e.g. projected
+#: from a marker metres away, overflows OpenCV's fixed-point drawing otherwise)
+DRAW_LIMIT_PX = 100_000
 
 
 def _pt(xy) -> tuple[int, int]:
-    return int(round(float(xy[0]))), int(round(float(xy[1])))
+    x, y = (float(np.clip(v, -DRAW_LIMIT_PX, DRAW_LIMIT_PX)) for v in xy[:2])
+    return int(round(x)), int(round(y))
 
 
 def _rect(img, box, colour, thickness):
