@@ -117,3 +117,21 @@ def test_cli_exit_codes_and_messages(tmp_path):
                                        .replace("stages: {}", "stages: {detect: {fail: true}}"))
     r = run(tmp_path, "sequence", "g/x")
     assert r.returncode == 1 and "RuntimeError: detect: asked to fail" in r.stderr
+    assert "Traceback" in r.stderr  # a bug keeps its traceback (bad data: tests/test_errors_cli.py)
+
+
+def test_status_lists_the_table_then_every_problem_with_exit_2(tmp_path):
+    toy_registry.write_toy(tmp_path, {"scale": {"factor": "big"}, "fit": {"nope": 1}}, n_seq=2)
+    (tmp_path / "y.txt").unlink()
+    r = run(tmp_path, "status")
+    assert r.returncode == 2, r.stderr
+    assert any(ln.split()[:3] == ["detect", "g/y", "error"] for ln in r.stdout.splitlines())
+    assert any(ln.split()[:3] == ["detect", "g/x", "missing"] for ln in r.stdout.splitlines())
+    problems = r.stderr.split("they must be fixed before a run:\n")[1].splitlines()
+    assert len(problems) == 3, r.stderr  # one line each, the downstream "upstream ..." left out
+    assert any(p.startswith(f"{tmp_path / 'toy.yaml'}: stages.scale.factor:") for p in problems)
+    assert any(p.startswith(f"{tmp_path / 'toy.yaml'}: stages.fit.nope: unknown parameter")
+               for p in problems)
+    assert any(p.startswith(f"{tmp_path / 'y.txt'}: not found") for p in problems)
+    r = run(tmp_path, "sequence", "g/x")  # the same problems stop a run before anything runs
+    assert r.returncode == 2 and "nothing was run" in r.stderr and not counts(tmp_path)
