@@ -236,7 +236,7 @@ def _main(args, log) -> int:
         eng = _load(args, log, prepare=False)
         plan = eng.plan("status", until=args.until)
         if eng.recipe_problems:  # a partial recipe: its table would mislead
-            _stop(eng.check(plan), "nothing was checked further")
+            _stop(eng.check(plan), "no status until they are fixed")
         rows = eng.status(plan)
         w = max([len(r.unit) for r in rows] + [4])
         print(f"{eng.store.root}  ({args.recipe})")
