@@ -11,6 +11,12 @@ Only valid frames are ground truth. A frame that is not valid carries the code o
   previous frame give (held), not measured.
 
 Every later stage honours the mask, and reports say how many frames are not valid and why.
+
+Within a valid frame, a body part that no marker (and no keypoint) observed is not ground truth
+either: the optional ``observed (F, J)`` says per frame which joints of ``body_pose`` the
+frame's evidence observes (``fitting.marker_graph.observed_joints``; e.g. the arms and head of a
+lower-body marker set are never observed). Absent (the partner fit, older fits): every joint of
+a valid frame counts as observed.
 """
 from __future__ import annotations
 
@@ -50,6 +56,8 @@ class BodyFit(TypedArtifact):
     metres, NaN where not observed (and in frames held before the first marker);
     marker_weight (F, M) robust weight in [0, 1] (small = treated as an outlier), NaN likewise;
     visible (F, M) bool.
+    observed : optional (F, J) bool, the joints the frame's markers / keypoints observe (see
+    the module docstring); None = all.
     """
 
     KIND: ClassVar[str] = "body_fit"
@@ -67,6 +75,7 @@ class BodyFit(TypedArtifact):
         FieldSpec("marker_residual_m", "f", "F M", optional=True, doc="metres, NaN = not seen"),
         FieldSpec("marker_weight", "f", "F M", optional=True),
         FieldSpec("visible", "b", "F M", optional=True),
+        FieldSpec("observed", "b", "F J", optional=True, doc="joints observed per frame"),
     )
 
     body_pose: np.ndarray
@@ -80,6 +89,7 @@ class BodyFit(TypedArtifact):
     marker_residual_m: np.ndarray | None = None
     marker_weight: np.ndarray | None = None
     visible: np.ndarray | None = None
+    observed: np.ndarray | None = None
 
     @property
     def num_frames(self) -> int:
@@ -88,6 +98,14 @@ class BodyFit(TypedArtifact):
     @property
     def has_markers(self) -> bool:
         return self.marker_names is not None
+
+    def joints_observed(self) -> np.ndarray:
+        """(F, J) bool: ``observed`` and the frame valid (all joints where ``observed`` is
+        absent)."""
+        v = np.asarray(self.valid, bool)[:, None]
+        if self.observed is None:
+            return np.repeat(v, np.asarray(self.body_pose).shape[1], axis=1)
+        return np.asarray(self.observed, bool) & v
 
     def reasons(self) -> dict[str, int]:
         """Frames per reason code name (every name, ``fitted`` = the valid frames)."""

@@ -16,7 +16,12 @@ serves every shape of a model.
      "markers": [{"name": "LFHD", "face": 123, "bary": [0.2, 0.3, 0.5], "offset": 0.0095}, ...]}
 
 - ``place_markers(model, names, points)``: a set from 3D points on/near the rest surface of
-  betas 0 (closest surface point), e.g. a lab's own layout or after a shape fit.
+  betas 0 (closest surface point), e.g. a lab's own layout or after a shape fit;
+- ``plug_in_gait_lower(model)``: the 16 lower-body Plug-in Gait markers (``PLUG_IN_GAIT_LOWER_NAMES``);
+- ``segments_of(name | MarkerSet)``: the near-rigid segment groups (``{segment: marker names}``)
+  of a built-in set (``BUILTIN_SEGMENTS``) or of a set read from a file (its own ``segments``,
+  else the best-matching built-in groups restricted to its markers). The lab-writable format
+  ``markerset/2`` (markers named by anatomical landmark) is read by ``body.landmarks``.
 """
 from __future__ import annotations
 
@@ -53,16 +58,74 @@ CMU41_NAMES = (
     "LFHD", "RHEE", "RTOE", "RMT5", "RFHD", "LMT5", "LTOE", "RSHN",
 )  # fmt: skip
 
+#: The 16 lower-body markers of Plug-in Gait (its lower-body model).
+PLUG_IN_GAIT_LOWER_NAMES = (
+    "LASI", "RASI", "LPSI", "RPSI",
+    "LTHI", "LKNE", "LTIB", "LANK", "LHEE", "LTOE",
+    "RTHI", "RKNE", "RTIB", "RANK", "RHEE", "RTOE",
+)  # fmt: skip
+
+#: Near-rigid segment groups of the Vicon Plug-in Gait full-body set, for the marker cleaner
+#: (``fitting.marker_clean``; a marker may be in several: the knee marker sits near the knee
+#: axis, at a fixed distance from the thigh's and the shank's markers). Not grouped: the elbow
+#: marker with the forearm (elbow extension and pronation move it 3-5 cm relative to the wrist
+#: in the tennis serve) and RBAK (on the scapula: 4 cm relative to T10 when the arm rises).
+PLUG_IN_GAIT_SEGMENTS: dict[str, tuple[str, ...]] = {
+    "head": ("LFHD", "RFHD", "LBHD", "RBHD"),
+    "trunk": ("C7", "T10", "CLAV", "STRN"),
+    "pelvis": ("LASI", "RASI", "LPSI", "RPSI"),
+    **{f"{s}_{seg}": tuple(s + n for n in names) for s in "LR" for seg, names in (
+        ("upper_arm", ("SHO", "UPA", "ELB")),
+        ("forearm", ("FRM", "WRA", "WRB")),
+        ("hand", ("WRA", "WRB", "FIN")),
+        ("thigh", ("THI", "KNE")),
+        ("shank", ("KNE", "TIB", "ANK")),
+        ("foot", ("ANK", "HEE", "TOE")),
+    )},
+}
+#: The same for the CMU mocap database's 41-marker set (waist markers ~ ASIS/PSIS, shin, MT5).
+CMU41_SEGMENTS: dict[str, tuple[str, ...]] = {
+    "head": ("LFHD", "RFHD", "LBHD", "RBHD"),
+    "trunk": ("C7", "T10", "CLAV", "STRN"),
+    "pelvis": ("LFWT", "RFWT", "LBWT", "RBWT"),
+    **{f"{s}_{seg}": tuple(s + n for n in names) for s in "LR" for seg, names in (
+        ("upper_arm", ("SHO", "UPA", "ELB")),
+        ("forearm", ("FRM", "WRA", "WRB")),
+        ("hand", ("WRA", "WRB", "FIN")),
+        ("thigh", ("THI", "KNE")),
+        ("shank", ("KNE", "SHN", "ANK")),
+        ("foot", ("ANK", "HEE", "TOE", "MT5")),
+    )},
+}
+PLUG_IN_GAIT_LOWER_SEGMENTS: dict[str, tuple[str, ...]] = {
+    k: v for k, v in PLUG_IN_GAIT_SEGMENTS.items()
+    if set(v) <= set(PLUG_IN_GAIT_LOWER_NAMES)}
+#: Segment groups of every built-in set by its recipe name (Plug-in Gait first: the cleaner's
+#: best match on a tie).
+BUILTIN_SEGMENTS: dict[str, dict[str, tuple[str, ...]]] = {
+    "plug-in-gait": PLUG_IN_GAIT_SEGMENTS,
+    "cmu": CMU41_SEGMENTS,
+    "plug-in-gait-lower": PLUG_IN_GAIT_LOWER_SEGMENTS,
+}
+BUILTIN_NAMES: dict[str, tuple[str, ...]] = {
+    "plug-in-gait": PLUG_IN_GAIT_NAMES, "cmu": CMU41_NAMES,
+    "plug-in-gait-lower": PLUG_IN_GAIT_LOWER_NAMES,
+}
+
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class MarkerSet:
     """names: M names; faces: (M,) int64 face ids; bary: (M, 3) float64 (rows sum to 1);
-    offsets: (M,) float64 metres along the outward face normal."""
+    offsets: (M,) float64 metres along the outward face normal; segments: optional
+    ``{segment: marker names}`` near-rigid groups (a ``markerset/2`` file's, see
+    :func:`segments_of`); labels: optional ``{marker: the lab's C3D label}`` where they differ."""
 
     names: tuple[str, ...]
     faces: np.ndarray
     bary: np.ndarray
     offsets: np.ndarray
+    segments: dict | None = None
+    labels: dict | None = None
 
     def __post_init__(self):
         for f in ("faces", "bary", "offsets"):
@@ -76,22 +139,60 @@ class MarkerSet:
 
     def subset(self, names) -> MarkerSet:
         idx = [self.index(n) for n in names]
+        keep = set(names)
+        segs = None if self.segments is None else _restrict_groups(self.segments, keep)
+        labels = None if self.labels is None else {k: v for k, v in self.labels.items() if k in keep}
         return MarkerSet(tuple(names), self.faces[idx].copy(), self.bary[idx].copy(),
-                         self.offsets[idx].copy())
+                         self.offsets[idx].copy(), segs, labels)
 
     def with_offsets(self, offsets) -> MarkerSet:
         o = np.broadcast_to(np.asarray(offsets, dtype=float), (len(self),)).copy()
-        return MarkerSet(self.names, self.faces.copy(), self.bary.copy(), o)
+        return MarkerSet(self.names, self.faces.copy(), self.bary.copy(), o, self.segments,
+                         self.labels)
 
 
-def make_markerset(names, faces, bary, offsets=DEFAULT_OFFSET_M) -> MarkerSet:
+def _restrict_groups(groups, present) -> dict[str, tuple[str, ...]]:
+    """The groups restricted to the markers ``present``; groups left with < 2 are dropped."""
+    out = {}
+    for g, members in groups.items():
+        m = tuple(n for n in members if n in present)
+        if len(m) >= 2:
+            out[g] = m
+    return out
+
+
+def segments_of(markerset) -> dict[str, tuple[str, ...]]:
+    """Near-rigid segment groups ``{segment: marker names}`` of a marker set, for the marker
+    cleaner (``fitting.marker_clean.clean_markers(names_by_segment=)``).
+
+    markerset: a built-in set's recipe name (``BUILTIN_SEGMENTS``: ``plug-in-gait``, ``cmu``,
+    ``plug-in-gait-lower``) or a :class:`MarkerSet` (its own ``segments`` when it has them,
+    e.g. from a ``markerset/2`` file; else the built-in groups matching most of its names,
+    restricted to them). Groups left with fewer than 2 markers are dropped."""
+    if isinstance(markerset, str):
+        if markerset not in BUILTIN_SEGMENTS:
+            raise ValueError(f"markerset {markerset!r}: not a built-in set (known: "
+                             f"{', '.join(BUILTIN_SEGMENTS)})")
+        return dict(BUILTIN_SEGMENTS[markerset])
+    present = set(markerset.names)
+    if getattr(markerset, "segments", None) is not None:
+        return _restrict_groups(markerset.segments, present)
+    best = max(BUILTIN_SEGMENTS.values(),
+               key=lambda g: len(present & {n for v in g.values() for n in v}))
+    return _restrict_groups(best, present)
+
+
+def make_markerset(names, faces, bary, offsets=DEFAULT_OFFSET_M, segments=None,
+                   labels=None) -> MarkerSet:
     names = tuple(str(n) for n in names)
     faces = np.asarray(faces, dtype=np.int64).reshape(-1)
     bary = np.asarray(bary, dtype=float).reshape(-1, 3)
     offsets = np.broadcast_to(np.asarray(offsets, dtype=float), (len(names),)).copy()
     if not (len(names) == len(faces) == len(bary)):
         raise ValueError(f"markers: {len(names)} names, {len(faces)} faces, {len(bary)} bary rows")
-    return MarkerSet(names, faces.copy(), bary.copy(), offsets)
+    return MarkerSet(names, faces.copy(), bary.copy(), offsets,
+                     None if segments is None else {str(k): tuple(v) for k, v in segments.items()},
+                     None if labels is None else dict(labels))
 
 
 def marker_positions(vertices: np.ndarray, faces: np.ndarray, markerset: MarkerSet) -> np.ndarray:
@@ -188,8 +289,10 @@ def _barycentric(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
 
 
 def ray_surface(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, direction: np.ndarray,
-                max_dist: float = RAY_MAX_M):
-    """The farthest hit of a ray within ``max_dist`` (the skin, seen from inside the body).
+                max_dist: float = RAY_MAX_M, mode: str = "farthest"):
+    """The farthest hit of a ray within ``max_dist`` (the skin, seen from inside the body), or
+    with ``mode="first_exit"`` the nearest hit where the ray leaves the body (the face's
+    outward normal along the ray: a ray from a limb's axis towards the other limb or the trunk).
 
     Returns (face id, bary (3,)) or None (Moller-Trumbore over all faces)."""
     d = direction / np.linalg.norm(direction)
@@ -205,9 +308,13 @@ def ray_surface(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, dir
     w = (qv @ d) * inv
     t = (e2 * qv).sum(1) * inv
     hit = ok & (u >= 0) & (w >= 0) & (u + w <= 1) & (t > 0) & (t < max_dist)
+    if mode == "first_exit":
+        hit &= np.cross(e1, e2) @ d > 0  # leaving the body (outward normal along the ray)
+    elif mode != "farthest":
+        raise ValueError(f"mode: 'farthest' or 'first_exit', got {mode!r}")
     if not hit.any():
         return None
-    i = np.flatnonzero(hit)[np.argmax(t[hit])]
+    i = np.flatnonzero(hit)[np.argmin(t[hit]) if mode == "first_exit" else np.argmax(t[hit])]
     return int(i), np.array([1 - u[i] - w[i], u[i], w[i]])
 
 
@@ -315,7 +422,8 @@ def cmu41(model: BodyModel, offset: float = DEFAULT_OFFSET_M) -> MarkerSet:
     like :func:`plug_in_gait` (see ``_anny_cmu_rays``). Implemented for Anny."""
     if model.name != "anny":
         raise ValueError(f"CMU marker placement is defined for anny, not {model.name}")
-    return _place_by_rays(model, _anny_cmu_rays(model), CMU41_NAMES, offset, "cmu41")
+    ms = _place_by_rays(model, _anny_cmu_rays(model), CMU41_NAMES, offset, "cmu41")
+    return dataclasses.replace(ms, segments=dict(CMU41_SEGMENTS))
 
 
 def _place_by_rays(model, rays, names, offset, what) -> MarkerSet:
@@ -349,7 +457,16 @@ def plug_in_gait(model: BodyModel, offset: float = DEFAULT_OFFSET_M) -> MarkerSe
             raise RuntimeError(f"plug-in-gait: no surface hit for {n}")
         faces.append(hit[0])
         bary.append(hit[1])
-    return make_markerset(PLUG_IN_GAIT_NAMES, faces, bary, offset)
+    return make_markerset(PLUG_IN_GAIT_NAMES, faces, bary, offset,
+                          segments=PLUG_IN_GAIT_SEGMENTS)
+
+
+def plug_in_gait_lower(model: BodyModel, offset: float = DEFAULT_OFFSET_M) -> MarkerSet:
+    """The 16 lower-body Plug-in Gait markers (``PLUG_IN_GAIT_LOWER_NAMES``: pelvis, thighs,
+    knees, shanks, ankles, heels, toes) placed as :func:`plug_in_gait` places them; carries its
+    segment groups. Implemented for Anny."""
+    ms = plug_in_gait(model, offset).subset(PLUG_IN_GAIT_LOWER_NAMES)
+    return dataclasses.replace(ms, segments=dict(PLUG_IN_GAIT_LOWER_SEGMENTS))
 
 
 def hand_markers(model: BodyModel, offset: float = 0.006) -> MarkerSet:

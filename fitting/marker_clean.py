@@ -43,43 +43,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from body.markers import BUILTIN_SEGMENTS, CMU41_SEGMENTS, PLUG_IN_GAIT_SEGMENTS  # noqa: F401
 from formats.c3d import Markers
 
 REASONS = ("ghost", "spike", "swap", "implausible_speed")
 
-#: Near-rigid segment groups of the Vicon Plug-in Gait full-body set (a marker may be in
-#: several: the knee marker sits near the knee axis, at a fixed distance from the thigh's and
-#: the shank's markers). Not grouped: the elbow marker with the forearm (elbow extension and
-#: pronation move it 3-5 cm relative to the wrist in the tennis serve) and RBAK (on the
-#: scapula: 4 cm relative to T10 when the arm rises).
-PLUG_IN_GAIT_SEGMENTS: dict[str, tuple[str, ...]] = {
-    "head": ("LFHD", "RFHD", "LBHD", "RBHD"),
-    "trunk": ("C7", "T10", "CLAV", "STRN"),
-    "pelvis": ("LASI", "RASI", "LPSI", "RPSI"),
-    **{f"{s}_{seg}": tuple(s + n for n in names) for s in "LR" for seg, names in (
-        ("upper_arm", ("SHO", "UPA", "ELB")),
-        ("forearm", ("FRM", "WRA", "WRB")),
-        ("hand", ("WRA", "WRB", "FIN")),
-        ("thigh", ("THI", "KNE")),
-        ("shank", ("KNE", "TIB", "ANK")),
-        ("foot", ("ANK", "HEE", "TOE")),
-    )},
-}
-#: The same for the CMU mocap database's 41-marker set (waist markers ~ ASIS/PSIS, shin, MT5).
-CMU41_SEGMENTS: dict[str, tuple[str, ...]] = {
-    "head": ("LFHD", "RFHD", "LBHD", "RBHD"),
-    "trunk": ("C7", "T10", "CLAV", "STRN"),
-    "pelvis": ("LFWT", "RFWT", "LBWT", "RBWT"),
-    **{f"{s}_{seg}": tuple(s + n for n in names) for s in "LR" for seg, names in (
-        ("upper_arm", ("SHO", "UPA", "ELB")),
-        ("forearm", ("FRM", "WRA", "WRB")),
-        ("hand", ("WRA", "WRB", "FIN")),
-        ("thigh", ("THI", "KNE")),
-        ("shank", ("KNE", "SHN", "ANK")),
-        ("foot", ("ANK", "HEE", "TOE", "MT5")),
-    )},
-}
-MARKERSET_SEGMENTS = {"plug-in-gait": PLUG_IN_GAIT_SEGMENTS, "cmu": CMU41_SEGMENTS}
+#: Near-rigid segment groups of each built-in marker set (Plug-in Gait, CMU, Plug-in Gait
+#: lower body), defined with the sets in ``body.markers`` (``body.markers.segments_of`` gives
+#: them, and a ``markerset/2`` file's own groups, the same way).
+MARKERSET_SEGMENTS = BUILTIN_SEGMENTS
 
 
 @dataclass(frozen=True)
@@ -154,8 +126,9 @@ class CleanReport:
 
 
 def default_segments(names) -> dict[str, tuple[str, ...]]:
-    """The segment groups of the built-in marker set that ``names`` matches best (Plug-in Gait
-    or CMU), restricted to the markers present; groups left with < 2 markers are dropped."""
+    """The segment groups of the built-in marker set that ``names`` matches best (Plug-in Gait,
+    CMU or its lower body), restricted to the markers present; groups left with < 2 markers are
+    dropped."""
     present = set(names)
     best = max(MARKERSET_SEGMENTS.values(),
                key=lambda g: len(present & {n for v in g.values() for n in v}))

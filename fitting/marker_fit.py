@@ -32,11 +32,13 @@ from body.rotations import rodrigues, rotmat_to_rotvec
 from calib import camera_vector
 from fitting import compiled, lm, mocap, priors, skinned, terms
 from fitting.marker_graph import (
+    OBSERVED_WEIGHT,
     GraphSpec,
     MarkerGraph,
     Placement,
     body_joints,
     marker_coeffs,
+    observed_joints,
     placement_of,
     placement_support,
 )
@@ -386,9 +388,14 @@ def fit_markers(model, shape: ShapeFit, template: Placement, markers, clock: moc
     reason[:first] = REASON_CODE["held_before_first_marker"]
     reason[few] = REASON_CODE["too_few_markers"]
     body_pose, R, T = unpack(skel, model.num_joints, X)
+    # joints that no visible marker (no seen hand keypoint) moves are not ground truth
+    observed = observed_joints(
+        model, skel, skinned.points_support(Hm, OBSERVED_WEIGHT), vis,
+        skinned.support_of(hands[0], OBSERVED_WEIGHT) if hands else (),
+        (conf > 0).any(axis=1) if hands else None)
     out = BodyFit(body_pose=body_pose, global_orient=R, transl=T, betas=betas, frames=frames,
                   valid=reason == 0, invalid_reason=reason, marker_names=np.array(pl.names),
-                  marker_residual_m=res, marker_weight=wgt, visible=vis)
+                  marker_residual_m=res, marker_weight=wgt, visible=vis, observed=observed)
     mm = res * 1000
     with warnings.catch_warnings():  # a marker never seen: NaN statistics, no warning
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -401,6 +408,9 @@ def fit_markers(model, shape: ShapeFit, template: Placement, markers, clock: moc
                    if vis[:, i].any() else 0.0,
                    "visible": float(vis[:, i].mean())} for i, n in enumerate(pl.names)}
     reasons = out.reasons()
+    jobs = out.joints_observed()[:, model.fit_joints]
+    never = [model.joint_names[j] for j, o in zip(model.fit_joints, jobs.any(axis=0),
+                                                    strict=True) if not o]
     report = {
         "frames": F, "first_fitted_frame": first,
         "frames_valid": reasons["fitted"],
@@ -410,6 +420,9 @@ def fit_markers(model, shape: ShapeFit, template: Placement, markers, clock: moc
         "residual_mm": {"median": float(np.nanmedian(mm)), "p90": float(np.nanpercentile(mm, 90)),
                         "max": float(np.nanmax(mm))},
         "outlier_marker_frames": int(np.nansum(wgt < OUTLIER_WEIGHT)),
+        # fit joints x valid frames that no marker / keypoint observed (not ground truth)
+        "joint_frames_not_observed": int((~jobs[reason == 0]).sum()),
+        "joints_never_observed": never,
         "per_marker": per,
         "hands": bool(hands), "fitted_joints": list(skel.names),
         "prior": prior.source, "weights": dict(opts.weights),

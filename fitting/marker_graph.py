@@ -43,6 +43,7 @@ from geometry import face_normals
 
 # constants
 SUPPORT_RADIUS_M = 0.06  # a marker's graph support: joints skinning the surface this close
+OBSERVED_WEIGHT = 0.05  # a marker (keypoint, point) moves with the joints skinning it more
 
 
 # ---------------------------------------------------------------------------- markers
@@ -50,12 +51,16 @@ SUPPORT_RADIUS_M = 0.06  # a marker's graph support: joints skinning the surface
 
 @dataclass(frozen=True)
 class Placement:
-    """Markers on the surface: names (M,), face (M,) int, bary (M, 3), offset (M,) metres."""
+    """Markers on the surface: names (M,), face (M,) int, bary (M, 3), offset (M,) metres;
+    segments: the set's near-rigid groups (``body.markers.segments_of``) and labels: the lab's
+    C3D label per marker where it differs, when the set gives them."""
 
     names: tuple[str, ...]
     face: np.ndarray
     bary: np.ndarray
     offset: np.ndarray
+    segments: dict | None = None
+    labels: dict | None = None
 
     def points(self) -> skinned.SurfacePoints:
         """The markers as surface points (fitting/skinned.py)."""
@@ -63,7 +68,8 @@ class Placement:
 
     def markerset(self) -> body_markers.MarkerSet:
         """The placement as a ``body.markers.MarkerSet`` (for ``marker_positions``)."""
-        return body_markers.make_markerset(self.names, self.face, self.bary, self.offset)
+        return body_markers.make_markerset(self.names, self.face, self.bary, self.offset,
+                                           segments=self.segments, labels=self.labels)
 
 
 def marker_rest_points(rest_vertices: np.ndarray, faces: np.ndarray, pl: Placement) -> np.ndarray:
@@ -123,20 +129,85 @@ def placement_support(model: BodyModel, skel: skinned.FitSkeleton, template: Pla
 
 
 def template_placement(model: BodyModel, markerset) -> Placement:
-    """The template placement of a marker set on ``model``: ``"plug-in-gait"`` (the built-in
-    set, ``body.markers.plug_in_gait``), ``"cmu"`` (``body.markers.cmu41``) or a
-    ``body.markers.MarkerSet`` (read from its JSON file by the caller)."""
+    """The template placement of a marker set on ``model``: a built-in name
+    (``"plug-in-gait"``: ``body.markers.plug_in_gait``, ``"cmu"``: ``body.markers.cmu41``,
+    ``"plug-in-gait-lower"``: ``body.markers.plug_in_gait_lower``) or a
+    ``body.markers.MarkerSet`` (read from its file by the caller:
+    ``body.landmarks.load_markerset``). Carries the set's segment groups and labels."""
+    builtin = {"plug-in-gait": body_markers.plug_in_gait, "cmu": body_markers.cmu41,
+               "plug-in-gait-lower": body_markers.plug_in_gait_lower}
     if isinstance(markerset, body_markers.MarkerSet):
         ms = markerset
-    elif markerset == "plug-in-gait":
-        ms = body_markers.plug_in_gait(model)
-    elif markerset == "cmu":
-        ms = body_markers.cmu41(model)
+    elif isinstance(markerset, str) and markerset in builtin:
+        ms = builtin[markerset](model)
     else:
-        raise ValueError(f"markerset: expected 'plug-in-gait', 'cmu' or a MarkerSet read from "
-                         f"its .json file, got {markerset!r}")
+        raise ValueError(f"markerset: expected one of {', '.join(builtin)} or a MarkerSet read "
+                         f"from its .yaml/.yml/.json file, got {markerset!r}")
     return Placement(tuple(ms.names), np.asarray(ms.faces, np.int64), np.asarray(ms.bary, float),
-                     np.asarray(ms.offsets, float))
+                     np.asarray(ms.offsets, float), body_markers.segments_of(ms), ms.labels)
+
+
+def observed_joints(model: BodyModel, skel: skinned.FitSkeleton, marker_support, visible,
+                    keypoint_support=(), keypoint_seen=None) -> np.ndarray:
+    """(F, J) bool: per frame, the model joints (``body_pose``'s J) the frame's evidence
+    observes. A fitted joint (slot of ``skel``) is observed when a visible marker
+    (``visible (F, M)``) or a seen keypoint (``keypoint_seen (F, K)``) moves with it: the slot
+    is in the point's support (``marker_support`` / ``keypoint_support``, slot indices, e.g.
+    ``skinned.points_support(Hm, OBSERVED_WEIGHT)``). A joint the fit does not solve rides
+    with its fitted ancestor (``skel.owner``), except the joints a pose fit solves
+    (``model.fit_joints``) that this one held at pose 0 (the fingers without hand keypoints):
+    never observed."""
+    vis = np.asarray(visible, bool)
+    F, Q = len(vis), len(skel.joints)
+    A = np.zeros((len(marker_support), Q), bool)
+    for m, sup in enumerate(marker_support):
+        A[m, list(sup)] = True
+    slot = (vis.astype(np.int64) @ A) > 0  # (F, Q)
+    if keypoint_seen is not None and len(keypoint_support):
+        B = np.zeros((len(keypoint_support), Q), bool)
+        for k, sup in enumerate(keypoint_support):
+            B[k, list(sup)] = True
+        slot |= (np.asarray(keypoint_seen, bool).astype(np.int64) @ B) > 0
+    out = slot[:, np.asarray(skel.owner)] if F else np.zeros((0, len(skel.owner)), bool)
+    held = sorted(set(int(j) for j in model.fit_joints) - set(int(j) for j in skel.joints))
+    out[:, held] = False
+    return out
+
+
+def point_joints(model: BodyModel, R, tol: float = OBSERVED_WEIGHT) -> list[tuple[int, ...]]:
+    """Per row of a regressor ``R (K, V + J)`` acting on posed vertices stacked with posed joints
+    (``body.joints.regressor``): the model joints its point depends on: the joints skinning its
+    vertices by more than ``tol``, and for a joint centre (bone head) the parent bone that
+    carries it (the root itself)."""
+    R = sp.csr_matrix(R)
+    V = model.num_vertices
+    W = sp.csr_matrix(model.weights)
+    par = np.asarray(model.parents)
+    out = []
+    for k in range(R.shape[0]):
+        cols = R.indices[R.indptr[k]:R.indptr[k + 1]]
+        vals = np.abs(R.data[R.indptr[k]:R.indptr[k + 1]])
+        js = set()
+        vc = cols[cols < V]
+        if len(vc):
+            w = np.asarray((sp.csr_matrix((vals[cols < V], (np.zeros(len(vc), int), vc)),
+                                          shape=(1, V)) @ W).todense()).ravel()
+            w /= max(w.sum(), 1e-12)
+            js.update(int(j) for j in np.flatnonzero(w > tol))
+        for j in cols[cols >= V] - V:
+            js.add(int(par[j]) if par[j] >= 0 else int(j))
+        out.append(tuple(sorted(js)))
+    return out
+
+
+def observed_points(model: BodyModel, R, observed: np.ndarray,
+                    tol: float = OBSERVED_WEIGHT) -> np.ndarray:
+    """(F, K) bool: the regressed points (``R (K, V + J)``, e.g. ``joints3d_25``) whose every
+    joint (:func:`point_joints`) is observed (``observed (F, J)``, ``BodyFit.observed``)."""
+    obs = np.asarray(observed, bool)
+    deps = point_joints(model, R, tol)
+    return np.stack([obs[:, list(d)].all(axis=1) if d else np.ones(len(obs), bool)
+                     for d in deps], axis=1)
 
 
 def placement_of(shape: ShapeFit) -> Placement:

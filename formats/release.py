@@ -4,7 +4,10 @@
   int}``: which person-frames are ground truth (fitted from evidence, reason ``"fitted"``)
   and why the others are not; ``frames`` are the frame indices (video frames, or capture
   frames on a marker-only sequence) the action's arrays hold, in order. The evaluator reads
-  ``valid`` (``evaluate/folders.py``);
+  ``valid`` (``evaluate/folders.py``). Optional ``"joints_valid": (P, F, 25) bools``: per
+  person, frame and ``joints3d_25`` joint whether that joint is ground truth (false wherever
+  the frame is not, and where no marker or view observed the body part: reason
+  ``JOINT_NOT_OBSERVED``);
 - ``text_annotations.json``: ``{action: sentence}``;
 - ``MANIFEST.sha256``: one ``<sha256 hex>  <relative path>`` line per file, the format
   ``sha256sum -c`` checks (run in the release folder);
@@ -31,6 +34,8 @@ TEXT_FILE = "text_annotations.json"
 MANIFEST_FILE = "MANIFEST.sha256"
 #: the reason of a valid person-frame (every other reason marks a frame that is not ground truth)
 VALID_REASON = "fitted"
+#: why a joint of a valid person-frame is not ground truth (``joints_valid`` false)
+JOINT_NOT_OBSERVED = "not_observed"
 _HEX = re.compile(r"^[0-9a-f]{64}$")
 
 
@@ -82,17 +87,41 @@ def _check_valid(path, valid, reason, frames) -> tuple[np.ndarray, np.ndarray, n
     return v, r, fr
 
 
-def write_valid(path: str | Path, valid, reason, frames) -> Path:
+def _check_joints_valid(path, jv, valid: np.ndarray) -> np.ndarray:
+    j = np.array(jv, dtype=object)
+    if j.ndim != 3 or j.shape[:2] != valid.shape:
+        raise InputError(path, "joints_valid", f"expected shape (P, F, K) with (P, F) = "
+                         f"{valid.shape}, got {j.shape}")
+    notbool = np.vectorize(lambda x: not isinstance(x, (bool, np.bool_)), otypes=[bool])(j) \
+        if j.size else np.zeros(j.shape, bool)
+    if notbool.any():
+        raise InputError(path, "joints_valid", "expected booleans",
+                         frame=int(np.argwhere(notbool)[0][1]))
+    j = j.astype(bool)
+    bad = j.any(axis=2) & ~valid
+    if bad.any():
+        p, f = (int(i) for i in np.argwhere(bad)[0])
+        raise InputError(path, "joints_valid", f"person {p}: a joint is valid in a frame that "
+                         "is not", frame=f)
+    return j
+
+
+def write_valid(path: str | Path, valid, reason, frames, joints_valid=None) -> Path:
     """valid: (P, F) bool; reason: (P, F) str (``"fitted"`` exactly where valid); frames: (F,)
-    increasing frame indices."""
+    increasing frame indices; joints_valid: optional (P, F, K) bool, per joint (false wherever
+    ``valid`` is)."""
     v, r, fr = _check_valid("<memory>", np.asarray(valid).tolist(), np.asarray(reason).tolist(),
                             np.asarray(frames).tolist())
-    return _dump(path, {"valid": v.tolist(), "reason": r.tolist(), "frames": fr.tolist()})
+    doc = {"valid": v.tolist(), "reason": r.tolist(), "frames": fr.tolist()}
+    if joints_valid is not None:
+        doc["joints_valid"] = _check_joints_valid(
+            "<memory>", np.asarray(joints_valid).tolist(), v).tolist()
+    return _dump(path, doc)
 
 
 def read_valid(path: str | Path) -> dict[str, np.ndarray]:
     """``valid/<action>.json`` -> ``{"valid": (P, F) bool, "reason": (P, F) str,
-    "frames": (F,) int64}``."""
+    "frames": (F,) int64}``, and ``"joints_valid": (P, F, K) bool`` when the file has it."""
     path = Path(path)
     d = load_json(path)
     if not isinstance(d, dict):
@@ -101,7 +130,10 @@ def read_valid(path: str | Path) -> dict[str, np.ndarray]:
         if k not in d:
             raise InputError(path, k, "missing")
     v, r, fr = _check_valid(path, d["valid"], d["reason"], d["frames"])
-    return {"valid": v, "reason": r, "frames": fr}
+    out = {"valid": v, "reason": r, "frames": fr}
+    if "joints_valid" in d:
+        out["joints_valid"] = _check_joints_valid(path, d["joints_valid"], v)
+    return out
 
 
 def reason_counts(reason: np.ndarray) -> list[dict[str, int]]:

@@ -74,9 +74,23 @@ class StaticTrial(_Strict):
         return v
 
 
+#: a subject's ``markerset`` is a file when it ends in one of these (``markerset/2`` YAML or
+#: JSON of landmarks, or ``markerset/1`` JSON: ``body.landmarks.load_markerset``), else one of
+#: the built-in sets (``body.markers.BUILTIN_NAMES``)
+MARKERSET_SUFFIXES = (".json", ".yaml", ".yml")
+BUILTIN_MARKERSETS = ("plug-in-gait", "cmu", "plug-in-gait-lower")
+
+
+def markerset_is_file(markerset: str) -> bool:
+    """Whether a subject's ``markerset`` names a file (see ``MARKERSET_SUFFIXES``)."""
+    return str(markerset).lower().endswith(MARKERSET_SUFFIXES)
+
+
 class SubjectSpec(_Strict):
     """One person. ``scan``: mesh or point cloud (PLY/OBJ), or null (shape from markers).
-    ``markerset``: a marker-set JSON path or a built-in name (``plug-in-gait``, ``cmu``).
+    ``markerset``: a marker-set file (``.yaml``/``.yml``/``.json``: ``markerset/2`` markers by
+    anatomical landmark, or ``markerset/1``) or a built-in name (``plug-in-gait``, ``cmu``,
+    ``plug-in-gait-lower``).
     ``label_prefix``: the subject name the C3D files put before the marker labels
     (``Derrick`` for ``Derrick:LFHD``); needed when a file holds several prefixed subjects.
     ``marker_labels``: the lab's label of a marker set's marker where it differs
@@ -88,6 +102,14 @@ class SubjectSpec(_Strict):
     label_prefix: str | None = None
     marker_labels: dict[str, str] = Field(default_factory=dict)
     static: list[StaticTrial] = Field(default_factory=list)
+
+    @field_validator("markerset")
+    @classmethod
+    def _markerset(cls, v):
+        if not markerset_is_file(v) and v not in BUILTIN_MARKERSETS:
+            raise ValueError(f"{v!r}: expected a built-in set ({', '.join(BUILTIN_MARKERSETS)}) "
+                             f"or a marker-set file ending in {', '.join(MARKERSET_SUFFIXES)}")
+        return v
 
 
 class BodyModelSpec(_Strict):
@@ -216,10 +238,10 @@ class Session(_Strict):
 
 def _resolve_paths(obj: Any, base: Path) -> Any:
     """Return a copy of a parsed model with every relative Path made absolute against base
-    (and a marker-set given as a ``.json`` path)."""
+    (and a marker-set given as a file path)."""
     if isinstance(obj, Path):
         return obj if obj.is_absolute() else (base / obj).resolve()
-    if isinstance(obj, SubjectSpec) and obj.markerset.endswith(".json"):
+    if isinstance(obj, SubjectSpec) and markerset_is_file(obj.markerset):
         obj = obj.model_copy(update={"markerset": str(_resolve_paths(Path(obj.markerset), base))})
     if isinstance(obj, BaseModel):
         upd = {k: _resolve_paths(getattr(obj, k), base) for k in type(obj).model_fields}
@@ -413,7 +435,7 @@ def input_files(s: Session) -> list[tuple[str, Path]]:
     for sid, sub in s.subjects.items():
         if sub.scan is not None:
             out.append((f"subjects.{sid}.scan", sub.scan))
-        if sub.markerset.endswith(".json"):
+        if markerset_is_file(sub.markerset):
             out.append((f"subjects.{sid}.markerset", Path(sub.markerset)))
         for i, st in enumerate(sub.static):
             out.append((f"subjects.{sid}.static[{i}].c3d", st.c3d))

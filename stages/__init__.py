@@ -20,6 +20,7 @@ from pathlib import Path
 
 from pipeline.spec import Granularity, Registry, Stage
 from recipes import RecipeError, Session, load_recipe, missing_files
+from recipes.schema import markerset_is_file
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO_RECIPE = REPO / "recipes" / "demo.yaml"
@@ -108,7 +109,7 @@ def _subject_fields(recipe: Session, sid: str | None) -> dict:
     if sid is None:  # a marker-only sequence has no partner
         return {"markerset": None, "sex": None, "label_prefix": None, "marker_labels": {}}
     sub = recipe.subjects[sid]
-    return {"markerset": "file" if sub.markerset.endswith(".json") else sub.markerset,
+    return {"markerset": "file" if markerset_is_file(sub.markerset) else sub.markerset,
             "sex": sub.sex, "label_prefix": sub.label_prefix,
             "marker_labels": dict(sub.marker_labels)}
 

@@ -82,23 +82,33 @@ def video_errors(paths: list[Path], fps: float | None) -> list:
 
 
 def markerset_file(subject_spec) -> dict[str, Path]:
-    """Raw input ``markerset`` of a subject whose marker set is a ``.json`` file (``{}`` for a
-    built-in set, which the view gives by name)."""
+    """Raw input ``markerset`` of a subject whose marker set is a file (``.yaml``/``.yml``/
+    ``.json``: ``recipes.schema.markerset_is_file``; ``{}`` for a built-in set, which the view
+    gives by name)."""
+    from recipes.schema import markerset_is_file
+
     ms = subject_spec.markerset
-    return {"markerset": Path(ms)} if ms.endswith(".json") else {}
+    return {"markerset": Path(ms)} if markerset_is_file(ms) else {}
 
 
 def marker_template(ctx, markerset: str, model):
     """The template placement (``fitting.marker_graph.Placement``) of a subject's marker set on
-    ``model``: ``markerset`` is the view's value (a built-in name, or ``"file"`` for a
-    ``.json`` marker set read from the raw input ``markerset``)."""
-    from body.markers import load_json
+    ``model``: ``markerset`` is the view's value (a built-in name, or ``"file"`` for a marker-set
+    file read from the raw input ``markerset``: ``markerset/2`` YAML/JSON of landmarks or
+    ``markerset/1`` JSON, ``body.landmarks.load_markerset``)."""
+    from body.landmarks import load_markerset
     from fitting.marker_graph import template_placement
 
     if markerset == "file":
-        return template_placement(model, load_json(ctx.raw["markerset"],
-                                                   num_faces=len(model.faces)))
+        return template_placement(model, load_markerset(ctx.raw["markerset"], model))
     return template_placement(model, markerset)
+
+
+def marker_labels(template, recipe_labels) -> dict[str, str]:
+    """The lab's C3D label per marker where it differs from the name: the marker-set file's
+    ``label`` fields (``template.labels``), overridden by the recipe's ``marker_labels``."""
+    rl = recipe_labels.as_dict() if hasattr(recipe_labels, "as_dict") else (recipe_labels or {})
+    return {**(getattr(template, "labels", None) or {}), **dict(rl)}
 
 
 def sequence_fps(fps: float | None, video: Path) -> float:

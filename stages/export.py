@@ -164,7 +164,8 @@ def _pick(report: dict | None, keys) -> dict | None:
     return {k: report[k] for k in keys if k in report}
 
 
-MARKER_FIT_FIGURES = ("subject", "frames", "frames_valid", "frames_not_valid", "residual_mm",
+MARKER_FIT_FIGURES = ("subject", "frames", "frames_valid", "frames_not_valid",
+                      "joint_frames_not_observed", "joints_never_observed", "residual_mm",
                       "outlier_marker_frames", "fit_rate_hz", "fit_cpu_s", "fps_per_cpu_s",
                       "warnings")
 PARTNER_FIT_FIGURES = ("subject", "frames", "frames_valid", "frames_not_valid", "reprojection_px",
@@ -187,6 +188,7 @@ def run(ctx: StageContext) -> None:
     from body.rotations import rodrigues
     from calib.convert import convert_distortion
     from calib.io import read_chi3d_camera, write_chi3d_camera
+    from fitting.marker_graph import observed_points
     from formats import anny_json, chi3d
     from formats import release as R
     from formats.errors import InputError
@@ -235,7 +237,12 @@ def run(ctx: StageContext) -> None:
     valid, reason = validity([f.valid[i] for f, i in zip(fits, idx, strict=True)],
                              [f.invalid_reason[i] for f, i in zip(fits, idx, strict=True)],
                              None if sm is None else sm["valid"])
-    R.write_valid(rel(f"{R.VALID_DIR}/{action}.json"), valid, reason, frames)
+    # per joints3d_25 joint: ground truth where the frame is and every joint it hangs on was
+    # observed by a marker or a view (BodyFit.observed; e.g. not the arms of a lower-body set)
+    reg25 = regressor(model, "joints3d_25")
+    joints_valid = np.stack([observed_points(model, reg25, f.joints_observed()[i])
+                             for f, i in zip(fits, idx, strict=True)]) & valid[..., None]
+    R.write_valid(rel(f"{R.VALID_DIR}/{action}.json"), valid, reason, frames, joints_valid)
     # the fitted model's own parameters, and the joints from its mesh
     S = max(len(f.betas) for f in fits)
     betas = np.stack([np.pad(np.asarray(f.betas, float), (0, S - len(f.betas))) for f in fits])
@@ -245,7 +252,6 @@ def run(ctx: StageContext) -> None:
     own = model.name if model.name != "smplx" else "smplx_fit"  # never over convert's smplx/
     anny_json.write_anny(rel(f"{own}/{action}.json"), transl, orient, rodrigues(pose),
                          np.repeat(betas[:, None], F, axis=1), list(model.joint_names))
-    reg25 = regressor(model, "joints3d_25")
     j25 = []
     for p in range(P):
         b = forward(model, betas[p], pose[p], orient[p], transl[p])
@@ -315,7 +321,8 @@ def run(ctx: StageContext) -> None:
         "not_valid_by_reason": [{"subject": s, **c} for s, c in zip(subjects, counts, strict=True)],
         "cameras": cameras, "contact": contact_note, "absent": absent, "files": written})
     ctx.log(f"{ctx.unit}: exported {F} frames x {P} persons, {int((~valid).sum())} person-frames "
-            f"not valid, {len(written)} files")
+            f"not valid, {int((valid[..., None] & ~joints_valid).sum())} joint-frames of valid "
+            f"frames not observed, {len(written)} files")
 
 
 def _export_contact(ctx, model, action: str, frames, corr, rel) -> dict:

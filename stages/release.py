@@ -142,6 +142,10 @@ def datasheet(session: str, subjects: list[str], sequences: dict, exports: dict,
                 per[r] = frame_ranges(v["frames"][v["reason"][p] == r])
                 by_reason[r] += int((v["reason"][p] == r).sum())
             not_valid[subj] = per
+        # joints3d_25 joints of valid frames that no marker or view observed (joints_valid)
+        jv = v.get("joints_valid")
+        unobserved = {subj: 0 if jv is None else int((v["valid"][p][:, None] & ~jv[p]).sum())
+                      for p, subj in enumerate(info["persons"])}
         c = info.get("contact")
         has_contact = bool(c and any(c.get("pairs", {}).values()))
         contact_events += has_contact
@@ -157,6 +161,7 @@ def datasheet(session: str, subjects: list[str], sequences: dict, exports: dict,
             "person_frames_not_valid": info["person_frames_not_valid"],
             "not_valid_by_reason": info["not_valid_by_reason"],
             "not_valid_frames": not_valid,
+            "joint_frames_not_observed": unobserved,
             "contact": None if not c else {
                 "event": has_contact, "pairs": c.get("pairs"),
                 "fr_id": c["original_frames"]["fr_id"],
@@ -180,6 +185,8 @@ def datasheet(session: str, subjects: list[str], sequences: dict, exports: dict,
             "person_frames_not_valid": int(sum(s["person_frames_not_valid"]
                                                for s in seqs.values())),
             "not_valid_by_reason": dict(sorted(by_reason.items())),
+            "joint_frames_not_observed": int(sum(sum(s["joint_frames_not_observed"].values())
+                                                 for s in seqs.values())),
         },
         "validity": "a person-frame is ground truth only when fitted from its own evidence "
                     "(reason 'fitted'); the others are written (the arrays are dense) and marked "
@@ -206,6 +213,9 @@ def datasheet_md(sheet: dict) -> str:
                                                    sheet["interaction_classes"].items()),
              "- not valid, by reason: " + (", ".join(f"{r} {n}" for r, n in
                                                      t["not_valid_by_reason"].items()) or "none"),
+             f"- joints3d_25 joint-frames of valid frames that no marker or view observed (not "
+             f"ground truth, valid/<action>.json joints_valid): "
+             f"{t.get('joint_frames_not_observed', 0)}",
              ""]
     if sheet["sequences_not_exported"]:
         lines += [f"- sequences of the recipe not released (an upstream stage failed): "
