@@ -18,10 +18,12 @@ EXECUTOR ?=
 CLUSTER ?=
 SCHEDULER ?=
 WORKERS ?=
+# make bench CASE=real (or CASE="real qa"): only those benchmark cases
+CASE ?=
 # Every user variable reaches the recipes verbatim, through the environment: `override X :=
 # $(value X)` keeps make from expanding it, and the recipe lines only say "$$X" (quoted), so no
 # value is ever read as make or shell syntax (`make sequence SEQ='x`touch y`'` runs nothing).
-USER_VARS := RECIPE SEQ STAGE FORCE OUT SEED FRAMES SCENARIOS MARKERS STRIDE PRED GT EXECUTOR CLUSTER SCHEDULER WORKERS
+USER_VARS := RECIPE SEQ STAGE FORCE OUT SEED FRAMES SCENARIOS MARKERS STRIDE PRED GT EXECUTOR CLUSTER SCHEDULER WORKERS CASE
 $(foreach v,$(USER_VARS),$(eval override $(v) := $$(value $(v))))
 export $(USER_VARS)
 # bash arrays of the optional arguments, built from those variables (FORCE: words, no globbing)
@@ -90,7 +92,7 @@ test-fast: setup
 	@$(PY) -m pytest -q -m "not slow" tests
 
 bench: setup
-	@$(PY) -m bench
+	@read -ra cases <<< "$$CASE"; $(PY) -m bench "$${cases[@]}"
 
 lint: setup
 	@$(PY) -m ruff check .
