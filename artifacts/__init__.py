@@ -3,18 +3,31 @@ on load and save, and its version (conventions in ``artifacts/base.py``).
 
 - :class:`ShapeFit` (``shape.npz`` of shape_fit), :class:`BodyFit` (``fit.npz`` of marker_fit,
   with the per-frame ``valid`` mask and ``invalid_reason``), ``Keypoints2D``
-  (``keypoints.npz`` of keypoints, ``artifacts/keypoints.py``).
+  (``keypoints.npz`` of keypoints, ``artifacts/keypoints.py``);
+- convert: :class:`SMPLXFit` (``smplx.npz``), :class:`SurfaceCorrespondence`
+  (``correspondence.npz``), :class:`ConversionReport` (``report.json``;
+  ``artifacts/smplx_fit.py``); qa: :class:`QAResult` (``flags.json`` + ``qa.npz``,
+  :class:`QAMetrics`; ``artifacts/qa.py``); export: :class:`SequenceExport` (``export.json`` +
+  ``figures.json``, :class:`SequenceFigures`; ``artifacts/export.py``); release:
+  :class:`Release` (``verification.json`` + the datasheet; ``artifacts/release.py``). The JSON
+  ones are :class:`JsonArtifact` (``artifacts/base.py``).
 """
 from __future__ import annotations
 
 import importlib.util
 
-from artifacts.base import ArtifactError, FieldSpec, TypedArtifact
+from artifacts.base import ArtifactError, FieldSpec, JsonArtifact, TypedArtifact
 from artifacts.body_fit import INVALID_REASONS, REASON_CODE, BodyFit
+from artifacts.export import SequenceExport, SequenceFigures
+from artifacts.qa import QAMetrics, QAResult
+from artifacts.release import Release
 from artifacts.shape import ShapeFit
+from artifacts.smplx_fit import ConversionReport, SMPLXFit, SurfaceCorrespondence
 
-__all__ = ["ArtifactError", "FieldSpec", "TypedArtifact", "ShapeFit", "BodyFit",
-           "INVALID_REASONS", "REASON_CODE"]
+__all__ = ["ArtifactError", "FieldSpec", "TypedArtifact", "JsonArtifact", "ShapeFit", "BodyFit",
+           "INVALID_REASONS", "REASON_CODE", "SMPLXFit", "SurfaceCorrespondence",
+           "ConversionReport", "QAMetrics", "QAResult", "SequenceExport", "SequenceFigures",
+           "Release"]
 
 if importlib.util.find_spec("artifacts.keypoints") is not None:
     from artifacts.keypoints import Keypoints2D  # noqa: F401

@@ -16,6 +16,13 @@ stage's artifact folder. The class owns that file's layout:
 
 Every problem raises :class:`ArtifactError` (an ``InputError``: ``<file>: <field> [frame N]:
 what is wrong``) naming the npz file and the field. Readers use fields by name only.
+
+A stage output that is JSON (summaries, file lists) is a :class:`JsonArtifact`: the same
+``KIND``/``VERSION``/``FILE`` (the json name without ``.json``), ``to_json()`` and
+``from_json(JsonFields)``; ``save(writer)`` writes ``<FILE>.json`` with ``artifact_kind`` and
+``artifact_version`` beside the content, ``load(artifact | folder | json path)`` checks them and
+reads every field through :class:`JsonFields` (type, presence, finiteness), whose errors name
+the file and the dotted field (``export.json: files[3]: ...``).
 """
 from __future__ import annotations
 
@@ -176,6 +183,13 @@ class TypedArtifact:
     def _check(self, file: Path) -> None:
         """Units and plausibility of the class (overridden)."""
 
+    @classmethod
+    def exists_in(cls, source: Any) -> bool:
+        """Whether the artifact (engine artifact or folder) holds this class's file (an
+        optional output, e.g. the partner fit's refined keypoints)."""
+        folder = getattr(source, "dir", None) if not isinstance(source, (str, Path)) else source
+        return folder is not None and (Path(folder) / cls.file_name()).is_file()
+
 
 # ------------------------------------------------------------------------ check helpers
 
@@ -222,3 +236,183 @@ def check_range(x: np.ndarray, file, field: str, lo: float, hi: float, what: str
     if bad.any():
         raise ArtifactError(file, field, f"values outside [{lo:g}, {hi:g}]{what}: e.g. "
                             f"{float(x[bad].reshape(-1)[0]):.4g}", first_frame(bad) if per_frame else None)
+
+
+# ------------------------------------------------------------------------ JSON artifacts
+
+_JSON_TYPE_NAMES = {bool: "a boolean", int: "an integer", float: "a number", str: "a string",
+                    list: "a list", dict: "an object"}
+
+
+class JsonFields:
+    """Typed access to one JSON object of an artifact file; every error names the file and the
+    dotted field. ``get(name, type)``: ``int`` rejects bools and fractions, ``float`` accepts
+    integers and (``finite=True``) rejects NaN/inf, ``optional`` accepts absent and null
+    (-> ``default``)."""
+
+    def __init__(self, data: Any, file: str | Path, prefix: str = "", folder: Path | None = None):
+        self.file, self.prefix, self.folder = file, prefix, folder
+        if not isinstance(data, dict):
+            raise ArtifactError(file, prefix or "<content>",
+                                f"expected an object, got {type(data).__name__}")
+        self.data = data
+
+    def name(self, key: str | int) -> str:
+        if isinstance(key, int):
+            return f"{self.prefix}[{key}]"
+        return f"{self.prefix}.{key}" if self.prefix else key
+
+    def check(self, value: Any, typ: type, field: str, finite: bool = True) -> Any:
+        if isinstance(value, np.generic):  # an in-memory object being validated
+            value = value.item()
+        ok = (isinstance(value, typ) and not (typ in (int, float) and isinstance(value, bool)))
+        if typ is float and isinstance(value, int) and not isinstance(value, bool):
+            value, ok = float(value), True
+        if typ is int and isinstance(value, float) and value.is_integer():
+            value, ok = int(value), True
+        if not ok:
+            raise ArtifactError(self.file, field, f"expected {_JSON_TYPE_NAMES.get(typ, typ)}, "
+                                f"got {type(value).__name__} {value!r:.60}")
+        if typ is float and finite and not np.isfinite(value):
+            raise ArtifactError(self.file, field, f"non-finite value {value}")
+        return value
+
+    def get(self, key: str, typ: type, optional: bool = False, default: Any = None,
+            finite: bool = True) -> Any:
+        field = self.name(key)
+        if key not in self.data or self.data[key] is None:
+            if optional:
+                return default
+            raise ArtifactError(self.file, field, "missing" if key not in self.data else
+                                f"null, expected {_JSON_TYPE_NAMES.get(typ, typ)}")
+        return self.check(self.data[key], typ, field, finite)
+
+    def sub(self, key: str, optional: bool = False) -> JsonFields | None:
+        """The object at ``key`` as JsonFields (None when optional and absent/null)."""
+        v = self.get(key, dict, optional=optional)
+        return None if v is None else JsonFields(v, self.file, self.name(key), self.folder)
+
+    def items(self, key: str, typ: type, finite: bool = True, optional: bool = False,
+              nullable: bool = False) -> list | None:
+        """A list whose items are all ``typ`` (``nullable``: or null)."""
+        v = self.get(key, list, optional=optional)
+        if v is None:
+            return None
+        return [None if (x is None and nullable) else
+                self.check(x, typ, f"{self.name(key)}[{i}]", finite) for i, x in enumerate(v)]
+
+    def mapping(self, key: str, typ: type, finite: bool = True, optional: bool = False,
+                nullable: bool = False) -> dict | None:
+        """An object whose values are all ``typ`` (``nullable``: or null); keys are strings."""
+        v = self.get(key, dict, optional=optional)
+        if v is None:
+            return None
+        return {str(k): (None if (x is None and nullable) else
+                         self.check(x, typ, f"{self.name(key)}.{k}", finite))
+                for k, x in v.items()}
+
+    def objects(self, key: str, optional: bool = False) -> list[JsonFields] | None:
+        """A list of objects, each as JsonFields."""
+        v = self.get(key, list, optional=optional)
+        if v is None:
+            return None
+        return [JsonFields(x, self.file, f"{self.name(key)}[{i}]", self.folder)
+                for i, x in enumerate(v)]
+
+    def error(self, key: str | int, msg: str, frame: int | None = None) -> ArtifactError:
+        return ArtifactError(self.file, self.name(key), msg, frame)
+
+
+def read_json_file(source: Any, name: str) -> tuple[Any, Path, Path | None]:
+    """``(content of <name>.json, its path, the artifact folder or None)`` from an engine
+    artifact (``.json(name)``), its folder, or the json path; ArtifactError when absent or
+    unreadable."""
+    import json
+
+    if isinstance(source, (str, Path)):
+        p = Path(source)
+        file = p if p.suffix == ".json" else p / f"{name}.json"
+        if not file.is_file():
+            raise ArtifactError(file, name, f"no {name}.json")
+        try:
+            return json.loads(file.read_text()), file, file.parent
+        except (OSError, ValueError) as e:
+            raise ArtifactError(file, name, f"unreadable: {type(e).__name__}: {e}") from None
+    folder = getattr(source, "dir", None)
+    file = Path(folder) / f"{name}.json" if folder is not None else Path(f"{name}.json")
+    try:
+        return source.json(name), file, None if folder is None else Path(folder)
+    except FileNotFoundError as e:
+        raise ArtifactError(file, name, f"no {name}.json: {e}") from None
+
+
+def check_header(data: Any, file: Path, kind: str, version: int) -> None:
+    """The ``artifact_kind`` / ``artifact_version`` of a JSON artifact file."""
+    f = JsonFields(data, file)
+    got = f.get(KIND_KEY, str, optional=True)
+    if got is None:
+        raise ArtifactError(file, KIND_KEY, f"missing (expected {kind!r}: not a typed artifact, "
+                            "or written before typed artifacts)")
+    if got != kind:
+        raise ArtifactError(file, KIND_KEY, f"is {got!r}, expected {kind!r}")
+    v = f.get(VERSION_KEY, int)
+    if v != version:
+        raise ArtifactError(file, VERSION_KEY, f"is {v}, this code reads version {version} of "
+                            f"{kind!r} (recompute the stage)")
+
+
+class JsonArtifact:
+    """Base of the typed JSON outputs (subclasses are frozen dataclasses): ``to_json()`` is the
+    content, ``from_json(JsonFields)`` reads and checks it (raising ArtifactError naming the
+    file and field), ``_check(file, folder)`` adds cross-field and on-disk checks (``folder``:
+    the artifact folder when known, e.g. that the files it lists exist)."""
+
+    KIND: ClassVar[str]
+    VERSION: ClassVar[int]
+    FILE: ClassVar[str]
+
+    @classmethod
+    def file_name(cls) -> str:
+        return f"{cls.FILE}.json"
+
+    def to_json(self) -> dict:
+        raise NotImplementedError
+
+    @classmethod
+    def from_json(cls, f: JsonFields):
+        raise NotImplementedError
+
+    def _check(self, file: Path, folder: Path | None) -> None:
+        """Cross-field checks (overridden)."""
+
+    def content(self) -> dict:
+        return {KIND_KEY: self.KIND, VERSION_KEY: int(self.VERSION), **self.to_json()}
+
+    def validate(self, file: str | Path = "<memory>", folder: Path | None = None) -> None:
+        """Read our own content back through ``from_json`` (types, finiteness), then ``_check``."""
+        file = Path(file)
+        type(self).from_json(JsonFields(self.to_json(), file, folder=folder))
+        self._check(file, folder)
+
+    def save(self, writer) -> Path:
+        folder = Path(getattr(writer, "dir", "."))
+        self.validate(folder / self.file_name(), folder)
+        return writer.save_json(self.FILE, self.content())
+
+    @classmethod
+    def load(cls, source: Any):
+        data, file, folder = read_json_file(source, cls.FILE)
+        check_header(data, file, cls.KIND, cls.VERSION)
+        obj = cls.from_json(JsonFields(data, file, folder=folder))
+        obj._check(file, folder)
+        return obj
+
+
+def check_relative(f: JsonFields, key: str | int, rel: str, folder: Path | None) -> None:
+    """``rel`` is a relative path inside the artifact (no ``..``, not absolute) and, when the
+    folder is known, a file there."""
+    p = Path(rel)
+    if p.is_absolute() or ".." in p.parts or not rel:
+        raise f.error(key, f"{rel!r} is not a relative path inside the artifact")
+    if folder is not None and not (Path(folder) / p).is_file():
+        raise f.error(key, f"{rel!r} is listed but not in {folder}")

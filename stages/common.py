@@ -180,3 +180,23 @@ def clean_capture(markers, source, log=None):
         log(f"{source}: {js['removed_samples']} marker samples removed before fitting "
             f"({', '.join(f'{n} {r}' for r, n in js['removed_by_reason'].items() if n)})")
     return out, js
+
+# ------------------------------------------------------------------ upstream reports, figures
+# The stages without a typed report (shape_fit, keypoints, marker_fit, partner_fit) are shown
+# as they are: their ``report.json`` in the QA page and a pick in export's figures, their PNGs
+# copied beside the QA report. Every such read goes through these two helpers.
+
+
+def stage_report(art) -> dict | None:
+    """An upstream stage's ``report.json`` as written (None: the stage wrote none)."""
+    try:
+        rep = art.json("report")
+    except FileNotFoundError:
+        return None
+    return rep if isinstance(rep, dict) else None
+
+
+def stage_figures(art) -> list[Path]:
+    """The PNG pictures an upstream stage drew at the top of its folder, sorted by name."""
+    return sorted(Path(art.dir).glob("*.png"))
+

@@ -10,14 +10,16 @@ partner (partner_fit) when the sequence has one; frames are marker_fit's frames 
 partner_fit also has. Frames flagged not valid in a source fit stay not valid (still
 converted). Writes
 
-- ``smplx.npz``: ``transl (P,F,3)``, ``global_orient (P,F,3,3)``, ``body_pose (P,F,21,3,3)``,
-  ``left_hand_pose``/``right_hand_pose (P,F,15,3,3)``, ``jaw_pose``, ``leye_pose``,
-  ``reye_pose (P,F,3,3)``, ``betas (P,10)``, ``expression (P,10)``, ``frames (F,)``,
-  ``valid (P,F)``, ``v2s_mm (P,F)`` (per frame mean over the target vertices of the distance to
-  the source surface), ``v2s_median_mm``/``v2s_p95_mm``/``v2s_max_mm (P,F)``, ``subjects (P,)``;
-- ``correspondence.npz`` (``fitting.convert.Correspondence``);
-- ``report.json``: ``target`` {path, sha256, kind, n_vertices, standin, description},
-  ``per_person`` [{subject, v2s_median_mm (median over frames of v2s_mm), v2s_p95_mm (median
+- ``smplx.npz`` (``artifacts.SMPLXFit``): ``transl (P,F,3)``, ``global_orient (P,F,3,3)``,
+  ``body_pose (P,F,21,3,3)``, ``left_hand_pose``/``right_hand_pose (P,F,15,3,3)``,
+  ``jaw_pose``, ``leye_pose``, ``reye_pose (P,F,3,3)``, ``betas (P,10)``, ``expression
+  (P,10)``, ``frames (F,)``, ``valid (P,F)``, ``v2s_mm (P,F)`` (per frame mean over the target
+  vertices of the distance to the source surface), ``v2s_median_mm``/``v2s_p95_mm``/
+  ``v2s_max_mm (P,F)``, ``subjects (P,)``;
+- ``correspondence.npz`` (``artifacts.SurfaceCorrespondence``, the arrays of
+  ``fitting.convert.Correspondence``);
+- ``report.json`` (``artifacts.ConversionReport``): ``target`` {path, sha256, kind,
+  n_vertices, standin, description}, ``per_person`` [{subject, v2s_median_mm (median over frames of v2s_mm), v2s_p95_mm (median
   over frames of the per-frame 95th percentile), v2s_max_mm, frames}], ``fps_per_core``,
   ``cpu_s`` (conversion, registration excluded), ``registration_cpu_s``, ``warnings``.
 """
@@ -121,7 +123,8 @@ def _frames(wearer, partner):
 
 
 def run(ctx: StageContext) -> None:
-    from artifacts import BodyFit
+    from artifacts import BodyFit, ConversionReport, SMPLXFit, SurfaceCorrespondence
+    from artifacts.smplx_fit import PersonConversion, TargetInfo
     from body import load_model
     from fitting.convert import (
         TargetRig,
@@ -144,7 +147,7 @@ def run(ctx: StageContext) -> None:
     corr, key, fresh = cached_correspondence(source, target, ctx.raw["body_model"], tfile,
                                              CACHE_DIR, log=ctx.log)
     reg_cpu = time.process_time() - t0
-    ctx.out.save_arrays("correspondence", **corr.arrays())
+    SurfaceCorrespondence.of(corr).save(ctx.out)
 
     wearer = BodyFit.load(ctx.inputs["marker_fit"])
     pa = ctx.inputs.get("partner_fit")
@@ -178,10 +181,9 @@ def run(ctx: StageContext) -> None:
         v2s["v2s_mm"][p], v2s["v2s_median_mm"][p] = res.v2s_mean_mm, res.v2s_median_mm
         v2s["v2s_p95_mm"][p], v2s["v2s_max_mm"][p] = res.v2s_p95_mm, res.v2s_max_mm
         med = float(np.nanmedian(res.v2s_mean_mm))
-        per_person.append({"subject": subjects[p], "v2s_median_mm": med,
-                           "v2s_p95_mm": float(np.nanmedian(res.v2s_p95_mm)),
-                           "v2s_max_mm": float(np.nanmax(res.v2s_max_mm)), "frames": F,
-                           "restarts": int(res.restarts)})
+        per_person.append(PersonConversion(
+            subjects[p], med, float(np.nanmedian(res.v2s_p95_mm)), float(np.nanmax(res.v2s_max_mm)),
+            F, int(res.restarts)))
         ctx.log(f"{ctx.unit}: {subjects[p]} -> {target.name}: v2s {med:.1f} mm (median), "
                 f"{F} frames, {F / max(res.cpu_s, 1e-9):.1f} frames/s")
         if med > WARN_V2S_MM:
@@ -194,18 +196,19 @@ def run(ctx: StageContext) -> None:
         for k, v in smplx_arrays(target, poses[p]).items():
             parts.setdefault(k, []).append(v)
     arrays.update({k: np.stack(v) for k, v in parts.items()})
-    ctx.out.save_arrays("smplx", **arrays, **v2s, frames=np.asarray(frames, np.int64),
-                        subjects=np.array(subjects))
-    ctx.out.save_json("report", {
-        "sequence": ctx.unit,
-        "target": {"path": str(tfile), "sha256": file_sha256(tfile), "kind": target.name,
-                   "n_vertices": int(target.num_vertices), "standin": bool(standin),
-                   "description": ("SMPL-X-schema stand-in built from Anny (not the licensed "
-                                   "SMPL-X)" if standin else f"{target.name} model file")},
-        "correspondence": {"key": key, "registered_now": bool(fresh)},
-        "per_person": per_person, "fps_per_core": float(P * F / max(cpu, 1e-9)),
-        "cpu_s": float(cpu), "registration_cpu_s": float(reg_cpu) if fresh else 0.0,
-        "warnings": warnings})
+    SMPLXFit(**arrays, **v2s, frames=np.asarray(frames, np.int64),
+             subjects=np.array(subjects)).save(ctx.out)
+    ConversionReport(
+        sequence=ctx.unit,
+        target=TargetInfo(path=str(tfile), sha256=file_sha256(tfile), kind=target.name,
+                          n_vertices=int(target.num_vertices), standin=bool(standin),
+                          description=("SMPL-X-schema stand-in built from Anny (not the "
+                                       "licensed SMPL-X)" if standin
+                                       else f"{target.name} model file")),
+        correspondence_key=key, registered_now=bool(fresh), per_person=tuple(per_person),
+        fps_per_core=float(P * F / max(cpu, 1e-9)), cpu_s=float(cpu),
+        registration_cpu_s=float(reg_cpu) if fresh else 0.0,
+        warnings=tuple(warnings)).save(ctx.out)
 
 
 STAGE = Stage(name="convert", func=run, per="sequence", upstream=("marker_fit", "partner_fit"),

@@ -1,5 +1,6 @@
 """Stage ``evaluate`` (per session, after ``release``): the CHI3D benchmark of the release
-against the session's ground truth, both in the CHI3D layout (``evaluate.evaluate_folders``).
+against the session's ground truth, both in the CHI3D layout (``evaluate.evaluate_folders``);
+the release folder comes from ``artifacts.Release`` (refused unless its re-read pass passed).
 
 Applies only when the recipe sets ``stages.evaluate.truth``: a folder, relative to the recipe
 file's folder (the studio writes its truth there: ``data/<preset>/gt``, ``studio.truth``). The
@@ -95,9 +96,10 @@ def exclusions(result: dict) -> dict:
 
 
 def run(ctx: StageContext) -> None:
+    from artifacts import Release
     from evaluate import evaluate_folders, markdown
 
-    release = Path(ctx.inputs["release"].dir)
+    release = Release.load(ctx.inputs["release"]).require_verified()
     truth = _truth_root(ctx.raw)
     result = evaluate_folders(release, truth, anny_model=ctx.raw.get("body_model"))
     result["scored"] = exclusions(result)

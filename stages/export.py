@@ -23,9 +23,12 @@ wearer, person 1 = the partner; P = 1 on a sequence without partner):
   the Anny facet's region in our 75-region map (``body.regions``); ``ghum_signature`` empty;
 - ``text_annotations.json``: ``{action: sentence}`` (the recipe's ``text``).
 
-Beside them ``figures.json`` (the fitting figures of marker_fit, partner_fit and convert that
-the release's datasheet lists) and ``export.json`` (frames, files, what is absent and why, the
+Beside them ``figures.json`` (``artifacts.SequenceFigures``: the fitting figures of marker_fit,
+partner_fit and convert that the release's datasheet lists) and ``export.json``
+(``artifacts.SequenceExport``: frames, every file written, what is absent and why, the
 per-reason counts of frames that are not valid, camera conversions, contact mapping notes).
+convert's outputs are read through ``artifacts.SMPLXFit``, ``SurfaceCorrespondence`` and
+``ConversionReport``.
 
 Frames are convert's frames (marker_fit's frames that partner_fit also has). Contact frames
 (``fr_id``, ``start_fr``, ``end_fr``) index the exported frame axis: they are kept as they are
@@ -171,18 +174,20 @@ MARKER_FIT_FIGURES = ("subject", "frames", "frames_valid", "frames_not_valid",
 PARTNER_FIT_FIGURES = ("subject", "frames", "frames_valid", "frames_not_valid", "reprojection_px",
                        "penetration", "contact_distance", "ground_penetration", "contact_frames",
                        "fit_cpu_s", "fps", "warnings")
-CONVERT_FIGURES = ("target", "per_person", "fps_per_core", "cpu_s", "warnings")
-
-
-def _json(art, name):
-    try:
-        return art.json(name)
-    except FileNotFoundError:
-        return None
 
 
 def run(ctx: StageContext) -> None:
-    from artifacts import BodyFit, ShapeFit
+    from artifacts import (
+        BodyFit,
+        ConversionReport,
+        SequenceExport,
+        SequenceFigures,
+        ShapeFit,
+        SMPLXFit,
+        SurfaceCorrespondence,
+    )
+    from artifacts.base import JsonFields
+    from artifacts.export import ContactNote
     from body import forward
     from body.joints import regress, regressor
     from body.rotations import rodrigues
@@ -209,12 +214,12 @@ def run(ctx: StageContext) -> None:
                               "one person (P = 1)")
     sm = corr = None
     if cv_art is not None:
-        sm = cv_art.arrays("smplx")
-        frames = np.asarray(sm["frames"], np.int64)
-        if sm["transl"].shape[0] != P:
-            raise InputError(cv_art.path("smplx.npz"), "transl",
-                             f"{sm['transl'].shape[0]} persons, the fits have {P}")
-        corr = cv_art.arrays("correspondence")
+        sm = SMPLXFit.load(cv_art)
+        frames = np.asarray(sm.frames, np.int64)
+        if sm.num_persons != P:
+            raise InputError(Path(cv_art.dir) / SMPLXFit.file_name(), "transl",
+                             f"{sm.num_persons} persons, the fits have {P}")
+        corr = SurfaceCorrespondence.load(cv_art)
     else:
         frames = np.asarray(fits[0].frames, np.int64)
         for f in fits[1:]:
@@ -236,7 +241,7 @@ def run(ctx: StageContext) -> None:
     # validity
     valid, reason = validity([f.valid[i] for f, i in zip(fits, idx, strict=True)],
                              [f.invalid_reason[i] for f, i in zip(fits, idx, strict=True)],
-                             None if sm is None else sm["valid"])
+                             None if sm is None else sm.valid)
     # per joints3d_25 joint: ground truth where the frame is and every joint it hangs on was
     # observed by a marker or a view (BodyFit.observed; e.g. not the arms of a lower-body set)
     reg25 = regressor(model, "joints3d_25")
@@ -258,10 +263,10 @@ def run(ctx: StageContext) -> None:
         j25.append(regress(reg25, b.vertices, b.joints))
     chi3d.write_joints3d_25(rel(f"joints3d_25/{action}.json"), np.stack(j25))
     if sm is not None:
-        if not np.array_equal(np.asarray(sm["transl"]).shape[:2], (P, F)):
-            raise InputError(cv_art.path("smplx.npz"), "transl", "(persons, frames) "
-                             f"{sm['transl'].shape[:2]} != frames' {(P, F)}")
-        chi3d.write_smplx(rel(f"smplx/{action}.json"), smplx_release(sm, P))
+        if (sm.num_persons, sm.num_frames) != (P, F):
+            raise InputError(Path(cv_art.dir) / SMPLXFit.file_name(), "transl",
+                             f"(persons, frames) {(sm.num_persons, sm.num_frames)} != {(P, F)}")
+        chi3d.write_smplx(rel(f"smplx/{action}.json"), smplx_release(sm.params(), P))
     # cameras and videos
     cameras: dict[str, dict] = {}
     fps = None
@@ -302,24 +307,29 @@ def run(ctx: StageContext) -> None:
         absent["text_annotations"] = "the recipe gives no text for the sequence"
     # figures of the fits, for the datasheet
     shape = ctx.inputs.get("shape_fit") or {}
-    figures = {
-        "sequence": ctx.unit, "subjects": subjects,
-        "marker_fit": _pick(_json(mf_art, "report"), MARKER_FIT_FIGURES),
-        "partner_fit": None if pf_art is None else _pick(_json(pf_art, "report"),
-                                                         PARTNER_FIT_FIGURES),
-        "convert": None if cv_art is None else _pick(_json(cv_art, "report"), CONVERT_FIGURES),
-        "shape_source": {s: str(ShapeFit.load(shape[s]).shape_source)
-                         for s in subjects if s in shape},
-    }
-    ctx.out.save_json("figures", figures)
+    figures = SequenceFigures(
+        sequence=ctx.unit, subjects=tuple(subjects),
+        marker_fit=_pick(common.stage_report(mf_art), MARKER_FIT_FIGURES),
+        partner_fit=None if pf_art is None else _pick(common.stage_report(pf_art),
+                                                      PARTNER_FIT_FIGURES),
+        convert=None if cv_art is None else ConversionReport.load(cv_art).figures(),
+        shape_source={s: str(ShapeFit.load(shape[s]).shape_source) for s in subjects if s in shape})
     counts = R.reason_counts(reason)
-    ctx.out.save_json("export", {
-        "sequence": ctx.unit, "group": group, "action": action, "persons": subjects,
-        "model": model.name, "frames": int(F), "first_frame": int(frames[0]),
-        "last_frame": int(frames[-1]), "video_fps": fps,
-        "person_frames_not_valid": int((~valid).sum()),
-        "not_valid_by_reason": [{"subject": s, **c} for s, c in zip(subjects, counts, strict=True)],
-        "cameras": cameras, "contact": contact_note, "absent": absent, "files": written})
+    named = {k: f"{group}/{n}" for k, n in (("valid", f"{R.VALID_DIR}/{action}.json"),
+                                             ("contact", "interaction_contact_signature.json"),
+                                             ("text", R.TEXT_FILE))}
+    SequenceExport(
+        sequence=ctx.unit, group=group, action=action, persons=tuple(subjects), model=model.name,
+        frames=int(F), first_frame=int(frames[0]), last_frame=int(frames[-1]),
+        video_fps=None if fps is None else float(fps),
+        person_frames_not_valid=int((~valid).sum()),
+        not_valid_by_reason=tuple({"subject": s, **c} for s, c in zip(subjects, counts, strict=True)),
+        cameras=cameras, contact=None if contact_note is None else ContactNote.from_json(
+            JsonFields(contact_note, "export.json", "contact")),
+        absent=absent, files=tuple(written), valid_file=named["valid"],
+        contact_file=named["contact"] if named["contact"] in written else None,
+        text_file=named["text"] if named["text"] in written else None,
+        figures=figures).save(ctx.out)
     ctx.log(f"{ctx.unit}: exported {F} frames x {P} persons, {int((~valid).sum())} person-frames "
             f"not valid, {int((valid[..., None] & ~joints_valid).sum())} joint-frames of valid "
             f"frames not observed, {len(written)} files")
@@ -355,14 +365,14 @@ def _export_contact(ctx, model, action: str, frames, corr, rel) -> dict:
             sig = dataclasses.replace(sig, smplx_faces=np.zeros((0, 2), np.int64),
                                       smplx_regions=np.zeros((0, 2), np.int64))
         else:
-            m = np.asarray(corr["src_face_tgt_face"])
+            m = np.asarray(corr.src_face_tgt_face)
             if len(m) != T:
                 raise InputError("correspondence.npz", "src_face_tgt_face",
                                  f"{len(m)} source facets, the fitted model has {T}")
             official = None
             if "contact_regions" in ctx.raw:
                 official = load_official(ctx.raw["contact_regions"], "smplx",
-                                         num_faces=len(corr["tgt_faces"])).face_region
+                                         num_faces=len(corr.tgt_faces)).face_region
                 note["smplx_regions"] = ("official contact_regions.json (rid_to_smplx_fids) "
                                          "region of each mapped SMPL-X facet")
             else:

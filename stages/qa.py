@@ -14,10 +14,13 @@ camera out of sync. Every frame beyond a threshold (the stage options = ``qa.met
 recipe ``stages.qa.<name>``) is flagged with its reason; flagged frames close together are one
 span. Writes
 
-- ``qa.npz``: ``frames (F,)``, ``names (N,)``, ``values (F, N)`` (NaN = not applicable),
-  ``reasons (R,)``, ``flagged (F, R)``;
-- ``flags.json``: the spans (start, end, reasons, peak frame, worst values) and per flagged
-  frame its reasons;
+- ``qa.npz`` (``artifacts.QAMetrics``): ``frames (F,)``, ``names (N,)``, ``values (F, N)``
+  (NaN = not applicable), ``reasons (R,)``, ``flagged (F, R)``;
+- ``flags.json`` (``artifacts.QAResult``, with ``qa.npz``: what release and qa_index read): the
+  summary (frames, flagged frames and rate, spans, per reason, not valid per person, sync
+  offsets, metrics time), the spans (start, end, reasons, peak frame, worst values), per
+  flagged frame its reasons, the thresholds and units, and the relative names of the files
+  drawn (report, plot, overlays per frame, video, scene);
 - ``report.json``: the summary (frames, flagged frames and rate, spans, frames per reason,
   frames not valid per person, the sequence-level findings such as camera sync offsets),
   the thresholds, what was rendered, and timings (``s_per_frame``: the metrics' wall time per
@@ -31,7 +34,7 @@ span. Writes
   as decimated triangle meshes, the markers, the keypoints triangulated, the cameras as frame
   transforms with their images, the metrics as plot topics;
 - ``figures/``: the upstream stages' pictures (marker residuals, partner-fit curves, keypoint
-  overlays) copied so that the report is one folder;
+  overlays; ``stages.common.stage_figures``) copied so that the report is one folder;
 - ``report.html``: the sequence's report (``qa.report.write_sequence_report``).
 
 A marker-only sequence (no video) gets the marker, ground, skating and jerk metrics of the
@@ -132,17 +135,11 @@ def summary(m, flags) -> dict:
             "not_valid": not_valid, **seq, "people": list(m.people)}
 
 
-def _json(art, name):
-    try:
-        return art.json(name)
-    except FileNotFoundError:
-        return None
-
-
 # ------------------------------------------------------------------------------------- stage
 def run(ctx: StageContext) -> None:
-    from artifacts import BodyFit
+    from artifacts import BodyFit, QAMetrics, QAResult
     from artifacts.keypoints import Keypoints2D
+    from artifacts.qa import QAFiles, QASpan, QASummary
     from calib.io import read_chi3d_camera
     from drawing.qa_plots import qa_plot
     from fitting.contact_signature import load_contact
@@ -168,7 +165,7 @@ def run(ctx: StageContext) -> None:
     pf_art = ctx.inputs.get("partner_fit")
     partner = BodyFit.load(pf_art) if pf_art is not None else None
     keypoints = None
-    if pf_art is not None and (Path(pf_art.path("keypoints.npz"))).exists():
+    if pf_art is not None and Keypoints2D.exists_in(pf_art):
         keypoints = Keypoints2D.load(pf_art)  # the keypoints the partner fit used
     elif ctx.inputs.get("keypoints") is not None:
         keypoints = Keypoints2D.load(ctx.inputs["keypoints"])
@@ -186,15 +183,13 @@ def run(ctx: StageContext) -> None:
     metrics_s = time.perf_counter() - t0
     F = len(m.frames)
     names = sorted(m.values)
-    ctx.out.save_arrays("qa", frames=np.asarray(m.frames), names=np.array(names),
+    metrics = QAMetrics(frames=np.asarray(m.frames, np.int64), names=np.array(names, dtype=str),
                         values=np.stack([np.asarray(m.values[n], float) for n in names], axis=1)
                         if names else np.zeros((F, 0)),
-                        reasons=np.array(flags.reasons), flagged=np.asarray(flags.flagged, bool))
+                        reasons=np.array(flags.reasons, dtype=str),
+                        flagged=np.asarray(flags.flagged, bool).reshape(F, len(flags.reasons)))
     per_frame = {str(int(f)): [r for r, x in zip(flags.reasons, row, strict=True) if x]
                  for f, row in zip(m.frames, flags.flagged, strict=True) if row.any()}
-    ctx.out.save_json("flags", {"spans": [s.to_json() for s in flags.spans],
-                                "frames": per_frame, "thresholds": m.thresholds,
-                                "units": {k: m.units.get(k, "") for k in m.thresholds}})
     ctx.log(f"{ctx.unit}: {int(flags.any.sum())}/{F} frames flagged in {len(flags.spans)} spans"
             + (": " + ", ".join(sorted({r for s in flags.spans for r in s.reasons}))
                if flags.spans else ""))
@@ -248,7 +243,7 @@ def run(ctx: StageContext) -> None:
         art = ctx.inputs.get(stage)
         if art is None:
             continue
-        for png in sorted(Path(art.path("manifest.json")).parent.glob("*.png")):
+        for png in common.stage_figures(art):
             dst = out / "figures" / f"{stage}_{png.name}"
             shutil.copyfile(png, dst)
             figures.append((f"{stage}: {png.stem.replace('_', ' ')}", f"figures/{dst.name}"))
@@ -267,9 +262,9 @@ def run(ctx: StageContext) -> None:
         art = ctx.inputs.get(stage)
         if isinstance(art, dict):
             for unit, a in art.items():
-                stage_reports[f"{stage} [{unit}]"] = _json(a, "report")
+                stage_reports[f"{stage} [{unit}]"] = common.stage_report(a)
         elif art is not None:
-            stage_reports[stage] = _json(art, "report")
+            stage_reports[stage] = common.stage_report(art)
     report = {"sequence": ctx.unit, "summary": summ, "spans": [s.to_json() for s in flags.spans],
               "thresholds": m.thresholds, "rendered": rendered,
               "overlay_frames": {"spans": span_frames, "sample": sample_frames},
@@ -285,6 +280,25 @@ def run(ctx: StageContext) -> None:
                                          **stage_reports},
                           links={"3D scene (open in Foxglove)": "scene.mcap"} if scene else None)
     ctx.out.save_json("report", report)
+    QAResult(
+        metrics=metrics,
+        summary=QASummary(frames=F, flagged_frames=int(flags.any.sum()),
+                          flagged_rate=float(flags.any.sum()) / max(F, 1), spans=len(flags.spans),
+                          per_reason=summ["reasons"], not_valid=summ["not_valid"],
+                          sync_offset_frames={c: int(v) for c, v in
+                                              (m.sequence.get("sync_offset_frames") or {}).items()},
+                          people=tuple(m.people), metrics_s=float(metrics_s)),
+        spans=tuple(QASpan(s.start, s.end, tuple(s.reasons), s.peak_frame, dict(s.worst))
+                    for s in flags.spans),
+        frame_reasons={int(k): tuple(v) for k, v in per_frame.items()},
+        thresholds={k: float(v) for k, v in m.thresholds.items()},
+        units={k: m.units.get(k, "") for k in m.thresholds},
+        files=QAFiles(report="report.html", plot="qa.png",
+                      overlays={int(f): p.relative_to(out).as_posix() for f, p in images.items()},
+                      span_frames=tuple(span_frames), sample_frames=tuple(sample_frames),
+                      video="overlay.mp4" if (out / "overlay.mp4").exists() else None,
+                      scene=scene["file"] if scene else None)).save(ctx.out)
+
 
 
 def wearer_markers(ctx, videos):

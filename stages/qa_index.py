@@ -1,6 +1,6 @@
 """Stage ``qa_index`` (per session): the page a reviewer opens first.
 
-Reads every sequence's ``qa`` artifact (its ``report.json``) and writes
+Reads every sequence's ``qa`` artifact through ``artifacts.QAResult`` and writes
 
 - ``index.html`` (``qa.report.write_index``): the sequences sorted by their share of flagged
   frames, most first, each with its flagged frames, spans, reasons, frames not valid, a
@@ -27,39 +27,28 @@ def rel_href(unit: str, stage: str, file: str) -> str:
     return "../../" + "/".join(unit.split("/") + [stage, file])
 
 
-def rows_of(reports: dict[str, dict], exists) -> list[dict]:
-    """One row per sequence from its qa ``report.json`` (``exists(unit, relpath)`` says whether
-    a file of the unit's qa artifact is there, for the thumbnail)."""
+def rows_of(results: dict) -> list[dict]:
+    """One row per sequence from its ``artifacts.QAResult`` (the thumbnail: its first span's
+    overlay, else its plot; the files the QA result lists, checked on load)."""
     rows = []
-    for unit, rep in reports.items():
-        s = rep["summary"]
-        thumb = None
-        spans = rep.get("overlay_frames", {}).get("spans") or []
-        for f in spans[:1]:
-            if exists(unit, f"overlays/overlay_{int(f):06d}.png"):
-                thumb = rel_href(unit, "qa", f"overlays/overlay_{int(f):06d}.png")
-        if thumb is None and exists(unit, "qa.png"):
-            thumb = rel_href(unit, "qa", "qa.png")
-        rows.append({"sequence": unit, "href": rel_href(unit, "qa", "report.html"),
-                     "frames": int(s["frames"]), "flagged": int(s["flagged"]),
-                     "spans": int(s["spans"]), "reasons": dict(s.get("reasons", {})),
-                     "not_valid": int(sum(s.get("not_valid", {}).values())),
-                     "thumbnail": thumb, "status": "flagged" if s["flagged"] else "ok",
-                     "sync_offset_frames": {c: v for c, v in
-                                            (s.get("sync_offset_frames") or {}).items() if v}})
+    for unit, qa in results.items():
+        s = qa.summary
+        thumb = qa.files.thumbnail()
+        rows.append({"sequence": unit,
+                     "href": rel_href(unit, "qa", qa.files.report or "report.html"),
+                     "frames": s.frames, "flagged": s.flagged_frames, "spans": s.spans,
+                     "reasons": dict(s.per_reason), "not_valid": int(sum(s.not_valid.values())),
+                     "thumbnail": None if thumb is None else rel_href(unit, "qa", thumb),
+                     "status": "flagged" if s.flagged_frames else "ok",
+                     "sync_offset_frames": s.out_of_sync})
     return rows
 
 
 def run(ctx: StageContext) -> None:
+    from artifacts import QAResult
     from qa.report import IndexRow, write_index
 
-    arts = ctx.inputs["qa"]
-    reports = {u: a.json("report") for u, a in arts.items()}
-
-    def exists(unit: str, rel: str) -> bool:
-        return Path(arts[unit].path(rel)).exists()
-
-    rows = rows_of(reports, exists)
+    rows = rows_of({u: QAResult.load(a) for u, a in ctx.inputs["qa"].items()})
     frames = sum(r["frames"] for r in rows)
     flagged = sum(r["flagged"] for r in rows)
     out_of_sync = {r["sequence"]: r["sync_offset_frames"] for r in rows if r["sync_offset_frames"]}

@@ -1,19 +1,20 @@
 """Stage ``release`` (per session): the session's release folder, from every sequence's export.
 
-Merges each ``export`` artifact's ``<group>/...`` files into one CHI3D-layout tree (files
-copied; a path two exports both write is an error; each group's
+Merges the files each ``export`` artifact lists (``artifacts.SequenceExport``) into one
+CHI3D-layout tree (files copied; a path two exports both write is an error; each group's
 ``interaction_contact_signature.json`` and ``text_annotations.json`` merged by action), then
 writes
 
 - ``datasheet.json`` and ``datasheet.md``: subjects, sequences, frames per sequence, contact
   events, interaction classes (action names without the take number), which person-frames
   are not valid and why (counts per reason and person, and the frames as ranges), the fitting
-  figures per sequence (each export's ``figures.json``), and the QA summary (each sequence's
-  ``qa`` report: frames flagged, spans and reasons, cameras out of sync; :func:`qa_summary`);
+  figures per sequence (each export's ``artifacts.SequenceFigures``), and the QA summary (each
+  sequence's ``artifacts.QAResult``: frames flagged, spans and reasons, cameras out of sync;
+  :func:`qa_summary`);
 - ``MANIFEST.sha256``: every file of the folder (``sha256sum -c MANIFEST.sha256`` passes in it);
-- ``verification.json``: the re-read pass (:func:`verify_release`): every file through its
-  reader (``formats.chi3d``, ``formats.anny_json``, ``formats.release``,
-  ``calib.io.read_chi3d_cameras``, the videos' frame count against their ``joints3d_25``), the
+- ``verification.json`` (``artifacts.Release``, which ``evaluate`` reads): the re-read pass
+  (:func:`verify_release`): every file through its reader (``formats.chi3d``,
+  ``formats.anny_json``, ``formats.release``, ``calib.io.read_chi3d_cameras``, the videos' frame count against their ``joints3d_25``), the
   persons and frames of an action's files agreeing, each copied file's hash equal to the
   export's, and the manifest verified. Any problem raises an InputError naming the file (the
   engine then leaves no artifact).
@@ -33,7 +34,6 @@ from pipeline.spec import Stage, StageContext
 READS = ("session.name", "session.subjects", "session.sequences")
 
 CONTACT_FILE = "interaction_contact_signature.json"
-MERGED = (CONTACT_FILE, "text_annotations.json")
 OWN = ("datasheet.json", "datasheet.md", "verification.json")
 
 
@@ -56,9 +56,10 @@ def frame_ranges(frames) -> list[list[int]]:
 
 # -------------------------------------------------------------------------------------- merge
 def merge_exports(exports: dict, root: Path) -> dict[str, str]:
-    """Copy every export's ``<group>/...`` files into ``root``, merging the per-group contact
-    and text files by action. Returns ``{relative path: sha256 of the source}`` of the copied
-    files (the merged ones are written anew)."""
+    """Copy every export's files (``{unit: artifacts.SequenceExport}``: the files it lists)
+    into ``root``, merging the per-group contact and text files by action. Returns
+    ``{relative path: sha256 of the source}`` of the copied files (the merged ones are written
+    anew)."""
     from formats.chi3d import read_contact_signatures, write_contact_signatures
     from formats.errors import InputError
     from formats.release import read_text_annotations, sha256_file, write_text_annotations
@@ -67,21 +68,21 @@ def merge_exports(exports: dict, root: Path) -> dict[str, str]:
     origin: dict[str, str] = {}
     contact: dict[str, dict] = defaultdict(dict)
     text: dict[str, dict] = defaultdict(dict)
-    for unit, art in exports.items():
-        info = art.json("export")
-        group = info["group"]
-        gdir = Path(art.dir) / group
-        for src in sorted(p for p in gdir.rglob("*") if p.is_file()):
-            rel = src.relative_to(art.dir).as_posix()
-            if src.parent == gdir and src.name in MERGED:
-                reader = read_contact_signatures if src.name == CONTACT_FILE else read_text_annotations
-                into = contact if src.name == CONTACT_FILE else text
+    for unit, exp in exports.items():
+        group = exp.group
+        merged = {exp.contact_file: CONTACT_FILE, exp.text_file: "text_annotations.json"}
+        for rel in sorted(exp.files):
+            src = exp.path(rel)
+            if rel in merged:
+                name = merged[rel]
+                reader = read_contact_signatures if name == CONTACT_FILE else read_text_annotations
+                into = contact if name == CONTACT_FILE else text
                 for action, v in reader(src).items():
                     if action in into[group]:
                         raise InputError(src, action, f"action given by two exports "
-                                         f"({origin.get(f'{group}/{src.name}:{action}')} and {unit})")
+                                         f"({origin.get(f'{group}/{name}:{action}')} and {unit})")
                     into[group][action] = v
-                    origin[f"{group}/{src.name}:{action}"] = unit
+                    origin[f"{group}/{name}:{action}"] = unit
                 continue
             if rel in copied:
                 raise InputError(src, "<path>", f"{rel} is written by two exports "
@@ -99,18 +100,17 @@ def merge_exports(exports: dict, root: Path) -> dict[str, str]:
 
 
 # ---------------------------------------------------------------------------------- datasheet
-def qa_summary(reports: dict[str, dict]) -> dict:
-    """The release's QA summary from every sequence's ``qa`` ``report.json``: per sequence the
+def qa_summary(results: dict) -> dict:
+    """The release's QA summary from every sequence's ``artifacts.QAResult``: per sequence the
     frames flagged, their share, the spans (frames and reasons) and sequence-level findings
-    (a camera out of sync), and the totals. A sequence whose QA is missing is listed as such."""
+    (a camera out of sync), and the totals."""
     seqs = {}
-    for unit, rep in sorted(reports.items()):
-        s = rep["summary"]
-        seqs[unit] = {"frames": s["frames"], "flagged": s["flagged"], "rate": s["rate"],
-                      "reasons": s.get("reasons", {}),
-                      "spans": [[sp["start"], sp["end"], sp["reasons"]] for sp in rep["spans"]],
-                      "sync_offset_frames": {c: v for c, v in
-                                             (s.get("sync_offset_frames") or {}).items() if v}}
+    for unit, qa in sorted(results.items()):
+        s = qa.summary
+        seqs[unit] = {"frames": s.frames, "flagged": s.flagged_frames, "rate": s.flagged_rate,
+                      "reasons": dict(s.per_reason),
+                      "spans": [list(sp) for sp in qa.span_list()],
+                      "sync_offset_frames": s.out_of_sync}
     frames = sum(v["frames"] for v in seqs.values())
     flagged = sum(v["flagged"] for v in seqs.values())
     return {"sequences": seqs, "frames": frames, "flagged": flagged,
@@ -123,20 +123,19 @@ def qa_summary(reports: dict[str, dict]) -> dict:
 def datasheet(session: str, subjects: list[str], sequences: dict, exports: dict,
               qa: dict | None = None) -> dict:
     """The datasheet as JSON (see the module doc) from the recipe's session view and each
-    export's ``export.json``, ``figures.json`` and ``valid/<action>.json``; ``qa``: the
-    :func:`qa_summary` (None: no QA ran)."""
+    export (``{unit: artifacts.SequenceExport}``: its facts, figures and validity file);
+    ``qa``: the :func:`qa_summary` (None: no QA ran)."""
     from formats.release import read_valid
 
     seqs: dict[str, dict] = {}
     classes: dict[str, list[str]] = defaultdict(list)
     by_reason: dict[str, int] = defaultdict(int)
     contact_events = 0
-    for unit, art in exports.items():
-        info, fig = art.json("export"), art.json("figures")
-        group, action = info["group"], info["action"]
-        v = read_valid(Path(art.dir) / group / "valid" / f"{action}.json")
+    for unit, exp in exports.items():
+        group, action = exp.group, exp.action
+        v = read_valid(exp.path(exp.valid_file))
         not_valid = {}
-        for p, subj in enumerate(info["persons"]):
+        for p, subj in enumerate(exp.persons):
             per: dict[str, list] = {}
             for r in sorted(set(v["reason"][p]) - {"fitted"}):
                 per[r] = frame_ranges(v["frames"][v["reason"][p] == r])
@@ -145,31 +144,28 @@ def datasheet(session: str, subjects: list[str], sequences: dict, exports: dict,
         # joints3d_25 joints of valid frames that no marker or view observed (joints_valid)
         jv = v.get("joints_valid")
         unobserved = {subj: 0 if jv is None else int((v["valid"][p][:, None] & ~jv[p]).sum())
-                      for p, subj in enumerate(info["persons"])}
-        c = info.get("contact")
-        has_contact = bool(c and any(c.get("pairs", {}).values()))
+                      for p, subj in enumerate(exp.persons)}
+        c = exp.contact
+        has_contact = bool(c is not None and c.event)
         contact_events += has_contact
         cls = interaction_class(action)
         classes[cls].append(unit)
         rec = sequences.get(unit, {})
         seqs[unit] = {
             "group": group, "action": action, "interaction_class": cls,
-            "persons": info["persons"], "frames": info["frames"],
-            "first_frame": info["first_frame"], "last_frame": info["last_frame"],
-            "has_video": bool(rec.get("has_video", bool(info.get("cameras")))),
+            "persons": list(exp.persons), "frames": exp.frames,
+            "first_frame": exp.first_frame, "last_frame": exp.last_frame,
+            "has_video": bool(rec.get("has_video", bool(exp.cameras))),
             "text": rec.get("text") or None,
-            "person_frames_not_valid": info["person_frames_not_valid"],
-            "not_valid_by_reason": info["not_valid_by_reason"],
+            "person_frames_not_valid": exp.person_frames_not_valid,
+            "not_valid_by_reason": [dict(x) for x in exp.not_valid_by_reason],
             "not_valid_frames": not_valid,
             "joint_frames_not_observed": unobserved,
-            "contact": None if not c else {
-                "event": has_contact, "pairs": c.get("pairs"),
-                "fr_id": c["original_frames"]["fr_id"],
-                "start_fr": c["original_frames"]["start_fr"],
-                "end_fr": c["original_frames"]["end_fr"]},
-            "absent": info.get("absent", {}),
-            "figures": {k: fig.get(k) for k in ("marker_fit", "partner_fit", "convert",
-                                                "shape_source")},
+            "contact": None if c is None else {
+                "event": has_contact, "pairs": dict(c.pairs), "fr_id": c.fr_id,
+                "start_fr": c.start_fr, "end_fr": c.end_fr},
+            "absent": dict(exp.absent),
+            "figures": exp.figures.datasheet(),
         }
     missing = sorted(set(sequences) - set(exports))
     return {
@@ -401,6 +397,7 @@ def verify_release(root: Path, copied: dict[str, str] | None = None) -> dict:
 
 # -------------------------------------------------------------------------------------- stage
 def run(ctx: StageContext) -> None:
+    from artifacts import QAResult, Release, SequenceExport
     from formats import release as R
     from formats.errors import InputError
 
@@ -410,19 +407,20 @@ def run(ctx: StageContext) -> None:
         exports = {ctx.unit: exports}
     if not exports:
         raise InputError(ctx.recipe_path or "<recipe>", "sequences", "no sequence was exported")
+    exports = {u: SequenceExport.load(a) for u, a in exports.items()}
     root = Path(ctx.out.dir).resolve()
     copied = merge_exports(exports, root)
     qa_arts = ctx.inputs.get("qa") or {}
     if not isinstance(qa_arts, dict):
         qa_arts = {ctx.unit: qa_arts}
-    qa = qa_summary({u: a.json("report") for u, a in qa_arts.items()}) if qa_arts else None
+    qa = qa_summary({u: QAResult.load(a) for u, a in qa_arts.items()}) if qa_arts else None
     sheet = datasheet(rv.session.name, list(rv.session.subjects),
                       rv.session.sequences.as_dict(), exports, qa)
     ctx.out.save_json("datasheet", sheet)
     ctx.out.path("datasheet.md").write_text(datasheet_md(sheet), encoding="utf-8")
     R.write_manifest(root)
     result = verify_release(root, copied)
-    ctx.out.save_json("verification", result)
+    Release.of(result).save(ctx.out)
     # the manifest lists every file, verification.json included
     with open(root / R.MANIFEST_FILE, "a") as f:
         f.write(f"{R.sha256_file(root / 'verification.json')}  verification.json\n")

@@ -83,12 +83,28 @@ def _convert(rng, frames, P, valid, d: Path, n_src_faces: int) -> _Art:
           "betas": rng.normal(0, 1, (P, 10)), "expression": rng.normal(0, 1, (P, 10)),
           "frames": np.asarray(frames, np.int64), "valid": np.asarray(valid, bool),
           "v2s_mm": np.full((P, F), 2.0), "subjects": np.array(["a", "b"][:P])}
-    w.save_arrays("smplx", **sm)
-    w.save_arrays("correspondence", src_face_tgt_face=rng.integers(0, NT, n_src_faces),
-                  tgt_faces=rng.integers(0, 40, (NT, 3)))
-    w.save_json("report", {"target": {"kind": "smplx", "standin": True},
-                           "per_person": [{"subject": s, "v2s_median_mm": 2.0}
-                                          for s in ["a", "b"][:P]], "cpu_s": 0.1, "warnings": []})
+    from artifacts import ConversionReport, SMPLXFit, SurfaceCorrespondence
+    from artifacts.smplx_fit import PersonConversion, TargetInfo
+
+    SMPLXFit(**sm).save(w)
+
+    def bary(n):
+        b = rng.uniform(0.1, 1, (n, 3))
+        return b / b.sum(1, keepdims=True)
+
+    Vt, Vs = 40, 30  # vertices of the fake target and source meshes
+    SurfaceCorrespondence(
+        tgt_vert_face=rng.integers(0, n_src_faces, Vt), tgt_vert_bary=bary(Vt),
+        src_vert_face=rng.integers(0, NT, Vs), src_vert_bary=bary(Vs),
+        src_face_tgt_face=rng.integers(0, NT, n_src_faces),
+        tgt_face_src_face=rng.integers(0, n_src_faces, NT), tgt_faces=rng.integers(0, Vt, (NT, 3)),
+        src_faces=rng.integers(0, Vs, (n_src_faces, 3))).save(w)
+    ConversionReport(
+        sequence="g/a", target=TargetInfo("SMPLX_NEUTRAL.npz", "0" * 64, "smplx", Vt, True,
+                                          "stand-in"),
+        correspondence_key="k", registered_now=False,
+        per_person=tuple(PersonConversion(s, 2.0, 3.0, 5.0, F) for s in ["a", "b"][:P]),
+        fps_per_core=F * P / 0.1, cpu_s=0.1, registration_cpu_s=0.0).save(w)
     return _Art(d)
 
 
@@ -399,3 +415,34 @@ def test_release_into_a_relative_store_path(world, tmp_path, monkeypatch):
     rel = _release(world, Path("relative") / "rel")
     assert R.verify_manifest(rel) == []
     assert json.loads((rel / "verification.json").read_text())["ok"]
+
+
+def test_typed_outputs_feed_release_and_evaluate(world, tmp_path, monkeypatch):
+    """export's and release's outputs read back through their classes; ``evaluate`` scores
+    the folder ``artifacts.Release`` names and refuses a release whose re-read pass failed."""
+    import evaluate
+    from artifacts import ArtifactError, Release, SequenceExport
+    from stages import evaluate as Ev
+
+    ex = SequenceExport.load(_Art(world["ex1"]))
+    assert ex.persons == ("a", "b") and ex.valid_file == "g1/valid/Hug 1.json"
+    assert ex.contact.event and ex.figures.marker_residual_median_mm() == 1.5
+    assert all(p.is_file() for p in ex.paths().values())
+    rel = _release(world, tmp_path / "rel")
+    r = Release.load(_Art(rel))
+    assert r.verified and r.root == rel and r.sheet.totals.frames == 7
+    assert r.files_checked == len(r.files) > 0
+    seen = []
+    monkeypatch.setattr(evaluate, "evaluate_folders",
+                        lambda pred, gt, **kw: seen.append((pred, gt)) or {"sequences": {}})
+    monkeypatch.setattr(evaluate, "markdown", lambda result: "| table |")
+    raw = {"truth:s01/joints3d_25/Hug 1.json": rel / "g1" / "joints3d_25" / "Hug 1.json"}
+    Ev.run(_ctx("evaluate", "session", {"body_model": {"kind": "anny"}}, Ev.Options(truth="x"),
+                {"release": _Art(rel)}, raw, tmp_path / "ev"))
+    assert seen == [(rel, rel)]  # the release folder, and the truth root of the raw inputs
+    v = json.loads((rel / "verification.json").read_text())
+    v.update(ok=False, problems=["g1/x.json: broken"])
+    (rel / "verification.json").write_text(json.dumps(v))
+    with pytest.raises(ArtifactError, match="re-read pass"):
+        Ev.run(_ctx("evaluate", "session", {"body_model": {"kind": "anny"}}, Ev.Options(truth="x"),
+                    {"release": _Art(rel)}, raw, tmp_path / "ev2"))

@@ -42,6 +42,7 @@ def _qa_dirs(session: Path) -> list[Path]:
 
 
 def test_every_sequence_gets_its_qa_artifacts(qa_run):
+    from artifacts import QAResult
     from qa.metrics import QAOptions
 
     dirs = _qa_dirs(qa_run["session"])
@@ -82,6 +83,12 @@ def test_every_sequence_gets_its_qa_artifacts(qa_run):
         for sp in fl["spans"]:
             covered |= (frames >= sp["start"]) & (frames <= sp["end"])
         assert not (anyf & ~covered).any()
+        # what release and qa_index read: the typed result, its files there
+        res = QAResult.load(d)
+        assert res.summary.frames == F and res.summary.flagged_frames == int(anyf.sum())
+        assert res.summary.people == ("wearer", "partner") and res.files.report == "report.html"
+        assert res.files.overlays and all((d / p).is_file() for p in res.files.overlays.values())
+        assert res.files.scene == "scene.mcap" and res.summary.metrics_s > 0
 
 
 def test_the_scene_reads_back_with_mcap(qa_run):

@@ -3,7 +3,8 @@
 Runs ``python -m pipeline release --recipe bench/work/partner_fit/recipe.yaml --outputs
 bench/work/partner_fit/outputs --until convert`` (a subprocess, like the engine runs of the
 other cases; the fits of the partner_fit case are reused when cached, so only convert is
-computed), then reads every sequence's ``convert/report.json`` and ``convert/smplx.npz``.
+computed), then reads every sequence's convert artifact (``artifacts.ConversionReport`` and
+``artifacts.SMPLXFit``).
 
 Keys: ``convert.v2s_mm``: median over all person-frames of the per-frame mean distance of the
 target vertices to the fitted Anny surface (mm; smplx's transfer_model reaches 5.0 mm);
@@ -14,7 +15,6 @@ pair); ``convert.frames``: person-frames converted.
 """
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
@@ -40,15 +40,16 @@ LIMITS = {
 
 def collect(outputs: Path) -> dict[str, float]:
     """The figures of every ``convert`` artifact under ``outputs``."""
+    from artifacts import ConversionReport, SMPLXFit
+
     mean, p95, mx, cpu, n = [], [], [], 0.0, 0
-    for rep in sorted(Path(outputs).rglob("convert/report.json")):
-        r = json.loads(rep.read_text())
-        z = np.load(rep.parent / "smplx.npz")
-        mean.append(np.ravel(z["v2s_mm"]))
-        p95.append(np.ravel(z["v2s_p95_mm"]))
-        mx.append(np.ravel(z["v2s_max_mm"]))
-        cpu += float(r["cpu_s"])
-        n += int(np.isfinite(z["v2s_mm"]).sum())
+    for d in sorted(p.parent for p in Path(outputs).rglob("convert/smplx.npz")):
+        r, z = ConversionReport.load(d), SMPLXFit.load(d)
+        mean.append(np.ravel(z.v2s_mm))
+        p95.append(np.ravel(z.v2s_p95_mm))
+        mx.append(np.ravel(z.v2s_max_mm))
+        cpu += r.cpu_s
+        n += int(np.isfinite(z.v2s_mm).sum())
     if not n:
         raise RuntimeError(f"no convert artifact under {outputs}")
     cat = np.concatenate

@@ -121,23 +121,16 @@ def fault_recipe(base: dict, work: Path) -> tuple[Path, dict]:
     return path, {"swap": swap}
 
 
-def _load_qa(outputs: Path, session: str, unit: str) -> tuple[dict, dict, dict]:
-    d = outputs / session / unit / "qa"
-    z = np.load(d / "qa.npz")
-    return ({k: z[k] for k in z.files}, json.loads((d / "report.json").read_text()),
-            json.loads((d / "flags.json").read_text()))
+def _load_qa(outputs: Path, session: str, unit: str):
+    """The sequence's ``artifacts.QAResult`` (``.metrics``: qa.npz; ``.summary``)."""
+    from artifacts import QAResult
+
+    return QAResult.load(outputs / session / unit / "qa")
 
 
-def _flagged_by(qa: dict, frames, kind) -> np.ndarray:
+def _flagged_by(qa, frames, kind) -> np.ndarray:
     """(len(frames),) whether each frame is flagged by a reason for which ``kind(reason)``."""
-    fr = np.asarray(qa["frames"])
-    cols = [i for i, r in enumerate(qa["reasons"]) if kind(str(r))]
-    rows = np.searchsorted(fr, frames)
-    ok = (rows < len(fr)) & (fr[np.minimum(rows, len(fr) - 1)] == frames)
-    out = np.zeros(len(frames), bool)
-    if cols:
-        out[ok] = np.asarray(qa["flagged"])[rows[ok]][:, cols].any(axis=1)
-    return out
+    return qa.metrics.flagged_by(frames, kind)
 
 
 def limb_fault(recipe: Path, outputs: Path, session: str) -> dict:
@@ -162,7 +155,7 @@ def limb_fault(recipe: Path, outputs: Path, session: str) -> dict:
     model = load_model("anny")
     wearer = BodyFit.load(root / "marker_fit")
     partner = BodyFit.load(root / "partner_fit")
-    kp = (Keypoints2D.load(root / "partner_fit") if (root / "partner_fit" / "keypoints.npz").exists()
+    kp = (Keypoints2D.load(root / "partner_fit") if Keypoints2D.exists_in(root / "partner_fit")
           else Keypoints2D.load(root / "keypoints"))
     cams = [read_chi3d_camera(seq.calibration[c], name=c) for c in rec.cameras]
     n = video_info(seq.videos[rec.cameras[0]]).n_frames
@@ -242,20 +235,20 @@ def run(work: Path) -> dict[str, float]:
     metrics_s = 0.0
     per_seq = {}
     for unit in base["sequences"]:
-        qa, rep, _ = _load_qa(outputs, base["session"], unit)
-        F = len(qa["frames"])
-        anyf = np.asarray(qa["flagged"]).any(axis=1)
-        names = [str(x) for x in qa["names"]]
+        res = _load_qa(outputs, base["session"], unit)
+        qa = res.metrics
+        F = len(qa.frames)
+        anyf = qa.any
         nv = np.zeros(F, bool)
-        for k, nm in enumerate(names):
+        for nm in map(str, qa.names):
             if nm.endswith(".not_valid"):
-                nv |= np.nan_to_num(qa["values"][:, k]) > 0.5
+                nv |= np.nan_to_num(qa.metric(nm)) > 0.5
         frames += F
         flagged += int(anyf.sum())
         frames_valid += int((~nv).sum())
         flagged_valid += int((anyf & ~nv).sum())
-        metrics_s += rep["timing"]["metrics_s"]
-        err = truth_errors(outputs, base["session"], unit, np.asarray(qa["frames"]), model, R)
+        metrics_s += res.summary.metrics_s
+        err = truth_errors(outputs, base["session"], unit, np.asarray(qa.frames), model, R)
         ok = (err <= DEFECT_MM) & ~nv
         bad = err > DEFECT_MM
         correct += int(ok.sum())
@@ -263,7 +256,7 @@ def run(work: Path) -> dict[str, float]:
         defects += int(bad.sum())
         flagged_defects += int((anyf & bad).sum())
         per_seq[unit] = {"frames": F, "flagged": int(anyf.sum()),
-                         "reasons": rep["summary"]["reasons"],
+                         "reasons": dict(res.summary.per_reason),
                          "defect_frames": int(bad.sum()), "flagged_defects": int((anyf & bad).sum()),
                          "flagged_correct": int((anyf & ok).sum()),
                          "worst_joint_mm": [round(float(x), 1) for x in err]}
@@ -280,21 +273,21 @@ def run(work: Path) -> dict[str, float]:
     t0 = (sw["first_frame"] + sw["first_sample"]) / sw["rate_hz"]
     t1 = (sw["first_frame"] + sw["first_sample"] + sw["samples"]) / sw["rate_hz"]
     fps = float(seq["fps"])
-    qa_f, _, _ = _load_qa(outputs, FAULT_SESSION, SWAP_SEQUENCE)
-    qa_c, _, _ = _load_qa(outputs, base["session"], SWAP_SEQUENCE)
-    fr = np.asarray(qa_f["frames"])
+    qa_f = _load_qa(outputs, FAULT_SESSION, SWAP_SEQUENCE)
+    qa_c = _load_qa(outputs, base["session"], SWAP_SEQUENCE)
+    fr = np.asarray(qa_f.metrics.frames)
     mocap_t = fr / fps - off  # video frame f is at mocap time f / fps - sync_offset_s
     inside = fr[(mocap_t >= t0) & (mocap_t < t1)]
     kind = lambda r: r.startswith("wearer.")  # noqa: E731
     hit = _flagged_by(qa_f, inside, kind) & ~_flagged_by(qa_c, inside, kind)
     faults["marker_swap"] = {"frames": inside.tolist(), "flagged": hit.tolist()}
     # sync offset: the sequence-level estimate for that camera, and the frames it flags
-    qa_f, rep_f, _ = _load_qa(outputs, FAULT_SESSION, SYNC_SEQUENCE)
-    qa_c, rep_c, _ = _load_qa(outputs, base["session"], SYNC_SEQUENCE)
-    est = (rep_f["summary"].get("sync_offset_frames") or {}).get(SYNC_CAMERA)
-    est_clean = (rep_c["summary"].get("sync_offset_frames") or {}).get(SYNC_CAMERA)
+    qa_f = _load_qa(outputs, FAULT_SESSION, SYNC_SEQUENCE)
+    qa_c = _load_qa(outputs, base["session"], SYNC_SEQUENCE)
+    est = qa_f.summary.sync_offset_frames.get(SYNC_CAMERA)
+    est_clean = qa_c.summary.sync_offset_frames.get(SYNC_CAMERA)
     kind = lambda r: r.startswith("sync_offset_frames.") and r.endswith(SYNC_CAMERA)  # noqa: E731
-    fr = np.asarray(qa_f["frames"])
+    fr = np.asarray(qa_f.metrics.frames)
     hit = _flagged_by(qa_f, fr, kind) & ~_flagged_by(qa_c, fr, kind)
     faults["sync_offset"] = {"estimated_frames": est, "clean_estimate": est_clean,
                              "frames": fr.tolist(), "flagged": hit.tolist()}

@@ -54,21 +54,18 @@ def run(work: Path) -> dict[str, float]:
         raise RuntimeError("engine failed:\n" + "\n".join(logs[-30:]))
     root = outputs / rec["session"] / "session"
     rel, ev = root / "release", root / "evaluate"
-    ver = json.loads((rel / "verification.json").read_text())
-    sheet = json.loads((rel / "datasheet.json").read_text())
+    from artifacts import Release
+
+    release = Release.load(rel)
     files = [f for f in rel.rglob("*") if f.is_file()]
     out: dict[str, float] = {
-        "release.verified": float(bool(ver.get("ok", False))),
+        "release.verified": float(release.verified),
         "release.files": float(len(files)),
         "release.mb": float(sum(f.stat().st_size for f in files) / 1e6),
         "release.s": float(wall),
+        "release.frames": float(release.sheet.totals.frames),
+        "release.frames_not_valid": float(release.sheet.totals.person_frames_not_valid),
     }
-    frames = sheet.get("totals", {}).get("frames")
-    if frames is not None:
-        out["release.frames"] = float(frames)
-    nv = sheet.get("totals", {}).get("person_frames_not_valid")
-    if nv is not None:
-        out["release.frames_not_valid"] = float(nv)
     result = json.loads((ev / "evaluation.json").read_text())
     overall = result["overall"]
     for group, suffix in (("all", ""), ("contact", "_contact")):
