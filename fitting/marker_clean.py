@@ -339,18 +339,25 @@ def _swaps(x: np.ndarray, nb: list[list[int]], o: CleanOptions):
     """Label swaps of any length (module docstring, step 2). Returns [(i, j, first, last,
     certain)] (inclusive sample ranges), no two sharing a marker sample."""
     F, M, _ = x.shape
-    cols = sorted({k for k in range(M) if nb[k]})
+    cols = [k for k in range(M) if nb[k]]
     if len(cols) < 2:
         return []
-    with np.errstate(invalid="ignore"):
-        D = np.full((F, M, M), np.nan)
-        sub = x[:, cols]
-        D[np.ix_(np.arange(F), cols, cols)] = np.linalg.norm(sub[:, :, None] - sub[:, None], axis=-1)
-    med, sd = _typical(D, o.swap_sigma_m)
+
+    def dist(pq: np.ndarray) -> np.ndarray:
+        """(F, len(pq)) distances of the column pairs pq (n, 2), computed once per pair."""
+        key, inv = np.unique(np.sort(pq, axis=1), axis=0, return_inverse=True)
+        with np.errstate(invalid="ignore"):
+            d = np.linalg.norm(x[:, key[:, 0]] - x[:, key[:, 1]], axis=-1)
+        return d[:, inv.ravel()]
+
+    cand_pairs = np.array(list(itertools.combinations(cols, 2)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med_ab = np.nanmedian(dist(cand_pairs), axis=0)
     # candidate pairs and their terms: (pair, position column, role column, neighbour)
     pairs, terms = [], []
-    for a, b in itertools.combinations(cols, 2):
-        if not (med[a, b] < o.swap_max_dist_m or b in nb[a]):
+    for (a, b), dab in zip(cand_pairs.tolist(), med_ab, strict=True):
+        if not (dab < o.swap_max_dist_m or b in nb[a]):
             continue
         ka = [k for k in nb[a] if k != b]
         kb = [k for k in nb[b] if k != a]
@@ -365,10 +372,11 @@ def _swaps(x: np.ndarray, nb: list[list[int]], o: CleanOptions):
     tp, tpos, trole, tk = T.T
     other = np.array([pairs[p][1] if pos == pairs[p][0] else pairs[p][0]
                       for p, pos in zip(tp, tpos, strict=True)])
-    ref, sig = med[trole, tk], sd[trole, tk]
+    ds = dist(np.stack([tpos, tk], 1))  # (F, T) as labelled (position = role)
+    ref, sig = _typical(ds, o.swap_sigma_m)  # each neighbour distance's typical value
     with np.errstate(invalid="ignore"):
-        rs = np.abs(D[:, tpos, tk] - ref) / sig  # (F, T) as labelled
-        rc = np.abs(D[:, other, tk] - ref) / sig  # exchanged
+        rs = np.abs(ds - ref) / sig
+        rc = np.abs(dist(np.stack([other, tk], 1)) - ref) / sig  # exchanged
     both = np.isfinite(rs) & np.isfinite(rc)
     cost_s = np.where(both, np.minimum(rs, o.swap_cap) ** 2, 0.0)
     cost_c = np.where(both, np.minimum(rc, o.swap_cap) ** 2, 0.0)
@@ -386,10 +394,9 @@ def _swaps(x: np.ndarray, nb: list[list[int]], o: CleanOptions):
             # per sample, each marker's median normalised error over its neighbours; over the
             # run, the median of the worse marker
             ok = both[seg]
-            agree = _nanmedian(np.fmax.reduce([_nanmedian(np.where(ok[:, t], rc[seg][:, t], np.nan), 1)
-                                               for t in mine]), 0)
-            broken = _nanmedian(np.fmax.reduce([_nanmedian(np.where(ok[:, t], rs[seg][:, t], np.nan), 1)
-                                                for t in mine]), 0)
+            agree, broken = (
+                _nanmedian(np.fmax.reduce([_nanmedian(np.where(ok[:, t], r[seg][:, t], np.nan), 1)
+                                           for t in mine]), 0) for r in (rc, rs))
             gain = float((S[seg, p] - C[seg, p]).sum())
             certain = _label_jump(x, a, b, s, True) and _label_jump(x, a, b, e, False)
             if not (broken > max(o.swap_break, SWAP_BREAK_OVER_AGREE * agree)
