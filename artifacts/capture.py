@@ -99,6 +99,13 @@ class Markers(TypedArtifact):
         counts = np.bincount(np.asarray(self.repair, np.int64).ravel(), minlength=len(codes))
         return {codes[i]: int(n) for i, n in enumerate(counts) if i and n}
 
+    def markers_repaired_as(self, *codes: str) -> set[str]:
+        """Names of the markers with a sample repaired as one of ``codes`` (e.g.
+        ``"unswapped", "swap_removed"``: the markers the cleaning found in a label swap)."""
+        ids = [i for i, c in enumerate(self.repair_codes) if str(c) in codes]
+        hit = np.isin(np.asarray(self.repair), ids).any(axis=0)
+        return {n for n, h in zip(self.marker_names, hit, strict=True) if h}
+
     def _check(self, file: Path) -> None:
         names = self.marker_names
         if len(set(names)) != len(names):

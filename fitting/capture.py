@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from artifacts.capture import Markers
-from fitting.marker_clean import CleanOptions, clean_markers
+from fitting.marker_clean import REPAIR_CODES, CleanOptions, clean_markers
 
 # constants
 WARN_REPAIRED_FRACTION = 0.01  # a marker with more of its samples repaired than this is named
@@ -64,22 +64,6 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1) - 1, strict=True))
 
 
-def repair_codes(report, names, n_samples: int) -> tuple[np.ndarray, tuple[str, ...]]:
-    """(F, M) int8 repair codes and their names from the cleaner's report."""
-    from fitting import marker_clean as mc
-
-    if hasattr(report, "codes") and hasattr(mc, "REPAIR_CODES"):
-        return np.asarray(report.codes(names), np.int8), tuple(mc.REPAIR_CODES)
-    codes = ("none", "ghost", "spike", "swap_removed", "implausible_speed", "unswapped")
-    idx = {n: i for i, n in enumerate(names)}
-    out = np.zeros((n_samples, len(names)), np.int8)
-    for r in report.runs:
-        c = "unswapped" if r["action"] == "unswapped" else (
-            "swap_removed" if r["reason"] == "swap" else r["reason"])
-        out[r["first_sample"]:r["last_sample"] + 1, idx[r["marker"]]] = codes.index(c)
-    return out, codes
-
-
 def prepare_capture(raw, labels_read, unit_scale: float, source: str, opts: CaptureOptions,
                     segments: dict | None = None, log=None) -> tuple[Markers, dict]:
     """Clean a capture read by :func:`read_capture` and make the typed artifact.
@@ -91,11 +75,11 @@ def prepare_capture(raw, labels_read, unit_scale: float, source: str, opts: Capt
     names = tuple(raw.names)
     if opts.clean_enabled:
         cleaned, rep = clean_markers(raw, segments, opts.clean)
-        codes, code_names = repair_codes(rep, names, F)
+        codes, code_names = np.asarray(rep.codes(names), np.int8), tuple(REPAIR_CODES)
         rep_json = rep.to_json()
     else:
         cleaned, rep_json = raw, {"removed_samples": 0, "runs": [], "disabled": True}
-        codes, code_names = np.zeros((F, M), np.int8), ("none",)
+        codes, code_names = np.zeros((F, M), np.int8), tuple(REPAIR_CODES)
     art = Markers(names=np.array(names, dtype=str), labels=np.array(labels_read, dtype=str),
                   xyz=np.asarray(cleaned.xyz, float), raw_observed=np.all(np.isfinite(x0), axis=-1),
                   repair=codes, repair_codes=np.array(code_names, dtype=str),

@@ -28,7 +28,11 @@ the capture can shift it, whatever its length.
    below ``swap_agree``) and the straight one breaks them (above ``swap_break``). Its ends
    are the label jumps: it is exchanged back when both ends are (the crossed continuation of
    the trajectories fits better than the straight one, or a gap or the capture's edge is
-   there), else both markers are removed over the run.
+   there), else both markers are removed over the run. The search runs again on the repaired
+   capture (``SWAP_ROUNDS``): exchanging LASI and RASI back removes the reason LPSI and RPSI
+   looked exchanged (a mirrored pelvis keeps its distances). Distances cannot tell an exchange
+   that is an isometry of the group (C7 and STRN with T10 and CLAV as neighbours): such a swap
+   is left to the tests below, which remove what breaks the segment.
 3. **rigid segments**: the distance between two markers of the same segment stays within
    ``tol`` of its reference: its running median (window ``drift_window``, which follows slow
    soft-tissue drift), or its whole-capture median where the running median is further than

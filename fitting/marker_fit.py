@@ -118,6 +118,43 @@ class MarkerFitOptions:
     def sigma_marker_m(self) -> float:
         return self.sigma_marker_mm / 1000
 
+    # the options a fit used travel with its artifact (``options.json``), so that a stage
+    # refitting the same capture (marker_loo) uses the recipe's options, not the defaults
+    OPTIONS_FILE = "options"
+
+    def save(self, writer) -> None:
+        """Write ``options.json`` (every field) through the engine's writer."""
+        import dataclasses
+
+        writer.save_json(self.OPTIONS_FILE, {"kind": "marker_fit_options",
+                                             **dataclasses.asdict(self)})
+
+    @classmethod
+    def load(cls, artifact) -> MarkerFitOptions:
+        """The options saved by :meth:`save` in a marker_fit artifact; an ``InputError``
+        naming the file and field when missing or not these options."""
+        import dataclasses
+        from pathlib import Path
+
+        from formats.errors import InputError
+
+        import json
+
+        file = Path(getattr(artifact, "dir", artifact)) / f"{cls.OPTIONS_FILE}.json"
+        try:  # an engine artifact, or its folder
+            doc = (artifact.json(cls.OPTIONS_FILE) if hasattr(artifact, "json")
+                   else json.loads(file.read_text()))
+        except FileNotFoundError:
+            raise InputError(file, "<file>", "missing (a marker_fit artifact of older code: "
+                             "recompute marker_fit)") from None
+        if not isinstance(doc, dict) or doc.get("kind") != "marker_fit_options":
+            raise InputError(file, "kind", "not marker_fit options")
+        known = {f.name for f in dataclasses.fields(cls)}
+        try:
+            return cls(**{k: v for k, v in doc.items() if k in known})
+        except (TypeError, ValueError) as e:
+            raise InputError(file, "options", str(e)) from None
+
 
 @dataclass
 class SequenceFit:
@@ -437,11 +474,14 @@ def fit_markers(model, shape: ShapeFit, template: Placement, markers, clock: moc
     return out, report
 
 
-def report_warnings(report: dict) -> list[str]:
+def report_warnings(report: dict, swapped=()) -> list[str]:
     """Plain sentences for what a person must look at in a marker-fit report: markers with a
     large median residual or many outlier frames (naming the marker, its figures and its worst
     frame), an overall p90 above ``WARN_P90_MM``, skin weight dropped outside the graph's
-    supports, markers never seen, frames not valid. Empty when nothing is off."""
+    supports, markers never seen, frames not valid. Empty when nothing is off. swapped : the
+    markers the capture's cleaning found in a label swap (``fitting.marker_clean``); only
+    their outlier warning blames labels (elsewhere outliers on smooth data are soft tissue or
+    placement the model does not follow)."""
     out = []
     for n, m in report["per_marker"].items():
         if m["visible"] == 0:
@@ -452,8 +492,10 @@ def report_warnings(report: dict) -> list[str]:
                        "labels are wrong")
         elif m["outlier_share"] > WARN_OUTLIER_SHARE:
             out.append(f"marker {n}: an outlier in {100 * m['outlier_share']:.0f} % of its frames "
-                       f"(max {m['max']:.0f} mm at frame {m['worst_frame']}): label swaps or "
-                       "ghost points")
+                       f"(max {m['max']:.0f} mm at frame {m['worst_frame']}): "
+                       + ("the capture's cleaning found label swaps in it" if n in swapped else
+                          "the model does not follow it (soft tissue or placement; the "
+                          "capture's cleaning found no label swap in it)"))
     r = report["residual_mm"]
     if r["p90"] > WARN_P90_MM:
         out.append(f"residual p90 {r['p90']:.0f} mm over all markers (median {r['median']:.1f}): "

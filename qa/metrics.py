@@ -715,20 +715,19 @@ def _person_metrics(person, fit, rows, V, P3, frames, fps, ground, proxy, feet, 
 # ---------------------------------------------------------------------------- the sequence
 
 
-def capture_repairs(raw, cleaned, frames: np.ndarray, clock) -> np.ndarray:
+def capture_repairs(changed: np.ndarray, rate_hz: float, first_frame: int, frames: np.ndarray,
+                    clock) -> np.ndarray:
     """(F,) per fit frame, how many of the wearer's markers had a capture sample repaired by
     the cleaning step (un-swapped, or removed as a ghost, spike or swap) among the samples the
-    frame is interpolated from. raw, cleaned : ``formats.c3d.Markers`` before and after
-    ``fitting.marker_clean.clean_markers`` (same names and samples); frames : video frames
-    (or capture frames on a marker-only sequence); clock : ``fitting.mocap.VideoClock``."""
+    frame is interpolated from. changed : (Fs, M) bool per capture sample and marker
+    (``artifacts.capture.Markers.repaired``); rate_hz, first_frame : the capture's; frames :
+    video frames (or capture frames on a marker-only sequence); clock :
+    ``fitting.mocap.VideoClock``."""
     from fitting.mocap import frame_times
 
-    a, b = np.asarray(raw.xyz, float), np.asarray(cleaned.xyz, float)
-    if a.shape != b.shape:
-        raise ValueError(f"capture_repairs: raw {a.shape} and cleaned {b.shape} differ")
-    changed = ~((a == b) | (np.isnan(a) & np.isnan(b))).all(axis=-1)  # (Fs, M)
-    rate = clock.rate_hz or raw.rate_hz
-    t_src = (raw.first_frame + np.arange(len(a))) / rate
+    changed = np.asarray(changed, bool)
+    rate = clock.rate_hz or float(rate_hz)
+    t_src = (int(first_frame) + np.arange(len(changed))) / rate
     frames = np.asarray(frames, dtype=int)
     if not len(frames):
         return np.zeros(0)

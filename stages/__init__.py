@@ -27,17 +27,19 @@ DEMO_RECIPE = REPO / "recipes" / "demo.yaml"
 
 # (name, per, upstream, what it makes) in DAG order.
 PLANNED: tuple[tuple[str, Granularity, tuple[str, ...], str], ...] = (
-    ("shape_fit", "subject", (), "body shape and marker placement per subject"),
-    ("keypoints", "sequence", (), "2D body and hand keypoints per camera and frame"),
-    ("marker_fit", "sequence", ("shape_fit", "keypoints"), "pose of the subject wearing markers"),
-    ("marker_loo", "sequence", ("shape_fit", "marker_fit"),
+    ("capture", "sequence", (), "the capture read, unit-checked and cleaned once; the camera rig"),
+    ("shape_fit", "subject", ("capture",), "body shape and marker placement per subject"),
+    ("keypoints", "sequence", ("capture",), "2D body and hand keypoints per camera and frame"),
+    ("marker_fit", "sequence", ("capture", "shape_fit", "keypoints"),
+     "pose of the subject wearing markers"),
+    ("marker_loo", "sequence", ("capture", "shape_fit", "marker_fit"),
      "leave-one-out check of the marker fit"),
-    ("partner_fit", "sequence", ("shape_fit", "keypoints", "marker_fit"),
+    ("partner_fit", "sequence", ("capture", "shape_fit", "keypoints", "marker_fit"),
      "pose of the unmarked partner (2D keypoints, contact, collisions)"),
     ("convert", "sequence", ("marker_fit", "partner_fit"), "SMPL-X parameters of both"),
-    ("export", "sequence", ("shape_fit", "keypoints", "marker_fit", "partner_fit", "convert"),
-     "CHI3D-layout files"),
-    ("qa", "sequence", ("shape_fit", "keypoints", "marker_fit", "partner_fit"),
+    ("export", "sequence", ("capture", "shape_fit", "keypoints", "marker_fit", "partner_fit",
+                            "convert"), "CHI3D-layout files"),
+    ("qa", "sequence", ("capture", "shape_fit", "keypoints", "marker_fit", "partner_fit"),
      "per-frame quality flags, overlays on the four views, plots, HTML report, 3D scene"),
     ("release", "session", ("export", "qa"),
      "the release folder: every sequence's export, SHA-256 manifest, datasheet, re-read"),
@@ -100,6 +102,8 @@ def make_upstream_units(all_stages: tuple[Stage, ...]):
         if mine == "sequence":  # theirs == "subject"
             seq = recipe.sequence(unit)
             return [seq.markers_on] + ([seq.partner] if seq.partner is not None else [])
+        if upstream == "capture":  # a subject reads the captures of the sequences it wears
+            return [q for q, s in recipe.sequences.items() if s.markers_on == unit]
         return recipe.sequences_of(unit)  # a subject reading sequences
 
     return upstream_units

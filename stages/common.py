@@ -120,23 +120,48 @@ def sequence_fps(fps: float | None, video: Path) -> float:
     return float(video_info(video).fps)
 
 
-def read_subject_markers(path: Path, names, prefix: str | None = None, labels=None):
-    """The markers ``names`` of one subject from a C3D (``formats.c3d.read_c3d``, missing
-    markers all-NaN): ``prefix`` picks the subject's labels (``Derrick:``), ``labels`` maps a
-    marker name to the lab's label where they differ (``{"LFRM": "LFRA"}``). The result is
-    named by ``names``."""
-    import dataclasses
+def artifact_folder(art) -> Path:
+    """An upstream artifact's folder (the engine's artifact, or a folder path in tests)."""
+    return Path(getattr(art, "dir", art))
 
-    from formats.c3d import read_c3d
-    from formats.plausibility import check_capture_scale
 
-    labels = dict(labels.as_dict() if hasattr(labels, "as_dict") else (labels or {}))
-    m = read_c3d(path, markers=[labels.get(n, n) for n in names], allow_missing=True,
-                 subject=prefix)
-    # a person 1.8 mm or 1.8 km tall is a unit error: an InputError naming the file and the
-    # unit the coordinates seem to be in, before anything is fitted to it
-    check_capture_scale(m.xyz, path, "POINT:UNITS", m.unit)
-    return dataclasses.replace(m, names=tuple(names)) if labels else m
+def capture_markers(ctx, names=None):
+    """The sequence's cleaned capture from the ``capture`` stage (``artifacts.capture.Markers``);
+    ``names``: the marker names the caller's placement expects (an InputError naming the
+    artifact when the capture was made for another marker set)."""
+    from artifacts.capture import Markers
+    from formats.errors import InputError
+
+    art = ctx.inputs["capture"]
+    mk = Markers.load(art)
+    if names is not None and tuple(names) != mk.marker_names:
+        raise InputError(artifact_folder(art) / "markers.npz", "names",
+                         f"captured markers {list(mk.marker_names)} differ from the placement's "
+                         f"{list(names)} (recompute capture and shape_fit)")
+    return mk
+
+
+def capture_cameras(ctx, names=None) -> list:
+    """The sequence's cameras (``calib.Camera``, recipe order or ``names``) from the
+    ``capture`` stage's ``artifacts.capture.CameraRig``; ``[]`` on a marker-only sequence."""
+    from artifacts.capture import CameraRig
+
+    art = ctx.inputs.get("capture")
+    if art is None or not (artifact_folder(art) / "rig.npz").exists():
+        return []
+    return CameraRig.load(art).cameras(names)
+
+
+def capture_rig(ctx):
+    """``([calib.Camera], [calibration file names])`` of the ``capture`` stage's rig, recipe
+    order; None on a marker-only sequence."""
+    from artifacts.capture import CameraRig
+
+    art = ctx.inputs.get("capture")
+    if art is None or not (artifact_folder(art) / "rig.npz").exists():
+        return None
+    rig = CameraRig.load(art)
+    return rig.cameras(), [str(s) for s in rig.source]
 
 
 def marker_timeline(seq, raw: dict, markers, keypoints=None):
@@ -166,20 +191,6 @@ def marker_timeline(seq, raw: dict, markers, keypoints=None):
     return (frames, VideoClock(rate, 0.0, seq.mocap.rate_hz),
             "capture frames (0-based: the C3D frame number - 1)")
 
-
-def clean_capture(markers, source, log=None):
-    """``fitting.marker_clean.clean_markers`` on a subject's capture: ghost points, spikes,
-    implausible speeds and label swaps removed (or un-swapped) before anything is fitted to
-    them. Returns ``(cleaned Markers, the cleaning report as JSON)``; logs a line naming
-    ``source`` when samples were removed."""
-    from fitting.marker_clean import clean_markers
-
-    out, rep = clean_markers(markers)
-    js = rep.to_json()
-    if log and js["removed_samples"]:
-        log(f"{source}: {js['removed_samples']} marker samples removed before fitting "
-            f"({', '.join(f'{n} {r}' for r, n in js['removed_by_reason'].items() if n)})")
-    return out, js
 
 # ------------------------------------------------------------------ upstream reports, figures
 # The stages without a typed report (shape_fit, keypoints, marker_fit, partner_fit) are shown

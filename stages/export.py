@@ -73,8 +73,6 @@ def raw_inputs(recipe, unit: str) -> dict[str, Path]:
     seq = recipe.sequence(unit)
     out = {"body_model": common.body_model_file(recipe)}
     for cam in recipe.cameras:
-        if cam in seq.calibration:
-            out[f"calibration:{cam}"] = Path(seq.calibration[cam])
         if cam in seq.videos:
             out[f"video:{cam}"] = Path(seq.videos[cam])
     if seq.contact is not None:
@@ -192,7 +190,7 @@ def run(ctx: StageContext) -> None:
     from body.joints import regress, regressor
     from body.rotations import rodrigues
     from calib.convert import convert_distortion
-    from calib.io import read_chi3d_camera, write_chi3d_camera
+    from calib.io import write_chi3d_camera
     from fitting.marker_graph import observed_points
     from formats import anny_json, chi3d
     from formats import release as R
@@ -270,11 +268,10 @@ def run(ctx: StageContext) -> None:
     # cameras and videos
     cameras: dict[str, dict] = {}
     fps = None
-    for c in rv.cameras:
-        if f"calibration:{c}" not in ctx.raw:
-            continue
-        cam = read_chi3d_camera(ctx.raw[f"calibration:{c}"], name=c)
-        info = {"source": Path(ctx.raw[f"calibration:{c}"]).name, "model": cam.model}
+    rig_cams, rig_sources = common.capture_rig(ctx) or ([], [])  # as the capture stage read them
+    for cam, src in zip(rig_cams, rig_sources, strict=True):
+        c = cam.name
+        info = {"source": src, "model": cam.model}
         if cam.model != "h36m" and np.any(cam.p):
             conv = convert_distortion(cam, "h36m")
             cam = conv.camera
@@ -398,7 +395,7 @@ def _export_contact(ctx, model, action: str, frames, corr, rel) -> dict:
 
 
 STAGE = Stage(name="export", func=run, per="sequence",
-              upstream=("shape_fit", "keypoints", "marker_fit", "partner_fit", "convert"),
+              upstream=("capture", "shape_fit", "keypoints", "marker_fit", "partner_fit", "convert"),
               params=Options, raw_inputs=raw_inputs, reads=READS, version="1",
               doc="CHI3D-layout files of the sequence (SMPL-X, Anny, joints, cameras, videos, "
                   "validity, contact signature, text)")

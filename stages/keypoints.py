@@ -1,9 +1,9 @@
 """Stage ``keypoints`` (per sequence): 2D body and hand keypoints of both people in every view.
 
 The thin adapter around :func:`detect.sequence.detect_keypoints` (the algorithm is described
-there): it reads the raw files (calibration through ``calib.io``, the C3D through
-``formats.c3d``, the videos' lengths and rates through ``formats.video``, precomputed
-detections through ``formats.openpose`` / ``formats.coco``), resamples the wearer's markers
+there): it reads the cleaned capture and the camera rig of stage ``capture``
+(``artifacts.capture``), the videos' lengths and rates through ``formats.video``, precomputed
+detections through ``formats.openpose`` / ``formats.coco``, resamples the wearer's markers
 onto the selected video frames (``fitting.mocap``), calls the domain function, and writes:
 
 - ``keypoints.npz``: :class:`artifacts.keypoints.Keypoints2D` (layout in
@@ -116,11 +116,10 @@ def _precomputed_files(seq, cam: str) -> list[Path]:
 
 
 def raw_inputs(recipe, unit: str) -> dict[str, Path]:
-    seq = recipe.sequence(unit)
-    out: dict[str, Path] = {"c3d": Path(seq.c3d)}
+    seq = recipe.sequence(unit)  # markers and cameras come from the ``capture`` stage
+    out: dict[str, Path] = {}
     for cam in recipe.cameras:
         out[f"video:{cam}"] = Path(seq.videos[cam])
-        out[f"calibration:{cam}"] = Path(seq.calibration[cam])
         if seq.keypoints and cam in seq.keypoints:
             for i, p in enumerate(_precomputed_files(seq, cam)):
                 out[f"keypoints:{cam}:{i:06d}"] = p
@@ -181,25 +180,28 @@ class Computed:
     source: object
 
 
-def compute(view, raw: dict[str, Path], o: Options, *, unit: str = "", recipe_path="<recipe>",
-            progress=lambda it, **_: it, log=lambda _msg: None, cores: int = 0) -> Computed:
-    """The stage without the artifact store (used by :func:`run` and the bench): read the raw
-    inputs (``raw_inputs`` paths), check the videos, resample the markers, run
+def compute(view, raw: dict[str, Path], o: Options, *, markers, cams, unit: str = "",
+            recipe_path="<recipe>", progress=lambda it, **_: it, log=lambda _msg: None,
+            cores: int = 0) -> Computed:
+    """The stage without the artifact store (used by :func:`run` and the bench): check the
+    videos (``raw_inputs`` paths), resample the markers, run
     :func:`detect.sequence.detect_keypoints`. ``view`` : the stage's recipe view
-    (``ctx.recipe``, or ``stages.view_for(recipe, "keypoints", unit)``); ``unit`` and
-    ``recipe_path`` name the recipe field in errors."""
-    from calib.io import read_chi3d_camera
+    (``ctx.recipe``, or ``stages.view_for(recipe, "keypoints", unit)``); ``markers`` : the
+    cleaned capture (``artifacts.capture.Markers``, stage ``capture``; outside the engine
+    ``stages.capture.capture_of``), ``cams`` : its rig's cameras in the recipe's order;
+    ``unit`` and ``recipe_path`` name the recipe field in errors."""
     from detect.mediapipe_detector import MediapipeOptions
     from detect.run import VideoSource
     from detect.sequence import detect_keypoints
     from fitting.mocap import VideoClock
-    from formats.c3d import read_c3d
     from formats.video import video_info
     from stages.common import sequence_fps, video_errors
 
     seq = view.sequence
     cam_names = list(view.cameras)
-    cams = [read_chi3d_camera(raw[f"calibration:{c}"], name=c) for c in cam_names]
+    if [c.name for c in cams] != cam_names:
+        raise InputError(recipe_path, f"sequences.{unit}.calibration",
+                         f"cameras {[c.name for c in cams]} calibrated, the recipe names {cam_names}")
     videos = [raw[f"video:{c}"] for c in cam_names]
     problems = video_errors(videos, seq.fps)
     if problems:
@@ -210,11 +212,12 @@ def compute(view, raw: dict[str, Path], o: Options, *, unit: str = "", recipe_pa
     if len(frames) == 0:
         raise InputError(videos[0], "frames", f"no frame in [{o.start}, {o.stop}) of {n_video}")
 
-    markers = read_c3d(raw["c3d"])
+    capture_file = str(markers.source)
+    markers = markers.capture()
     xyz = markers_on_frames(markers, frames, VideoClock(fps, seq.mocap.sync_offset_s,
                                                         seq.mocap.rate_hz))
     if not np.isfinite(xyz[..., 0]).any():
-        raise InputError(raw["c3d"], "markers", "no marker observed at any video frame "
+        raise InputError(capture_file, "markers", "no marker observed at any video frame "
                          "(check mocap.sync_offset_s and fps)")
 
     kind = o.detector
@@ -292,8 +295,10 @@ def write_mcap(path: Path, kp: Keypoints2D, fps: float) -> str:
 
 def run(ctx: StageContext) -> None:
     o: Options = ctx.params or Options()
-    c = compute(ctx.recipe, ctx.raw, o, unit=ctx.unit, recipe_path=ctx.recipe_path or "<recipe>",
-                progress=ctx.progress, log=ctx.log, cores=ctx.cores)
+    c = compute(ctx.recipe, ctx.raw, o, markers=common.capture_markers(ctx),
+                cams=common.capture_cameras(ctx, list(ctx.recipe.cameras)), unit=ctx.unit,
+                recipe_path=ctx.recipe_path or "<recipe>", progress=ctx.progress, log=ctx.log,
+                cores=ctx.cores)
     kp = c.keypoints
     kp.save(ctx.out)
     sample = int(kp.frames[len(kp.frames) // 2]) if o.overlay_frame is None else o.overlay_frame
@@ -308,7 +313,7 @@ def run(ctx: StageContext) -> None:
             f"views), partner tracked in {report['partner_mode_counts']['tracked']} view-frames")
 
 
-STAGE = Stage(name="keypoints", func=run, per="sequence", upstream=(), params=Options,
+STAGE = Stage(name="keypoints", func=run, per="sequence", upstream=("capture",), params=Options,
               raw_inputs=raw_inputs, version="1", cores=2, memory_gb=4.0,
               reads=("cameras", "sequence.fps", "sequence.mocap", "sequence.has_keypoints",
                      "sequence.keypoints_format"),

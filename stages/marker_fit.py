@@ -1,8 +1,8 @@
 """Stage ``marker_fit`` (per sequence): the subject wearing markers, frame after frame.
 
-Thin adapter around ``fitting.marker_fit.fit_markers``: reads the sequence's C3D (any Vicon
-export: ``Subject:`` prefixes, extra non-marker points, gaps, 100-240 Hz; only the markers of
-the subject's marker set are used), the cameras (``calib.io``), the subject's ``shape_fit``
+Thin adapter around ``fitting.marker_fit.fit_markers``: reads the sequence's cleaned capture
+and camera rig (stage ``capture``: ``artifacts.capture.Markers`` / ``CameraRig``; only the
+markers of the subject's marker set), the subject's ``shape_fit``
 (``artifacts.ShapeFit``) and the ``keypoints`` artifact (``artifacts.Keypoints2D``: its
 video frames are the frames fitted, person 0's hand keypoints drive the fingers; without it
 every video frame is fitted, without hands). Writes
@@ -34,11 +34,9 @@ READS = ("body_model.kind", "cameras", "sequence.fps", "sequence.mocap", "sequen
 
 
 def raw_inputs(recipe, unit: str) -> dict[str, Path]:
-    seq = recipe.sequence(unit)
-    out = {"body_model": common.body_model_file(recipe), "c3d": Path(seq.c3d)}
+    seq = recipe.sequence(unit)  # markers and cameras come from the ``capture`` stage
+    out = {"body_model": common.body_model_file(recipe)}
     out.update(common.markerset_file(recipe.subjects[seq.markers_on]))
-    for cam in seq.calibration:
-        out[f"calibration:{cam}"] = Path(seq.calibration[cam])
     if seq.videos:
         out["video"] = Path(seq.videos[recipe.cameras[0]])  # frame count when no keypoints
     return out
@@ -47,9 +45,8 @@ def raw_inputs(recipe, unit: str) -> dict[str, Path]:
 def run(ctx: StageContext) -> None:
     from artifacts import ShapeFit
     from artifacts.keypoints import Keypoints2D
-    from calib.io import read_chi3d_camera
     from drawing.plots import marker_residual_plot, residual_plot
-    from fitting.marker_fit import WARN_MARKER_MEDIAN_MM, fit_markers
+    from fitting.marker_fit import WARN_MARKER_MEDIAN_MM, fit_markers, report_warnings
 
     o: Options = ctx.params or Options()
     rv = ctx.recipe
@@ -58,28 +55,30 @@ def run(ctx: StageContext) -> None:
     shape_art = ctx.inputs["shape_fit"]
     shape = ShapeFit.load(shape_art[subject] if isinstance(shape_art, dict) else shape_art)
     template = common.marker_template(ctx, rv.wearer.markerset, model)
-    markers = common.read_subject_markers(ctx.raw["c3d"], shape.names, rv.wearer.label_prefix,
-                                          rv.wearer.marker_labels)
-    markers, cleaned = common.clean_capture(markers, ctx.raw["c3d"], ctx.log)
-    cams = [read_chi3d_camera(ctx.raw[f"calibration:{c}"], name=c) for c in rv.cameras
-            if f"calibration:{c}" in ctx.raw]
+    captured = common.capture_markers(ctx, shape.names)
+    markers = captured.capture()
+    cams = common.capture_cameras(ctx)
     kp_art = ctx.inputs.get("keypoints")
     keypoints = Keypoints2D.load(kp_art) if kp_art is not None else None
     frames, clock, timeline = common.marker_timeline(rv.sequence, ctx.raw, markers, keypoints)
     fps = clock.fps
     fit, report = fit_markers(model, shape, template, markers, clock, frames, cams, keypoints,
                               o, progress=ctx.progress,
-                              log=lambda s: ctx.log(f"{ctx.unit}: {s}"), source=str(ctx.raw["c3d"]))
+                              log=lambda s: ctx.log(f"{ctx.unit}: {s}"), source=str(captured.source))
     fit.save(ctx.out)
-    report = {"sequence": ctx.unit, "subject": subject, "capture": Path(ctx.raw["c3d"]).name,
+    o.save(ctx.out)  # the options this fit used (marker_loo refits with them)
+    # outliers on a marker the cleaning found swapped blame its labels, elsewhere the model
+    report["warnings"] = report_warnings(report, captured.markers_repaired_as("unswapped",
+                                                                           "swap_removed"))
+    repaired = captured.repairs_by_code()
+    report = {"sequence": ctx.unit, "subject": subject, "capture": Path(str(captured.source)).name,
               "capture_rate_hz": float(markers.rate_hz),
               "capture_first_frame": int(markers.first_frame) + 1, "frames_are": timeline,
-              "fit_rate_hz": float(fps), "cleaned": cleaned, **report}
-    if cleaned["removed_samples"]:
+              "fit_rate_hz": float(fps), "capture_repaired": repaired, **report}
+    if repaired:
         report["warnings"].append(
-            f"{cleaned['removed_samples']} marker samples removed before the fit as "
-            + ", ".join(f"{n} {r}" for r, n in cleaned["removed_by_reason"].items() if n)
-            + " (report: cleaned.runs)")
+            f"{sum(repaired.values())} marker samples repaired by the capture stage ("
+            + ", ".join(f"{k} {v}" for k, v in repaired.items()) + "; its report: runs)")
     ctx.out.save_json("report", report)
     # plots name frames in the capture's own numbering: the C3D frame number of a
     # marker-only fit (its frames are 0-based capture frames), the video frame otherwise
@@ -95,6 +94,7 @@ def run(ctx: StageContext) -> None:
         ctx.log(f"{ctx.unit}: WARNING {w}")
 
 
-STAGE = Stage(name="marker_fit", func=run, per="sequence", upstream=("shape_fit", "keypoints"),
+STAGE = Stage(name="marker_fit", func=run, per="sequence",
+              upstream=("capture", "shape_fit", "keypoints"),
               params=Options, raw_inputs=raw_inputs, reads=READS, version="1",
               doc="pose of the subject wearing markers, frame after frame")

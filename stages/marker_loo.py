@@ -46,8 +46,8 @@ class Options:
 
 
 def raw_inputs(recipe, unit: str) -> dict[str, Path]:
-    seq = recipe.sequence(unit)
-    out = {"body_model": common.body_model_file(recipe), "c3d": Path(seq.c3d)}
+    seq = recipe.sequence(unit)  # the markers come cleaned from the ``capture`` stage
+    out = {"body_model": common.body_model_file(recipe)}
     out.update(common.markerset_file(recipe.subjects[seq.markers_on]))
     if seq.videos:
         out["video"] = Path(seq.videos[recipe.cameras[0]])
@@ -55,6 +55,8 @@ def raw_inputs(recipe, unit: str) -> dict[str, Path]:
 
 
 def run(ctx: StageContext) -> None:
+    import dataclasses
+
     from artifacts import BodyFit, ShapeFit
     from drawing.plots import marker_residual_plot
     from fitting.loo import leave_one_out
@@ -69,11 +71,12 @@ def run(ctx: StageContext) -> None:
     shape = ShapeFit.load(shape_art[subject] if isinstance(shape_art, dict) else shape_art)
     fit = BodyFit.load(ctx.inputs["marker_fit"])
     template = common.marker_template(ctx, rv.wearer.markerset, model)
-    markers = common.read_subject_markers(ctx.raw["c3d"], shape.names, rv.wearer.label_prefix,
-                                          rv.wearer.marker_labels)
-    # the same cleaned observations marker_fit fitted: ghosts and spikes neither enter the
-    # refits nor score the held-out marker
-    markers, _ = common.clean_capture(markers, ctx.raw["c3d"])
+    # the same cleaned observations marker_fit fitted (stage ``capture``): ghosts and spikes
+    # neither enter the refits nor score the held-out marker
+    markers = common.capture_markers(ctx, shape.names).capture()
+    # the refits use the options marker_fit used (the recipe's ``stages.marker_fit``), hands
+    # off: a held-out marker is predicted from the markers, not from keypoints
+    fit_opts = dataclasses.replace(MarkerFitOptions.load(ctx.inputs["marker_fit"]), use_hands=False)
     unknown = [m for m in o.markers if m not in shape.names]
     if unknown:
         raise InputError(ctx.recipe_path or "<recipe>", "stages.marker_loo.markers",
@@ -81,7 +84,7 @@ def run(ctx: StageContext) -> None:
     _, clock, timeline = common.marker_timeline(rv.sequence, ctx.raw, markers)
     frames = np.asarray(fit.frames)[fit.valid]  # frames fitted from evidence only
     res = leave_one_out(model, shape, template, markers, clock, frames,
-                        held=o.markers or None, opts=MarkerFitOptions(use_hands=False),
+                        held=o.markers or None, opts=fit_opts,
                         stride=o.stride, progress=ctx.progress)
     per = res["per_marker"]
     warnings = [f"marker {n}: predicted {m['median_mm']:.0f} mm off (median, p90 "
@@ -95,6 +98,7 @@ def run(ctx: StageContext) -> None:
                         marker_names=np.array(list(per)))
     ctx.out.save_json("report", {
         "sequence": ctx.unit, "subject": subject, "frames_are": timeline, "warnings": warnings,
+        "fit_options": dataclasses.asdict(fit_opts),
         "overall": {"median_mm": res.pop("median_mm"), "p90_mm": res.pop("p90_mm")}, **res})
     if np.isfinite(err).any():
         marker_residual_plot(ctx.out.path("loo.png"), err, list(per),
@@ -102,6 +106,7 @@ def run(ctx: StageContext) -> None:
                              f"{np.nanmedian(err):.1f} mm)", frames=fr, warn_mm=WARN_LOO_MM)
 
 
-STAGE = Stage(name="marker_loo", func=run, per="sequence", upstream=("shape_fit", "marker_fit"),
+STAGE = Stage(name="marker_loo", func=run, per="sequence",
+              upstream=("capture", "shape_fit", "marker_fit"),
               params=Options, raw_inputs=raw_inputs, reads=READS, version="1",
               doc="leave-one-out check of the marker fit (held-out marker errors)")

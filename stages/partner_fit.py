@@ -58,8 +58,7 @@ class Options(PartnerFitOptions):
 def raw_inputs(recipe, unit: str) -> dict[str, Path]:
     seq = recipe.sequence(unit)
     out = {"body_model": common.body_model_file(recipe)}
-    for cam in recipe.cameras:
-        out[f"calibration:{cam}"] = Path(seq.calibration[cam])
+    for cam in recipe.cameras:  # the cameras come from the ``capture`` stage's rig
         out[f"video:{cam}"] = Path(seq.videos[cam])  # the second pass; frame count
     if seq.contact is not None:
         out["contact"] = Path(seq.contact)
@@ -81,7 +80,6 @@ def _summary(values_m: np.ndarray) -> dict:
 def run(ctx: StageContext) -> None:
     from artifacts import BodyFit, ShapeFit
     from artifacts.keypoints import Keypoints2D
-    from calib.io import read_chi3d_camera
     from drawing.plots import partner_fit_plot
     from fitting.contact_signature import load_contact
     from fitting.partner_fit import contact_figures, fit_partner
@@ -90,7 +88,7 @@ def run(ctx: StageContext) -> None:
     o: Options = ctx.params or Options()
     rv = ctx.recipe
     model = common.load_body(ctx)
-    cams = [read_chi3d_camera(ctx.raw[f"calibration:{c}"], name=c) for c in rv.cameras]
+    cams = common.capture_cameras(ctx, list(rv.cameras))
     contact = None
     if "contact" in ctx.raw:  # fails (InputError: file, action, field) before anything is written
         action = ctx.unit.split("/", 1)[1]
@@ -193,6 +191,6 @@ def _reason(code) -> str:
 
 
 STAGE = Stage(name="partner_fit", func=run, per="sequence",
-              upstream=("shape_fit", "keypoints", "marker_fit"), params=Options,
+              upstream=("capture", "shape_fit", "keypoints", "marker_fit"), params=Options,
               raw_inputs=raw_inputs, reads=READS, version="1",
               doc="pose of the unmarked partner (2D keypoints, contact, collisions)")

@@ -93,11 +93,8 @@ def thresholds(o: Options) -> QAOptions:
 
 def raw_inputs(recipe, unit: str) -> dict[str, Path]:
     seq = recipe.sequence(unit)
-    out = {"body_model": common.body_model_file(recipe), "c3d": Path(seq.c3d)}
-    out.update(common.markerset_file(recipe.subjects[seq.markers_on]))
+    out = {"body_model": common.body_model_file(recipe)}  # markers, cameras: stage capture
     for cam in recipe.cameras:
-        if cam in seq.calibration:
-            out[f"calibration:{cam}"] = Path(seq.calibration[cam])
         if cam in seq.videos:
             out[f"video:{cam}"] = Path(seq.videos[cam])
     if seq.contact is not None:
@@ -140,7 +137,6 @@ def run(ctx: StageContext) -> None:
     from artifacts import BodyFit, QAMetrics, QAResult
     from artifacts.keypoints import Keypoints2D
     from artifacts.qa import QAFiles, QASpan, QASummary
-    from calib.io import read_chi3d_camera
     from drawing.qa_plots import qa_plot
     from fitting.contact_signature import load_contact
     from formats.video import video_info
@@ -151,8 +147,7 @@ def run(ctx: StageContext) -> None:
     rv = ctx.recipe
     out = Path(ctx.out.path("report.html")).parent
     model = common.load_body(ctx)
-    cams = [read_chi3d_camera(ctx.raw[f"calibration:{c}"], name=c) for c in rv.cameras
-            if f"calibration:{c}" in ctx.raw]
+    cams = common.capture_cameras(ctx)
     videos = [ctx.raw[f"video:{c.name}"] for c in cams if f"video:{c.name}" in ctx.raw]
     has_video = bool(rv.sequence.has_video) and len(videos) == len(cams) and len(cams) > 0
     contact = None
@@ -170,9 +165,10 @@ def run(ctx: StageContext) -> None:
     elif ctx.inputs.get("keypoints") is not None:
         keypoints = Keypoints2D.load(ctx.inputs["keypoints"])
     ground = (np.asarray(rv.ground_plane.normal, float), float(rv.ground_plane.offset))
-    raw_markers, markers, clock = wearer_markers(ctx, videos)
+    captured, markers, clock = wearer_markers(ctx, videos)
     fps = float(clock.fps)
-    repaired = capture_repairs(raw_markers, markers, wearer.frames, clock)
+    repaired = capture_repairs(captured.repaired, captured.rate_hz, captured.first_frame,
+                               wearer.frames, clock)
     qo = thresholds(o)
 
     t0 = time.perf_counter()
@@ -300,20 +296,19 @@ def run(ctx: StageContext) -> None:
                       scene=scene["file"] if scene else None)).save(ctx.out)
 
 
-
 def wearer_markers(ctx, videos):
-    """The wearer's capture as read, as cleaned, and its clock onto the fit's frames (as
-    ``marker_fit`` reads them): ``(raw markers, cleaned markers, clock)``."""
+    """The wearer's capture from stage ``capture`` (``artifacts.capture.Markers``: what the
+    cleaning repaired), the cleaned markers ``marker_fit`` fitted (``formats.c3d.Markers``)
+    and their clock onto the fit's frames: ``(captured, cleaned markers, clock)``."""
     from artifacts import ShapeFit
 
     sh = ctx.inputs["shape_fit"]
     shape = ShapeFit.load(sh[ctx.recipe.sequence.markers_on] if isinstance(sh, dict) else sh)
-    raw = common.read_subject_markers(ctx.raw["c3d"], shape.names, ctx.recipe.wearer.label_prefix,
-                                      ctx.recipe.wearer.marker_labels)
-    mk, _ = common.clean_capture(raw, ctx.raw["c3d"])
+    captured = common.capture_markers(ctx, shape.names)
+    mk = captured.capture()
     _, clock, _ = common.marker_timeline(ctx.recipe.sequence, {"video": videos[0]} if videos else {},
                                          mk, None)
-    return raw, mk, clock
+    return captured, mk, clock
 
 
 def _write_scene(path: Path, model, m, flags, cams, videos, has_video, keypoints, markers, clock,
@@ -366,6 +361,6 @@ def _write_scene(path: Path, model, m, flags, cams, videos, has_video, keypoints
 
 
 STAGE = Stage(name="qa", func=run, per="sequence",
-              upstream=("shape_fit", "keypoints", "marker_fit", "partner_fit"),
+              upstream=("capture", "shape_fit", "keypoints", "marker_fit", "partner_fit"),
               params=Options, raw_inputs=raw_inputs, reads=READS, version="1",
               doc="per-frame quality flags, overlays on the four views, plots, HTML report, 3D scene")

@@ -33,29 +33,28 @@ def raw_inputs(recipe, unit: str) -> dict[str, Path]:
     if subj.scan is not None:
         out["scan"] = Path(subj.scan)
     out.update(common.markerset_file(subj))
-    for i, trial in enumerate(subj.static):
+    for i, trial in enumerate(subj.static):  # the static trials only this stage reads
         out[f"static:{i}"] = Path(trial.c3d)
-    for sid in recipe.sequences_of(unit):
-        seq = recipe.sequences[sid]
-        if seq.markers_on == unit:
-            out[f"c3d:{sid}"] = Path(seq.c3d)
-    return out
+    return out  # the movement captures come cleaned from the ``capture`` stage
 
 
-def read_captures(raw: dict[str, Path], names, prefix: str | None = None,
-                  static_frames=(), labels=None) -> list[tuple[str, object]]:
-    """The subject's captures, static trials first (``static[i]``, cut to their frame range)
-    then the sequences (keys ``c3d:<sequence>``, in key order): ``[(name, formats.c3d.Markers
-    of the markers ``names``, metres, NaN gaps)]``. ``static_frames``: per static trial
-    ``[first, last]`` C3D frame numbers (1-based, inclusive) or None; ``prefix``, ``labels``:
-    ``stages.common.read_subject_markers``."""
+def read_statics(raw: dict[str, Path], names, prefix: str | None = None,
+                 static_frames=(), labels=None, opts=None, log=None,
+                 segments=None) -> list[tuple[str, object, dict]]:
+    """The subject's static trials (raw inputs ``static:<i>``), each read, unit-checked and
+    cleaned like a sequence's capture (``fitting.capture``), cut to its frame range:
+    ``[(name, formats.c3d.Markers of the markers ``names``, cleaning report)]``.
+    ``static_frames``: per static trial ``[first, last]`` C3D frame numbers (1-based,
+    inclusive) or None; ``prefix``, ``labels``: ``fitting.capture.read_capture``."""
+    from fitting.capture import CaptureOptions, prepare_capture, read_capture
+    from fitting.marker_clean import default_segments
     from formats.c3d import Markers
     from formats.errors import InputError
 
     out = []
     statics = sorted((int(k.split(":", 1)[1]), p) for k, p in raw.items() if k.startswith("static:"))
     for i, path in statics:
-        m = common.read_subject_markers(path, names, prefix, labels)
+        m, read_as, scale = read_capture(path, names, prefix, labels)
         rng = static_frames[i] if i < len(static_frames) else None
         if rng is not None:
             first = m.first_frame + 1  # the C3D frame number of sample 0
@@ -64,16 +63,18 @@ def read_captures(raw: dict[str, Path], names, prefix: str | None = None,
                 raise InputError(path, f"subjects.<id>.static[{i}].frames",
                                  f"frames {list(rng)} outside the capture's frames {first}.."
                                  f"{first + len(m.xyz) - 1}")
-            m = Markers(m.names, m.xyz[a:b], m.rate_hz, m.first_frame + a, m.subject)
-        out.append((f"static[{i}] {Path(path).name}", m))
-    for key, path in sorted(raw.items()):
-        if key.startswith("c3d:"):
-            out.append((key[4:], common.read_subject_markers(path, names, prefix, labels)))
+            m = Markers(m.names, m.xyz[a:b], m.rate_hz, m.first_frame + a, m.subject, m.unit)
+        name = f"static[{i}] {Path(path).name}"
+        art, rep = prepare_capture(m, read_as, scale, name, opts or CaptureOptions(),
+                                   segments=segments or default_segments(names), log=log)
+        out.append((name, art.capture(), rep))
     return out
 
 
 def run(ctx: StageContext) -> None:
+    from artifacts.capture import Markers
     from fitting.shape import fit_shape
+    from formats.errors import InputError
     from formats.plausibility import check_scan_scale
     from formats.scan import read_scan
 
@@ -84,12 +85,23 @@ def run(ctx: StageContext) -> None:
     if scan is not None:  # a scan in mm read as metres is a 1.8 km person: an error, not a fit
         check_scan_scale(scan[0], ctx.raw["scan"], "scan")
     rv = ctx.recipe.subject
-    named = read_captures(ctx.raw, template.names, rv.label_prefix, rv.static_frames,
-                          rv.marker_labels)
-    cleaned = {}
-    for i, (n, m) in enumerate(named):  # ghosts, spikes, swaps out before frames are chosen
-        m, cleaned[n] = common.clean_capture(m, n, ctx.log)
-        named[i] = (n, m)
+    # ghosts, spikes, swaps out before frames are chosen: the static trials cleaned here, the
+    # sequences' captures by their ``capture`` stage
+    statics = read_statics(ctx.raw, template.names, rv.label_prefix, rv.static_frames,
+                           common.marker_labels(template, rv.marker_labels), log=ctx.log,
+                           segments=template.segments)
+    cleaned = {n: rep.get("cleaning", {}) for n, _, rep in statics}
+    named = [(n, m) for n, m, _ in statics]
+    for sid, art in sorted((ctx.inputs.get("capture") or {}).items()):
+        mk = Markers.load(art)
+        if mk.marker_names != tuple(template.names):
+            raise InputError(common.artifact_folder(art) / "markers.npz", "names",
+                             f"the capture of {sid} has markers {list(mk.marker_names)}, the "
+                             f"subject's marker set {list(template.names)}")
+        named.append((sid, mk.capture()))
+        cleaned[sid] = {"removed_samples": int((mk.repaired & ~mk.observed).sum()),
+                        "repaired_samples": int(mk.repaired.sum()),
+                        "repaired_by_code": mk.repairs_by_code()}
     statics = [(n, m) for n, m in named if n.startswith("static[")]
     moves = [(n, m) for n, m in named if not n.startswith("static[")]
     shape, report = fit_shape(model, template, scan, [m.xyz for _, m in moves], o,
@@ -103,9 +115,7 @@ def run(ctx: StageContext) -> None:
             {"name": n, "first_frame": int(m.first_frame) + 1, "frames": int(len(m.xyz)),
              "rate_hz": float(m.rate_hz)} for n, m in named],
         "marker_sequences": [n for n, _ in named if not n.startswith("static[")],
-        "cleaned": {n: {k: c[k] for k in ("removed_samples", "removed_fraction",
-                                          "removed_by_reason", "unswapped")}
-                    for n, c in cleaned.items()}, **report, "warnings": shape_warnings(report)})
+        "cleaned": cleaned, **report, "warnings": shape_warnings(report)})
     for w in shape_warnings(report):
         ctx.log(f"{ctx.unit}: WARNING {w}")
 
@@ -143,6 +153,6 @@ def shape_warnings(report: dict) -> list[str]:
     return out
 
 
-STAGE = Stage(name="shape_fit", func=run, per="subject", upstream=(), params=Options,
+STAGE = Stage(name="shape_fit", func=run, per="subject", upstream=("capture",), params=Options,
               raw_inputs=raw_inputs, reads=READS, version="1",
               doc="body shape (scan or markers) and marker placement per subject")

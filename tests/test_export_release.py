@@ -130,7 +130,6 @@ def world(tmp_path_factory, anny):
     ``g2/Walk 1`` (marker-only, P = 1, no video, no contact, no text)."""
     from body.regions import region_map
     from calib.camera import Camera
-    from calib.io import write_chi3d_camera
     from stages import export as E
 
     tmp = tmp_path_factory.mktemp("exp")
@@ -148,8 +147,11 @@ def world(tmp_path_factory, anny):
         cams[c] = Camera(name=c, f=np.array([500.0, 510]), c=np.array([16.0, 15]),
                          k=np.array([0.01, -0.002, 0.0]), p=np.array([0.001, 0.0005]),
                          R=_rot(rng), T=np.array([1.0 + i, 2.0, 1.5]), width=32, height=32)
-        raw[f"calibration:{c}"] = write_chi3d_camera(tmp / "cal" / c / "Hug 1.json", cams[c])
         raw[f"video:{c}"] = _video(tmp / "vid" / c / "Hug 1.mp4", 5)
+    from artifacts.capture import CameraRig
+
+    cap = tmp / "capture1"  # the cameras as the capture stage hands them on
+    CameraRig.from_cameras(list(cams.values()), [f"{c}.json" for c in cams]).save(_writer(cap))
     rmap = region_map(model)
     faces = np.array([[100, 2000], [5000, 7000]])
     regions = rmap.region_of(faces)
@@ -164,7 +166,8 @@ def world(tmp_path_factory, anny):
                          "has_video": True}}
     ex1 = tmp / "ex1"
     E.run(_ctx("export", "g1/Hug 1", tree, E.Options(), {
-        "marker_fit": mf, "partner_fit": pf, "convert": cv, "shape_fit": {}}, raw, ex1))
+        "marker_fit": mf, "partner_fit": pf, "convert": cv, "shape_fit": {}, "capture": cap},
+        raw, ex1))
     # ---- sequence 2: marker-only
     mf2 = _fit(model, rng, range(10, 14), [1, 0, 0, 2], tmp / "mf2", markers=True)
     cv2 = _convert(rng, range(10, 14), 1, [[True] * 4], tmp / "cv2", len(model.faces))

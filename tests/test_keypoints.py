@@ -322,12 +322,14 @@ def test_detect_keypoints_is_pure_and_drops_what_other_views_disagree_with(sessi
 def _compute(path: Path, o: Options):
     from recipes import load_recipe
     from stages import view_for
+    from stages.capture import capture_of
     from stages.keypoints import compute, raw_inputs
 
     rec = load_recipe(path)
     sid = "s01/Test 1"
+    mk, cams, _ = capture_of(rec, sid)
     return compute(view_for(rec, "keypoints", sid), raw_inputs(rec, sid), o, unit=sid,
-                   recipe_path=path)
+                   recipe_path=path, markers=mk, cams=cams)
 
 
 def test_bad_inputs_name_the_file(session, tmp_path):
@@ -384,13 +386,16 @@ def test_stage_on_the_studio_small_session(small_session):
     from detect.metrics import identity_swaps, keypoint_errors
     from recipes import load_recipe
     from stages import view_for
+    from stages.capture import capture_of
     from stages.keypoints import compute, raw_inputs
 
     rec = load_recipe(small_session)
     sid = next(s for s in rec.sequences if "Handshake" in s)
     seq = rec.sequences[sid]
+    mk, cams, _ = capture_of(rec, sid)
     c = compute(view_for(rec, "keypoints", sid), raw_inputs(rec, sid),
-                Options(stride=8, workers=2), unit=sid, recipe_path=small_session)
+                Options(stride=8, workers=2), unit=sid, recipe_path=small_session,
+                markers=mk, cams=cams)
     kp = c.keypoints
     fr = kp.frames
     group, action = sid.split("/")

@@ -43,6 +43,20 @@ def keypoints_artifact(folder: Path, kp: np.ndarray, frames: np.ndarray, cams) -
     return folder
 
 
+def capture_artifact(folder: Path, values: dict, raw: dict, unit: str = "g/take") -> Path:
+    """Stage ``capture`` run on ``raw`` (body_model, c3d, calibration:<cam>) into ``folder``:
+    the cleaned markers and camera rig the marker stages read."""
+    import stages.capture as cap
+
+    keep = {k: v for k, v in raw.items() if k in ("body_model", "c3d", "markerset")
+            or k.startswith("calibration:")}
+    ctx = SimpleNamespace(stage="capture", unit=unit, recipe=view(cap, values),
+                          params=cap.Options(), raw=keep, out=FakeWriter(folder),
+                          inputs={}, log=lambda m: None, progress=lambda it, **k: it)
+    cap.run(ctx)
+    return folder
+
+
 def _session(tmp: Path, model, rng, F=40, fps=50.0, rate=240.0, swap=True, fingers=False,
              sync=-0.1, hole_frames=(), first_frame=0):
     """Truth motion, its markers as a Vicon C3D, cameras, and the stage context pieces.
@@ -116,6 +130,7 @@ def _session(tmp: Path, model, rng, F=40, fps=50.0, rate=240.0, swap=True, finge
                                   skel=skel, gaps=gaps, mocap_joints=truth.joints)
     return SimpleNamespace(values=values, raw=raw, shape=sf, shape_dir=tmp / "shape_fit",
                            kp=kp, cams=list(cams), truth=truth_video,
+                           capture_dir=capture_artifact(tmp / "capture", values, raw),
                            kp_dir=keypoints_artifact(tmp / "keypoints", kp, np.arange(F), cams))
 
 
@@ -124,7 +139,7 @@ def _ctx(s, out: Path, params, keypoints=None, log=lambda m: None):
 
     return SimpleNamespace(stage="marker_fit", unit="g/take", recipe=view(stage, s.values),
                            params=params, raw=s.raw, out=FakeWriter(out), log=log,
-                           inputs={"shape_fit": {"s1": s.shape_dir},
+                           inputs={"shape_fit": {"s1": s.shape_dir}, "capture": s.capture_dir,
                                    "keypoints": s.kp_dir if keypoints is None else keypoints},
                            progress=lambda it, **k: it)
 

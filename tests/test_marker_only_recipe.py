@@ -37,7 +37,8 @@ def test_marker_only_recipe_loads_and_plans_only_the_marker_stages(tmp_path):
     for cmd in ("sequence", "release"):
         ids = {n.id for n in build_plan(reg, r, p, targets_for(reg, r, cmd)).nodes
                if n.stage.implemented}
-        want = {("shape_fit", "s1"), ("marker_fit", "s1/Walk 1"), ("marker_loo", "s1/Walk 1"),
+        want = {("capture", "s1/Walk 1"), ("shape_fit", "s1"), ("marker_fit", "s1/Walk 1"),
+                ("marker_loo", "s1/Walk 1"),
                 ("convert", "s1/Walk 1"), ("export", "s1/Walk 1"), ("qa", "s1/Walk 1")}  # the wearer alone, P = 1
         if cmd == "release":
             want |= {("release", "session"), ("qa_index", "session")}  # no evaluate: no truth
@@ -46,7 +47,11 @@ def test_marker_only_recipe_loads_and_plans_only_the_marker_stages(tmp_path):
     mf = plan.by_id[("marker_fit", "s1/Walk 1")]
     assert "keypoints" not in mf.upstream and mf.upstream["shape_fit"] == ["s1"]
     sf = plan.by_id[("shape_fit", "s1")]
-    assert "static:0" in sf.raw and "c3d:s1/Walk 1" in sf.raw
+    # the static trial is read by shape_fit itself; the movement capture comes cleaned from
+    # the sequence's capture stage, the only reader of its C3D
+    assert "static:0" in sf.raw and not any(k.startswith("c3d") for k in sf.raw)
+    assert sf.upstream["capture"] == ["s1/Walk 1"]
+    assert [k for n in plan.nodes for k in n.raw if k == "c3d"] == ["c3d"]
     assert stages.recipe_view(r, "s1", "subject.static_frames") == [[10, 200]]
     assert stages.recipe_view(r, "s1/Walk 1", "wearer.label_prefix") == "Derrick"
 
@@ -80,17 +85,18 @@ def test_a_labs_own_labels_and_prefix_read_as_the_marker_set(tmp_path):
     import numpy as np
 
     from formats.c3d import Markers, write_c3d
-    from stages.common import read_subject_markers
+    from fitting.capture import read_capture
 
     rng = np.random.default_rng(0)
     a, b = rng.normal(size=(5, 2, 3)), rng.normal(size=(5, 2, 3)) + 10
     p = tmp_path / "two.c3d"
     write_c3d(p, Markers(("Ann:LFHD", "Ann:LFRA", "Bob:LFHD", "Bob:LFRA"),
                          np.concatenate([a, b], axis=1), 100.0))
-    m = read_subject_markers(p, ("LFHD", "LFRM"), "Ann", {"LFRM": "LFRA"})
+    m, labels, scale = read_capture(p, ("LFHD", "LFRM"), "Ann", {"LFRM": "LFRA"})
     assert m.names == ("LFHD", "LFRM")
+    assert labels == ["Ann:LFHD", "Ann:LFRA"] and scale == 1e-3  # what the file called them
     np.testing.assert_allclose(m.xyz, a, atol=1e-6)
-    m = read_subject_markers(p, ("LFHD", "LFRM"), "Bob", {"LFRM": "LFRA"})
+    m, _, _ = read_capture(p, ("LFHD", "LFRM"), "Bob", {"LFRM": "LFRA"})
     np.testing.assert_allclose(m.xyz, b, atol=1e-6)
     from formats.c3d import read_c3d
 

@@ -232,6 +232,9 @@ def stage_files(scene, tmp_path_factory):
     write_mp4(video, np.zeros((n_video, 64, 64, 3), np.uint8), FPS)
     scene.shape.save(FakeWriter(tmp / "shape_fit"))
     _keypoints(scene.kp, scene.frames, scene.cams).save(FakeWriter(tmp / "keypoints"))
+    from artifacts.capture import CameraRig
+
+    CameraRig.from_cameras(scene.cams).save(FakeWriter(tmp / "capture"))  # the capture's rig
     from artifacts import BodyFit
 
     F, J = F_SYN, scene.model.num_joints
@@ -242,8 +245,7 @@ def stage_files(scene, tmp_path_factory):
     rmap = region_map(scene.model)
     good = _contact_json(rmap)
     body_file = common.body_model_file(SimpleNamespace(body_model=SimpleNamespace(kind="anny", path=None)))
-    raw = {"body_model": body_file, **{f"calibration:{c}": p for c, p in cams.items()},
-           **{f"video:{c}": video for c in cams}}
+    raw = {"body_model": body_file, **{f"video:{c}": video for c in cams}}
     return SimpleNamespace(tmp=tmp, raw=raw, good=good, rmap=rmap, cams=list(cams))
 
 
@@ -263,6 +265,7 @@ def _stage_ctx(files, out: Path, contact: dict, params=None):
                            raw={**files.raw, "contact": p}, log=lambda m: None,
                            inputs={"shape_fit": {"s1": files.tmp / "shape_fit",
                                                  "s2": files.tmp / "shape_fit"},
+                                   "capture": files.tmp / "capture",
                                    "keypoints": files.tmp / "keypoints",
                                    "marker_fit": files.tmp / "marker_fit"},
                            progress=lambda it, **k: it), p

@@ -336,9 +336,13 @@ def test_a_swap_burst_repaired_by_the_cleaning_is_flagged(small_session):
     clock = VideoClock(float(seq.get("fps") or 50.0), 0.0, None)
     t_src = (raw.first_frame + np.arange(len(xyz))) / raw.rate_hz
     frames = np.arange(int(t_src[-1] * clock.fps))
-    assert not capture_repairs(raw, clean_markers(raw)[0], frames, clock).any()  # clean: none
-    cleaned, _ = clean_markers(bad)
-    rep = capture_repairs(bad, cleaned, frames, clock)
+    def changed(before):
+        after = clean_markers(before)[0]
+        a, b = np.asarray(before.xyz), np.asarray(after.xyz)
+        return ~((a == b) | (np.isnan(a) & np.isnan(b))).all(axis=-1)
+
+    assert not capture_repairs(changed(raw), raw.rate_hz, raw.first_frame, frames, clock).any()
+    rep = capture_repairs(changed(bad), bad.rate_hz, bad.first_frame, frames, clock)
     t = frames / clock.fps
     inside = (t > t_src[a] + 0.5 / raw.rate_hz) & (t < t_src[a + 11] - 0.5 / raw.rate_hz)
     assert inside.any() and (rep[inside] >= 2).all(), rep

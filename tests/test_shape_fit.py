@@ -105,10 +105,10 @@ def test_shape_fit_stage_with_scan_and_captures(tmp_path, anny):
                            rng)
     scan = _write_ply(tmp_path / "s1.ply", pts, nrm)
     out = FakeWriter(tmp_path / "shape_out")
-    raw = {"body_model": s.raw["body_model"], "scan": scan, "c3d:g/take": s.raw["c3d"]}
+    raw = {"body_model": s.raw["body_model"], "scan": scan}  # the capture: stage capture's
     ctx = SimpleNamespace(stage="shape_fit", unit="s1", recipe=view(stage, s.values),
                           params=Options(num_betas=30, scan_iters=10, frames=5, rounds=2),
-                          inputs={}, raw=raw, out=out,
+                          inputs={"capture": {"g/take": s.capture_dir}}, raw=raw, out=out,
                           progress=lambda it, **k: it, log=lambda s: None)
     run(ctx)
     rep = json.loads((out.dir / "report.json").read_text())

@@ -97,6 +97,7 @@ def run(work: Path) -> dict[str, float]:
     from detect.metrics import GROUPS, group_summary, identity_swaps, keypoint_errors, lr_flips
     from recipes import load_recipe
     from stages import view_for
+    from stages.capture import capture_of
     from stages.keypoints import Options, compute, raw_inputs
 
     recipe_path = Path(os.environ.get("BENCH_KEYPOINTS_RECIPE", REPO / "recipes" / "bench.yaml"))
@@ -112,8 +113,9 @@ def run(work: Path) -> dict[str, float]:
     flips = np.zeros(2, int)
     for sid, seq in recipe.sequences.items():
         cls = _class(sid.split("/", 1)[-1])
+        mk, cams, _ = capture_of(recipe, sid)
         c = compute(view_for(recipe, "keypoints", sid), raw_inputs(recipe, sid), opts, unit=sid,
-                    recipe_path=recipe_path)
+                    recipe_path=recipe_path, markers=mk, cams=cams)
         res = c.keypoints
         truth = _truth_uv(recipe, sid, seq, res.frames, reg)
         inside = (truth[..., 0] >= 0) & (truth[..., 0] < 900) & (truth[..., 1] >= 0) & (truth[..., 1] < 900)
@@ -172,14 +174,16 @@ def _clip(recipe, recipe_path, reg, per_seq: dict) -> dict[str, float]:
     pool task of a few chunks): speed, median error, swaps and flips."""
     from detect.metrics import group_summary, identity_swaps, keypoint_errors, lr_flips
     from stages import view_for
+    from stages.capture import capture_of
     from stages.keypoints import Options, compute, raw_inputs
 
     frames = cpu = setup = 0.0
     errs, swaps, flips = [], 0, np.zeros(2, int)
     for sid, seq in recipe.sequences.items():
         o = Options(stride=1, start=0, stop=CLIP_FRAMES, workers=1)
+        mk, cams, _ = capture_of(recipe, sid)
         c = compute(view_for(recipe, "keypoints", sid), raw_inputs(recipe, sid), o, unit=sid,
-                    recipe_path=recipe_path)
+                    recipe_path=recipe_path, markers=mk, cams=cams)
         truth = _truth_uv(recipe, sid, seq, c.keypoints.frames, reg)
         inside = (truth[..., 0] >= 0) & (truth[..., 0] < 900) & (truth[..., 1] >= 0) & (truth[..., 1] < 900)
         e = keypoint_errors(c.keypoints.kp, truth, inside)
