@@ -15,8 +15,10 @@ Keys, per capture ``<tag>`` (``pycgm_movement``, ``ktk_serve``, ``ktk2_derrick``
 - ``real.<tag>.warnings``: how many warnings the marker_fit report gives;
 - ``real.<tag>.cleaned_runs`` / ``cleaned_samples`` / ``cleaned_frames`` /
   ``unswapped_samples``: what the capture cleaning (``fitting.marker_clean.clean_markers``,
-  the marker_fit report's ``cleaned``) repaired: runs removed or un-swapped, marker samples
-  removed, capture frames touched by any run, samples un-swapped.
+  the capture stage report's ``cleaning``) repaired: runs removed or un-swapped, marker
+  samples removed, capture frames touched by any run, samples un-swapped;
+  ``real.<tag>.repaired_frames`` / ``repaired_samples``: the capture stage's own counts of
+  frames and marker samples it repaired.
 And the C3D format suite (the same capture by DEC, PC and SGI processors, int and real):
 ``real.c3d_suite_files_read`` (of 6) and ``real.c3d_suite_max_diff_mm`` (largest coordinate
 difference from ``pc_real``).
@@ -151,7 +153,13 @@ def run(work: Path) -> dict[str, float]:
         out[f"real.{tag}.residual_median_mm"] = float(np.nanmedian(mm))
         out[f"real.{tag}.residual_p90_mm"] = float(np.nanpercentile(mm, 90))
         out[f"real.{tag}.residual_max_mm"] = float(np.nanmax(mm))
-        out.update({f"real.{tag}.{k}": v for k, v in cleaning_counts(rep.get("cleaned")).items()})
+        cap = base / "capture" / "report.json"  # the capture stage cleans the capture once
+        cr = json.loads(cap.read_text()) if cap.is_file() else {}
+        out.update({f"real.{tag}.{k}": v for k, v in
+                    cleaning_counts(cr.get("cleaning") or rep.get("cleaned")).items()})
+        if "repaired_frames" in cr:
+            out[f"real.{tag}.repaired_frames"] = float(cr["repaired_frames"])
+            out[f"real.{tag}.repaired_samples"] = float(cr["repaired_samples"])
         out[f"real.{tag}.fps_per_cpu_s"] = float(rep["fps_per_cpu_s"])
         out[f"real.{tag}.frames_valid_share"] = float(fit.valid.mean())
         out[f"real.{tag}.warnings"] = float(len(rep["warnings"]))
