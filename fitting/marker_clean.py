@@ -88,7 +88,7 @@ SWAP_ROUNDS = 4  # rounds of the swap search (each on the capture the previous o
 MARKERSET_SEGMENTS = BUILTIN_SEGMENTS
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class CleanOptions:
     """The cleaner's thresholds (recipe section ``stages.capture.clean``; every field has a
     default). max_speed_m_s : a step faster than this is not a body moving (the tennis serve's

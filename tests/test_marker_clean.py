@@ -161,6 +161,14 @@ def test_segments_options_and_report_shape():
     assert default_segments(("LFHD", "RFHD", "LASI")) == {"head": ("LFHD", "RFHD")}
     with pytest.raises(ValueError, match="max_speed_m_s"):
         CleanOptions(max_speed_m_s=0)
+    # one error naming every bad field
+    with pytest.raises(ValueError) as err:
+        CleanOptions(max_speed_m_s=-1.0, speed_max_run=2.5, swap_cap=float("nan"),
+                     drift_window="51")
+    for name in ("max_speed_m_s", "speed_max_run", "swap_cap", "drift_window"):
+        assert name in str(err.value)
+    assert "swap_switch" not in str(err.value)
+    assert CleanOptions(speed_max_run=10, swap_switch=20).speed_max_run == 10
     # a lone ghost on a custom 4-marker rigid body, 50 Hz
     rng = np.random.default_rng(3)
     F = 200
