@@ -134,11 +134,10 @@ class MarkerFitOptions:
         """The options saved by :meth:`save` in a marker_fit artifact; an ``InputError``
         naming the file and field when missing or not these options."""
         import dataclasses
+        import json
         from pathlib import Path
 
         from formats.errors import InputError
-
-        import json
 
         file = Path(getattr(artifact, "dir", artifact)) / f"{cls.OPTIONS_FILE}.json"
         try:  # an engine artifact, or its folder

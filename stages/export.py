@@ -159,25 +159,11 @@ def map_signature(sig, src_family: str, src_face_tgt_face, src_face_region, tgt_
 
 
 # ------------------------------------------------------------------------------------- stage
-def _pick(report: dict | None, keys) -> dict | None:
-    if report is None:
-        return None
-    return {k: report[k] for k in keys if k in report}
-
-
-MARKER_FIT_FIGURES = ("subject", "frames", "frames_valid", "frames_not_valid",
-                      "joint_frames_not_observed", "joints_never_observed", "residual_mm",
-                      "outlier_marker_frames", "fit_rate_hz", "fit_cpu_s", "fps_per_cpu_s",
-                      "warnings")
-PARTNER_FIT_FIGURES = ("subject", "frames", "frames_valid", "frames_not_valid", "reprojection_px",
-                       "penetration", "contact_distance", "ground_penetration", "contact_frames",
-                       "fit_cpu_s", "fps", "warnings")
-
-
 def run(ctx: StageContext) -> None:
     from artifacts import (
         BodyFit,
         ConversionReport,
+        FitSummary,
         SequenceExport,
         SequenceFigures,
         ShapeFit,
@@ -306,9 +292,8 @@ def run(ctx: StageContext) -> None:
     shape = ctx.inputs.get("shape_fit") or {}
     figures = SequenceFigures(
         sequence=ctx.unit, subjects=tuple(subjects),
-        marker_fit=_pick(common.stage_report(mf_art), MARKER_FIT_FIGURES),
-        partner_fit=None if pf_art is None else _pick(common.stage_report(pf_art),
-                                                      PARTNER_FIT_FIGURES),
+        marker_fit=FitSummary.load(mf_art).published(),
+        partner_fit=None if pf_art is None else FitSummary.load(pf_art).published(),
         convert=None if cv_art is None else ConversionReport.load(cv_art).figures(),
         shape_source={s: str(ShapeFit.load(shape[s]).shape_source) for s in subjects if s in shape})
     counts = R.reason_counts(reason)

@@ -25,12 +25,18 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from artifacts import FitSummary
 from fitting.marker_fit import MarkerFitOptions as Options
 from pipeline.spec import Stage, StageContext
 from stages import common
 
 READS = ("body_model.kind", "cameras", "sequence.fps", "sequence.mocap", "sequence.markers_on",
          "sequence.has_video", "wearer.markerset", "wearer.label_prefix", "wearer.marker_labels")
+
+
+#: the report's headline figures the export republishes (``artifacts.FitSummary``)
+PUBLISHED = ("joint_frames_not_observed", "joints_never_observed", "residual_mm",
+             "outlier_marker_frames", "fit_rate_hz", "fit_cpu_s", "fps_per_cpu_s")
 
 
 def raw_inputs(recipe, unit: str) -> dict[str, Path]:
@@ -80,6 +86,7 @@ def run(ctx: StageContext) -> None:
             f"{sum(repaired.values())} marker samples repaired by the capture stage ("
             + ", ".join(f"{k} {v}" for k, v in repaired.items()) + "; its report: runs)")
     ctx.out.save_json("report", report)
+    FitSummary.from_report("marker_fit", report, PUBLISHED).save(ctx.out)  # what export takes
     # plots name frames in the capture's own numbering: the C3D frame number of a
     # marker-only fit (its frames are 0-based capture frames), the video frame otherwise
     shown = fit.frames + (0 if rv.sequence.has_video else 1)

@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from artifacts import FitSummary
 from fitting.partner_fit import PartnerFitOptions
 from pipeline.spec import Stage, StageContext
 from stages import common
@@ -53,6 +54,11 @@ class Options(PartnerFitOptions):
     second_pass: bool = True
     pose_min_conf: float = 0.3
     hand_min_conf: float = 0.3
+
+
+#: the report's headline figures the export republishes (``artifacts.FitSummary``)
+PUBLISHED = ("reprojection_px", "penetration", "contact_distance", "ground_penetration",
+             "contact_frames", "fit_cpu_s", "fps")
 
 
 def raw_inputs(recipe, unit: str) -> dict[str, Path]:
@@ -133,6 +139,7 @@ def run(ctx: StageContext) -> None:
             fit.frames[~ok], [_reason(c) for c in fit.invalid_reason[~ok]], strict=True)},
     })
     ctx.out.save_json("report", report)
+    FitSummary.from_report("partner_fit", report, PUBLISHED).save(ctx.out)  # what export takes
     partner_fit_plot(ctx.out.path("partner_fit.png"), fit.frames,
                      common.sequence_fps(rv.sequence.fps, ctx.raw[f"video:{rv.cameras[0]}"]),
                      per["reproj_px"], fig["penetration_m"] * 1000, fig["contact_m"] * 1000,

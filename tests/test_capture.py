@@ -261,3 +261,30 @@ def test_marker_loo_refits_with_the_options_marker_fit_used(tmp_path, anny):
 
     with pytest.raises(InputError, match=r"options\.json: <file>: missing"):
         loo.run(lctx)
+
+
+def test_fit_summary_is_what_the_export_republishes(tmp_path):
+    """A fit's headline figures travel as a typed FitSummary (no report keys read by name):
+    round trip, and counts that do not add up are refused naming the field."""
+    from artifacts import ArtifactError, FitSummary
+
+    s = FitSummary(fit="marker_fit", subject="s1", frames=10, frames_valid=8,
+                   frames_not_valid={"held_before_first_marker": 2, "too_few_markers": 0},
+                   warnings=("marker RWRA: 30 mm",), figures={"residual_mm": {"median": 2.1}})
+    s.save(FakeWriter(tmp_path))
+    back = FitSummary.load(tmp_path)
+    assert back.published() == {"subject": "s1", "frames": 10, "frames_valid": 8,
+                                "frames_not_valid": {"held_before_first_marker": 2,
+                                                     "too_few_markers": 0},
+                                "residual_mm": {"median": 2.1},
+                                "warnings": ["marker RWRA: 30 mm"]}
+    bad = FitSummary(fit="marker_fit", subject="s1", frames=10, frames_valid=9,
+                     frames_not_valid={"too_few_markers": 2})
+    with pytest.raises(ArtifactError, match="summary.json: frames_not_valid"):
+        bad.save(FakeWriter(tmp_path / "bad"))
+    assert not (tmp_path / "bad" / "summary.json").exists()
+    doc = json.loads((tmp_path / "summary.json").read_text())
+    doc["fit"] = "keypoints"
+    (tmp_path / "summary.json").write_text(json.dumps(doc))
+    with pytest.raises(ArtifactError, match="summary.json: fit"):
+        FitSummary.load(tmp_path)

@@ -67,9 +67,14 @@ def _fit(model, rng, frames, reasons, d: Path, markers=False) -> _Art:
                       visible=np.ones((F, M), bool))))
     w = _writer(d)
     fit.save(w)
-    w.save_json("report", {"frames": F, "frames_valid": int((reasons == 0).sum()),
-                           "residual_mm": {"median": 1.5, "p90": 3.0}, "fit_cpu_s": 1.0,
-                           "reprojection_px": {"median": 4.0}, "warnings": []})
+    from artifacts import INVALID_REASONS, FitSummary
+
+    FitSummary(fit="marker_fit" if markers else "partner_fit", subject="x", frames=F,
+               frames_valid=int((reasons == 0).sum()),
+               frames_not_valid={r: int((reasons == c).sum()) for c, r in enumerate(INVALID_REASONS)
+                                 if c},
+               figures={"residual_mm": {"median": 1.5, "p90": 3.0}, "fit_cpu_s": 1.0,
+                        "reprojection_px": {"median": 4.0}}).save(w)
     return _Art(d)
 
 

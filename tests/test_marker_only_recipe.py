@@ -84,8 +84,8 @@ def test_a_labs_own_labels_and_prefix_read_as_the_marker_set(tmp_path):
     set's names, the other subject's never."""
     import numpy as np
 
-    from formats.c3d import Markers, write_c3d
     from fitting.capture import read_capture
+    from formats.c3d import Markers, write_c3d
 
     rng = np.random.default_rng(0)
     a, b = rng.normal(size=(5, 2, 3)), rng.normal(size=(5, 2, 3)) + 10
