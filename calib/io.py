@@ -1,4 +1,6 @@
-"""Calibration files: CHI3D camera JSON, EasyMocap ``intri.yml``/``extri.yml``, OpenCV FileStorage.
+"""Calibration files: CHI3D camera JSON, EasyMocap ``intri.yml``/``extri.yml``, OpenCV FileStorage;
+:func:`read_camera` reads one camera of any calibration format (also Vicon ``.xcp``,
+Qualisys ``.qca.txt``, Pose2Sim / anipose / caliscope ``.toml``: :mod:`calib.lab_formats`).
 
 - CHI3D: ``<subject>/camera_parameters/<camera>/<action>.json``::
 
@@ -351,3 +353,86 @@ def write_opencv_camera(path: str | Path, cam: Camera) -> Path:
     finally:
         fs.release()
     return path
+
+
+# ------------------------------------------------------------------------------- one entry point
+#: Calibration formats :func:`read_camera` reads (the recipe's ``calibration_format``), and
+#: other names labs use for them.
+CALIBRATION_FORMATS = ("chi3d", "vicon", "qualisys", "pose2sim", "easymocap", "opencv")
+FORMAT_ALIASES = {"xcp": "vicon", "qca": "qualisys", "toml": "pose2sim", "anipose": "pose2sim",
+                  "caliscope": "pose2sim"}
+
+
+def calibration_format(path: str | Path, fmt: str | None = None) -> str:
+    """The format of a calibration file: ``fmt`` (a name of ``CALIBRATION_FORMATS`` or an
+    alias), else from the suffix: ``.json`` chi3d, ``.xcp`` vicon, ``.qca.txt`` qualisys,
+    ``.toml`` pose2sim, ``.yml``/``.yaml``/``.xml`` easymocap when the file lists ``names``
+    (an EasyMocap ``intri.yml``/``extri.yml``), else opencv (one camera per file)."""
+    path = Path(path)
+    if fmt is not None:
+        f = FORMAT_ALIASES.get(fmt.lower(), fmt.lower())
+        if f not in CALIBRATION_FORMATS:
+            raise InputError(path, "calibration_format", f"{fmt!r}: expected one of "
+                             f"{list(CALIBRATION_FORMATS)} (or {sorted(FORMAT_ALIASES)})")
+        return f
+    name = path.name.lower()
+    if name.endswith(".qca.txt") or name.endswith(".qca"):
+        return "qualisys"
+    by_suffix = {".json": "chi3d", ".xcp": "vicon", ".toml": "pose2sim"}
+    if path.suffix.lower() in by_suffix:
+        return by_suffix[path.suffix.lower()]
+    if path.suffix.lower() in (".yml", ".yaml", ".xml"):
+        fs = _fs_open(path, False)
+        try:
+            node = fs.getNode("names")
+            return "opencv" if node.empty() or node.isNone() else "easymocap"
+        finally:
+            fs.release()
+    raise InputError(path, "calibration_format", f"unknown suffix {path.suffix!r}: name the "
+                     f"format, one of {list(CALIBRATION_FORMATS)}")
+
+
+def easymocap_pair(path: str | Path) -> tuple[Path, Path]:
+    """``(intri.yml, extri.yml)`` from either file of an EasyMocap pair: the other is the
+    sibling whose name has ``extri`` for ``intri`` (or the reverse)."""
+    path = Path(path)
+    n = path.name
+    if "intri" in n:
+        return path, path.with_name(n.replace("intri", "extri"))
+    if "extri" in n:
+        return path.with_name(n.replace("extri", "intri")), path
+    raise InputError(path, "<file>", "an EasyMocap calibration is named intri.yml / extri.yml "
+                     "(the pair is found by the name)")
+
+
+def read_camera(path: str | Path, name: str | None = None, fmt: str | None = None) -> Camera:
+    """One camera from any calibration file the project reads, as a :class:`Camera` named
+    ``name`` (the recipe's camera id).
+
+    fmt: the recipe's ``calibration_format`` (:func:`calibration_format`; None: from the
+    suffix). Files of one camera: CHI3D JSON (h36m lens, 900 x 900; ``name`` defaults to the
+    folder), OpenCV FileStorage. Files of several cameras (the recipe may give the same file
+    for every camera): the camera whose id is ``name`` (Vicon: DEVICEID, USERID or NAME;
+    Qualisys: ``serial``; TOML: ``name`` or the table name; EasyMocap: an entry of ``names``),
+    else the id without case; a 1-camera file needs no name. InputError naming the file and
+    the field otherwise."""
+    from calib import lab_formats
+
+    path = Path(path)
+    f = calibration_format(path, fmt)
+    if f == "chi3d":
+        if path.suffix.lower() == ".xcp":
+            raise InputError(path, "calibration_format", "chi3d given for a Vicon .xcp")
+        return read_chi3d_camera(path, name)
+    if f == "vicon":
+        from calib.xcp import xcp_camera
+
+        return xcp_camera(path, name)
+    if f == "qualisys":
+        return lab_formats.qualisys_camera(path, name)
+    if f == "pose2sim":
+        return lab_formats.toml_camera(path, name)
+    if f == "opencv":
+        return read_opencv_camera(path, name)
+    intri, extri = easymocap_pair(path)
+    return lab_formats.pick_camera(intri, read_easymocap(intri, extri), name, "names")
