@@ -24,11 +24,13 @@ the capture can shift it, whatever its length.
    distance's robust spread over the capture (at least ``swap_sigma_m``), each term capped at
    ``swap_cap``. A two-state path through the capture (straight / exchanged, ``swap_switch``
    per change of state, Viterbi) gives the exchanged runs, of any length; a run is a swap when
-   the exchanged labelling agrees with the typical distances (median error of each marker
-   below ``swap_agree``) and the straight one breaks them (above ``swap_break``). Its ends
-   are the label jumps: it is exchanged back when both ends are (the crossed continuation of
-   the trajectories fits better than the straight one, or a gap or the capture's edge is
-   there), else both markers are removed over the run. The search runs again on the repaired
+   the straight labelling breaks the typical distances (the worse marker's median error above
+   ``swap_break`` and ``SWAP_BREAK_OVER_AGREE`` times the exchanged one) and the exchanged one
+   agrees with them (below ``swap_agree``; a larger one is accepted only when both ends are
+   label jumps: in a bent pose the right labels are off the medians too). Its ends are the
+   label jumps: it is exchanged back when both ends are (the crossed continuation of the
+   trajectories fits better than the straight one, or a gap or the capture's edge is there),
+   else both markers are removed over the run. The search runs again on the repaired
    capture (``SWAP_ROUNDS``): exchanging LASI and RASI back removes the reason LPSI and RPSI
    looked exchanged (a mirrored pelvis keeps its distances). Distances cannot tell an exchange
    that is an isometry of the group (C7 and STRN with T10 and CLAV as neighbours): such a swap
@@ -102,9 +104,9 @@ class CleanOptions:
     swap_sigma_m : floor of a neighbour distance's robust SD in the swap test; swap_cap : cap of
     one normalised distance error (a wild one counts this much, no more); swap_switch : the
     evidence (sum of squared normalised errors) a change of labelling costs, so a swap must
-    gain more than twice this; swap_agree / swap_break : a swap run needs each marker's median
-    normalised error below swap_agree when exchanged, and the larger of the two above
-    swap_break as labelled."""
+    gain more than twice this; swap_agree / swap_break : a swap run needs the worse marker's
+    median normalised error above swap_break as labelled, and below swap_agree when exchanged
+    (unless both ends are label jumps)."""
 
     max_speed_m_s: float = 30.0
     max_accel_m_s2: float = 2000.0
