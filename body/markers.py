@@ -177,9 +177,21 @@ def segments_of(markerset) -> dict[str, tuple[str, ...]]:
     present = set(markerset.names)
     if getattr(markerset, "segments", None) is not None:
         return _restrict_groups(markerset.segments, present)
+    return segments_for_names(present)
+
+
+def segments_for_names(names) -> dict[str, tuple[str, ...]]:
+    """The segment groups of the built-in set that the marker ``names`` match best
+    (Plug-in Gait, CMU or its lower body), restricted to them (groups of < 2 dropped)."""
+    present = set(names)
     best = max(BUILTIN_SEGMENTS.values(),
                key=lambda g: len(present & {n for v in g.values() for n in v}))
     return _restrict_groups(best, present)
+
+
+def restrict_groups(groups, present) -> dict[str, tuple[str, ...]]:
+    """``groups`` restricted to the markers ``present``; groups left with < 2 are dropped."""
+    return _restrict_groups(groups, set(present))
 
 
 def make_markerset(names, faces, bary, offsets=DEFAULT_OFFSET_M, segments=None,

@@ -67,7 +67,13 @@ from numbers import Integral, Real
 
 import numpy as np
 
-from body.markers import BUILTIN_SEGMENTS, CMU41_SEGMENTS, PLUG_IN_GAIT_SEGMENTS  # noqa: F401
+from body.markers import (  # noqa: F401 - the groups, re-exported
+    BUILTIN_SEGMENTS,
+    CMU41_SEGMENTS,
+    PLUG_IN_GAIT_SEGMENTS,
+    restrict_groups,
+    segments_for_names,
+)
 from formats.c3d import Markers
 
 REASONS = ("ghost", "spike", "swap", "implausible_speed")
@@ -203,20 +209,8 @@ class CleanReport:
 def default_segments(names) -> dict[str, tuple[str, ...]]:
     """The segment groups of the built-in marker set that ``names`` matches best (Plug-in Gait,
     CMU or its lower body), restricted to the markers present; groups left with < 2 markers are
-    dropped."""
-    present = set(names)
-    best = max(MARKERSET_SEGMENTS.values(),
-               key=lambda g: len(present & {n for v in g.values() for n in v}))
-    return _restrict(best, present)
-
-
-def _restrict(groups, present) -> dict[str, tuple[str, ...]]:
-    out = {}
-    for g, members in groups.items():
-        m = tuple(n for n in members if n in present)
-        if len(m) >= 2:
-            out[g] = m
-    return out
+    dropped (``body.markers.segments_for_names``)."""
+    return segments_for_names(names)
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -527,7 +521,7 @@ def clean_markers(markers: Markers, names_by_segment: dict | None = None,
     names = tuple(markers.names)
     rate = float(markers.rate_hz)
     groups = (default_segments(names) if names_by_segment is None
-              else _restrict(names_by_segment, set(names)))
+              else restrict_groups(names_by_segment, names))
     observed = int(np.all(np.isfinite(x), axis=-1).sum())
     reason = np.full((F, M), "", dtype=object)
     partner = np.full((F, M), -1, dtype=np.int64)
