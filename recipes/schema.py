@@ -145,10 +145,17 @@ class MocapSpec(_Strict):
     rate_hz: Rate | None = None
 
 
+#: Calibration file formats (``calib.io.CALIBRATION_FORMATS``; recipes import no calib).
+CalibrationFormat = Literal["chi3d", "vicon", "qualisys", "pose2sim", "easymocap", "opencv"]
+
+
 class SequenceSpec(_Strict):
     """One recording. ``markers_on`` and ``partner`` are subject ids; ``videos`` and
-    ``calibration`` are keyed by camera id (a calibration file is a CHI3D camera JSON or a
-    Vicon ``.xcp`` holding that camera); ``contact`` is a CHI3D
+    ``calibration`` are keyed by camera id (a file holding that camera: CHI3D camera JSON,
+    Vicon ``.xcp``, Qualisys ``.qca.txt``, Pose2Sim / anipose / caliscope ``.toml``, EasyMocap
+    ``intri.yml`` (its ``extri.yml`` beside it) or OpenCV FileStorage; a file of several
+    cameras may be given for each, the camera is found by its id: ``calib.io.read_camera``);
+    ``calibration_format`` names the files' format (null: from the suffix); ``contact`` is a CHI3D
     ``interaction_contact_signature.json`` (keyed by action); ``keypoints`` optionally points
     at precomputed detections (OpenPose/COCO JSON folders keyed by camera).
 
@@ -162,6 +169,7 @@ class SequenceSpec(_Strict):
     partner: str | None = None
     videos: dict[str, Path] = Field(default_factory=dict)
     calibration: dict[str, Path] = Field(default_factory=dict)
+    calibration_format: CalibrationFormat | None = None
     contact: Path | None = None
     text: str = ""
     fps: Rate | None = None

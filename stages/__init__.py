@@ -140,7 +140,7 @@ def recipe_view(recipe: Session, unit: str, name: str):
 
     - ``cameras``: camera ids in recipe order; ``body_model.kind``;
     - per sequence: ``sequence.<fps | mocap | mocap.sync_offset_s | mocap.rate_hz | markers_on |
-      partner | text | keypoints_format | has_keypoints | has_video>``,
+      partner | text | keypoints_format | calibration_format | has_keypoints | has_video>``,
       ``wearer.<markerset | sex | label_prefix | marker_labels>`` and ``partner_subject.<...>`` (the subjects
       of ``markers_on`` / ``partner``; all None without a partner);
     - per subject: ``subject.<markerset | sex | label_prefix | marker_labels | has_scan | marker_sequences |
@@ -168,6 +168,7 @@ def recipe_view(recipe: Session, unit: str, name: str):
         if head == "sequence":
             tree = {"fps": seq.fps, "markers_on": seq.markers_on, "partner": seq.partner,
                     "text": seq.text, "keypoints_format": seq.keypoints_format,
+                    "calibration_format": seq.calibration_format,
                     "has_keypoints": bool(seq.keypoints), "has_video": seq.has_video,
                     "mocap": {"sync_offset_s": seq.mocap.sync_offset_s,
                               "rate_hz": seq.mocap.rate_hz}}

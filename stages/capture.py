@@ -14,7 +14,8 @@ the C3D or the calibration files (``docs/ARCHITECTURE.md``, "Capture"). Thin ada
 
 Bad input stops here, before anything is fitted or detected: a C3D whose units are wrong (a
 person 1.8 km or 1.8 mm tall), a label prefix or marker set that finds no marker, a
-calibration file that does not parse: an ``InputError`` naming the file, the field and, where
+calibration file that does not parse (any format of ``calib.io.read_camera``, the recipe's
+``calibration_format`` or the suffix's): an ``InputError`` naming the file, the field and, where
 it applies, the frame.
 """
 from __future__ import annotations
@@ -26,7 +27,7 @@ from pipeline.spec import Stage, StageContext
 from stages import common
 
 READS = ("body_model.kind", "cameras", "sequence.markers_on", "wearer.markerset",
-         "wearer.label_prefix", "wearer.marker_labels")
+         "wearer.label_prefix", "wearer.marker_labels", "sequence.calibration_format")
 
 
 def raw_inputs(recipe, unit: str) -> dict[str, Path]:
@@ -35,7 +36,14 @@ def raw_inputs(recipe, unit: str) -> dict[str, Path]:
     out.update(common.markerset_file(recipe.subjects[seq.markers_on]))
     for cam in recipe.cameras:
         if cam in seq.calibration:
-            out[f"calibration:{cam}"] = Path(seq.calibration[cam])
+            p = Path(seq.calibration[cam])
+            out[f"calibration:{cam}"] = p
+            if seq.calibration_format == "easymocap" or (
+                    p.suffix.lower() in (".yml", ".yaml") and ("intri" in p.name or "extri" in p.name)):
+                from calib.io import easymocap_pair  # the other file of the pair is read too
+
+                intri, extri = easymocap_pair(p)
+                out[f"calibration_pair:{cam}"] = extri if p == intri else intri
     return out
 
 
@@ -47,7 +55,7 @@ def compute(view, raw: dict[str, Path], o: Options, log=lambda _msg: None):
 
     from artifacts.capture import CameraRig
     from body import load_model
-    from calib.io import read_chi3d_camera
+    from calib.io import read_camera
     from fitting.capture import prepare_capture, read_capture
     from fitting.marker_clean import default_segments
 
@@ -62,7 +70,8 @@ def compute(view, raw: dict[str, Path], o: Options, log=lambda _msg: None):
     cams = [(c, raw[f"calibration:{c}"]) for c in view.cameras if f"calibration:{c}" in raw]
     rig = None
     if cams:
-        rig = CameraRig.from_cameras([read_chi3d_camera(p, name=c) for c, p in cams],
+        fmt = view.sequence.calibration_format
+        rig = CameraRig.from_cameras([read_camera(p, c, fmt) for c, p in cams],
                                      [Path(p).name for _, p in cams])
         report["cameras"] = [c for c, _ in cams]
     return markers, rig, {"subject": view.sequence.markers_on, **report}

@@ -368,3 +368,42 @@ def test_real_qca_reprojects_the_cap_across_views():
     # the rotation read the other way round (no half turn to OpenCV's frame) does not fit
     wrong = [replace(c, R=np.diag([1.0, -1.0, -1.0]) @ c.R) for c in cams]
     assert np.median(_loo_errors(wrong, det)) > CAP_WRONG_PX
+
+
+# ------------------------------------------------------------------------------------ the recipe
+def test_recipe_names_the_calibration_format():
+    import typing
+
+    from pydantic import ValidationError
+
+    from calib.io import CALIBRATION_FORMATS
+    from recipes.schema import CalibrationFormat, SequenceSpec
+
+    assert typing.get_args(CalibrationFormat) == CALIBRATION_FORMATS
+    s = SequenceSpec(markers_on="a", c3d="x.c3d", calibration_format="qualisys")
+    assert s.calibration_format == "qualisys"
+    assert SequenceSpec(markers_on="a", c3d="x.c3d").calibration_format is None
+    with pytest.raises(ValidationError, match="calibration_format"):
+        SequenceSpec(markers_on="a", c3d="x.c3d", calibration_format="bundler")
+
+
+def test_capture_reads_both_files_of_an_easymocap_pair(tmp_path):
+    """The capture stage's raw inputs hold extri.yml beside intri.yml (keyed by content), and
+    one .qca.txt given for every camera is one file."""
+    from types import SimpleNamespace
+
+    import stages.capture as cap
+
+    cams = ["c1", "c2"]
+    seq = SimpleNamespace(c3d=tmp_path / "x.c3d", markers_on="sa", calibration_format=None,
+                          calibration={c: tmp_path / "intri.yml" for c in cams})
+    recipe = SimpleNamespace(cameras=cams, sequence=lambda u: seq,
+                             subjects={"sa": SimpleNamespace(markerset="plug-in-gait")},
+                             body_model=SimpleNamespace(path=tmp_path / "m.npz", kind="anny"))
+    raw = cap.raw_inputs(recipe, "g/a")
+    assert raw["calibration:c1"] == tmp_path / "intri.yml"
+    assert raw["calibration_pair:c2"] == tmp_path / "extri.yml"
+    seq.calibration = {c: tmp_path / "Calib.qca.txt" for c in cams}
+    raw = cap.raw_inputs(recipe, "g/a")
+    assert raw["calibration:c2"] == tmp_path / "Calib.qca.txt"
+    assert not any(k.startswith("calibration_pair:") for k in raw)

@@ -144,6 +144,8 @@ EDITS = {  # a recipe edit for each field name a stage may declare
     "sequence.keypoints_format": lambda r: r["sequences"]["g/X 1"].update(
         keypoints={c: "files/kp" for c in r["cameras"]}, keypoints_format="coco"),
     "sequence.text": lambda r: r["sequences"]["g/X 1"].__setitem__("text", "another sentence"),
+    "sequence.calibration_format":
+        lambda r: r["sequences"]["g/X 1"].__setitem__("calibration_format", "chi3d"),
     "wearer.markerset": lambda r: r["subjects"]["sa"].__setitem__("markerset", "files/ms.json"),
     "partner_subject.markerset":
         lambda r: r["subjects"]["sb"].__setitem__("markerset", "files/ms.json"),

@@ -50,6 +50,7 @@ def capture_artifact(folder: Path, values: dict, raw: dict, unit: str = "g/take"
 
     keep = {k: v for k, v in raw.items() if k in ("body_model", "c3d", "markerset")
             or k.startswith("calibration:")}
+    values = {"sequence.calibration_format": None, **values}  # null: from the files' suffix
     ctx = SimpleNamespace(stage="capture", unit=unit, recipe=view(cap, values),
                           params=cap.Options(), raw=keep, out=FakeWriter(folder),
                           inputs={}, log=lambda m: None, progress=lambda it, **k: it)
