@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from artifacts.base import JsonArtifact, JsonFields, check_relative, read_json_file
+from formats.release import QA_REASON_PREFIX
 
 
 def _num(d, *keys):
@@ -116,6 +117,10 @@ class SequenceExport(JsonArtifact):
     fitted model's name; frames : exported frames (F), first_frame / last_frame : their video
     frame indices; video_fps : the cut videos' rate (None: not filmed);
     person_frames_not_valid; not_valid_by_reason : per person ``{subject, <reason>: count}``;
+    withhold : the QA reasons (``QAOptions`` threshold names) a flagged frame was withheld for
+    (None: no QA was read, nothing withheld); withheld : ``{"qa:<reason>": person-frames}``
+    the fit called valid but QA withheld (counted in ``person_frames_not_valid`` and
+    ``not_valid_by_reason`` too);
     cameras : {camera: how its calibration was written}; contact : :class:`ContactNote` or
     None; absent : {what: why} of the release files the sequence does not have; files : every
     file written, relative to the artifact folder (``<group>/...``); valid_file / contact_file
@@ -146,6 +151,8 @@ class SequenceExport(JsonArtifact):
     contact_file: str | None = None
     text_file: str | None = None
     figures: SequenceFigures | None = None
+    withhold: tuple[str, ...] | None = None
+    withheld: dict[str, int] = field(default_factory=dict)
     folder: Path | None = None
 
     def to_json(self) -> dict:
@@ -159,7 +166,9 @@ class SequenceExport(JsonArtifact):
                 "contact": None if self.contact is None else self.contact.to_json(),
                 "absent": dict(self.absent), "files": list(self.files),
                 "valid_file": self.valid_file, "contact_file": self.contact_file,
-                "text_file": self.text_file}
+                "text_file": self.text_file,
+                "withhold": None if self.withhold is None else list(self.withhold),
+                "withheld": {k: int(v) for k, v in self.withheld.items()}}
 
     @classmethod
     def from_json(cls, f: JsonFields) -> SequenceExport:
@@ -186,7 +195,10 @@ class SequenceExport(JsonArtifact):
                   absent=f.mapping("absent", str), files=tuple(files),
                   valid_file=f.get("valid_file", str),
                   contact_file=f.get("contact_file", str, optional=True),
-                  text_file=f.get("text_file", str, optional=True), folder=f.folder)
+                  text_file=f.get("text_file", str, optional=True),
+                  withhold=None if f.data.get("withhold") is None
+                  else tuple(f.items("withhold", str)),
+                  withheld=f.mapping("withheld", int, optional=True) or {}, folder=f.folder)
         return out
 
     def _check(self, file: Path, folder: Path | None) -> None:  # noqa: ARG002
@@ -211,6 +223,16 @@ class SequenceExport(JsonArtifact):
             v = getattr(self, key)
             if v is not None and v not in self.files:
                 raise f.error(key, f"{v!r} is not among the files written")
+        for k, n in self.withheld.items():
+            if not k.startswith(QA_REASON_PREFIX):
+                raise f.error(f"withheld.{k}", f"not a QA reason ({QA_REASON_PREFIX}<reason>)")
+            if self.withhold is None or k[len(QA_REASON_PREFIX):] not in self.withhold:
+                raise f.error(f"withheld.{k}", f"not among the reasons withheld "
+                              f"({self.withhold})")
+            counted = sum(int(p.get(k, 0)) for p in self.not_valid_by_reason)
+            if n != counted:
+                raise f.error(f"withheld.{k}", f"{n} person-frames, not_valid_by_reason counts "
+                              f"{counted}")
         if self.video_fps is not None and not self.video_fps > 0:
             raise f.error("video_fps", f"{self.video_fps}: must be > 0")
 

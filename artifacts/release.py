@@ -19,22 +19,29 @@ DATASHEET_MD = "datasheet.md"
 
 @dataclass(frozen=True)
 class DatasheetTotals:
-    """The release's totals: sequences, frames, person-frames, of them not valid, and the
-    not-valid person-frames per reason."""
+    """The release's totals: sequences, frames, person-frames, of them not valid, the
+    not-valid person-frames per reason, and of those the ones withheld for QA flags
+    (``{"qa:<reason>": person-frames}``; empty in a datasheet written before)."""
 
     sequences: int
     frames: int
     person_frames: int
     person_frames_not_valid: int
     not_valid_by_reason: dict[str, int] = field(default_factory=dict)
+    withheld: dict[str, int] = field(default_factory=dict)
 
     @classmethod
     def from_json(cls, f: JsonFields) -> DatasheetTotals:
         t = cls(f.get("sequences", int), f.get("frames", int), f.get("person_frames", int),
-                f.get("person_frames_not_valid", int), f.mapping("not_valid_by_reason", int))
+                f.get("person_frames_not_valid", int), f.mapping("not_valid_by_reason", int),
+                f.mapping("withheld", int, optional=True) or {})
         if not 0 <= t.person_frames_not_valid <= t.person_frames:
             raise f.error("person_frames_not_valid", f"{t.person_frames_not_valid} outside "
                           f"0..{t.person_frames}")
+        for r, n in t.withheld.items():
+            if t.not_valid_by_reason.get(r) != n:
+                raise f.error(f"withheld.{r}", f"{n} person-frames, not_valid_by_reason counts "
+                              f"{t.not_valid_by_reason.get(r, 0)}")
         return t
 
 

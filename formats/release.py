@@ -7,7 +7,11 @@
   ``valid`` (``evaluate/folders.py``). Optional ``"joints_valid": (P, F, 25) bools``: per
   person, frame and ``joints3d_25`` joint whether that joint is ground truth (false wherever
   the frame is not, and where no marker or view observed the body part: reason
-  ``JOINT_NOT_OBSERVED``);
+  ``JOINT_NOT_OBSERVED``). A person-frame the fit calls valid but whose QA flags say the fit
+  is wrong (stage ``export``'s ``withhold`` reasons) has the reason ``"qa:<reason>"``
+  (``QA_REASON_PREFIX`` + the QA threshold name, e.g. ``"qa:reproj_views_body_px"``); a file
+  with such reasons lists the QA reasons it withheld for in ``"qa_withhold": [str]``
+  (optional key: files without QA reasons, and files written before it, read as before);
 - ``text_annotations.json``: ``{action: sentence}``;
 - ``MANIFEST.sha256``: one ``<sha256 hex>  <relative path>`` line per file, the format
   ``sha256sum -c`` checks (run in the release folder);
@@ -36,6 +40,8 @@ MANIFEST_FILE = "MANIFEST.sha256"
 VALID_REASON = "fitted"
 #: why a joint of a valid person-frame is not ground truth (``joints_valid`` false)
 JOINT_NOT_OBSERVED = "not_observed"
+#: the reason of a person-frame withheld for a QA flag: ``qa:<QA threshold name>``
+QA_REASON_PREFIX = "qa:"
 _HEX = re.compile(r"^[0-9a-f]{64}$")
 
 
@@ -106,22 +112,45 @@ def _check_joints_valid(path, jv, valid: np.ndarray) -> np.ndarray:
     return j
 
 
-def write_valid(path: str | Path, valid, reason, frames, joints_valid=None) -> Path:
+def _check_qa_reasons(path, r: np.ndarray, withhold) -> tuple[str, ...] | None:
+    """Every ``qa:<reason>`` of ``r`` among ``withhold`` (the file's ``qa_withhold``)."""
+    if withhold is not None:
+        if not isinstance(withhold, (list, tuple)) or not all(
+                isinstance(x, str) and x for x in withhold):
+            raise InputError(path, "qa_withhold", f"expected a list of QA reason names, got "
+                             f"{withhold!r}")
+        withhold = tuple(withhold)
+    qa = np.char.startswith(r.astype(str), QA_REASON_PREFIX) if r.size else np.zeros(r.shape, bool)
+    for p, f in np.argwhere(qa):
+        name = str(r[p, f])[len(QA_REASON_PREFIX):]
+        if withhold is None or name not in withhold:
+            raise InputError(path, "reason", f"person {int(p)}: {r[p, f]!r} is not a QA reason "
+                             f"the file lists in qa_withhold ({withhold})", frame=int(f))
+    return withhold
+
+
+def write_valid(path: str | Path, valid, reason, frames, joints_valid=None,
+                qa_withhold=None) -> Path:
     """valid: (P, F) bool; reason: (P, F) str (``"fitted"`` exactly where valid); frames: (F,)
     increasing frame indices; joints_valid: optional (P, F, K) bool, per joint (false wherever
-    ``valid`` is)."""
+    ``valid`` is); qa_withhold: the QA reasons a flagged frame was withheld for (None: QA was
+    not read; every ``qa:<reason>`` of ``reason`` must be among them)."""
     v, r, fr = _check_valid("<memory>", np.asarray(valid).tolist(), np.asarray(reason).tolist(),
                             np.asarray(frames).tolist())
+    w = _check_qa_reasons("<memory>", r, None if qa_withhold is None else list(qa_withhold))
     doc = {"valid": v.tolist(), "reason": r.tolist(), "frames": fr.tolist()}
     if joints_valid is not None:
         doc["joints_valid"] = _check_joints_valid(
             "<memory>", np.asarray(joints_valid).tolist(), v).tolist()
+    if w is not None:
+        doc["qa_withhold"] = list(w)
     return _dump(path, doc)
 
 
 def read_valid(path: str | Path) -> dict[str, np.ndarray]:
     """``valid/<action>.json`` -> ``{"valid": (P, F) bool, "reason": (P, F) str,
-    "frames": (F,) int64}``, and ``"joints_valid": (P, F, K) bool`` when the file has it."""
+    "frames": (F,) int64}``, and ``"joints_valid": (P, F, K) bool`` / ``"qa_withhold":
+    tuple[str]`` when the file has them."""
     path = Path(path)
     d = load_json(path)
     if not isinstance(d, dict):
@@ -133,7 +162,17 @@ def read_valid(path: str | Path) -> dict[str, np.ndarray]:
     out = {"valid": v, "reason": r, "frames": fr}
     if "joints_valid" in d:
         out["joints_valid"] = _check_joints_valid(path, d["joints_valid"], v)
+    w = _check_qa_reasons(path, r, d.get("qa_withhold"))
+    if w is not None:
+        out["qa_withhold"] = w
     return out
+
+
+def withheld_counts(reason: np.ndarray) -> dict[str, int]:
+    """Person-frames of each ``qa:<reason>`` (withheld for a QA flag), all persons."""
+    r = np.asarray(reason, str).ravel()
+    r = r[np.char.startswith(r, QA_REASON_PREFIX)] if r.size else r
+    return {str(k): int(n) for k, n in zip(*np.unique(r, return_counts=True), strict=True)}
 
 
 def reason_counts(reason: np.ndarray) -> list[dict[str, int]]:

@@ -103,3 +103,44 @@ JERK_M_S3 = 1000.0
 MERGE_GAP_FRAMES = 2
 MIN_CONF = 0.3
 NOT_VALID = 0.5  # <person>.not_valid is 1.0 / 0.0, flagged above this
+
+# ---------------------------------------------------------------- withholding (stage export)
+#: The QA reasons (``QAOptions`` threshold fields, i.e. ``qa.metrics.threshold_name`` of a
+#: flagged metric) that mean the FIT is wrong for that person and frame: a frame flagged by
+#: one of them is published not valid (``valid/<action>.json`` reason ``qa:<name>``; recipe
+#: ``stages.export.withhold``, this is its default). Why each one:
+FIT_WRONG = {
+    "marker_max_mm": "a marker the fitted surface misses by > 40 mm: the body part carrying it "
+                     "is off (the clean session's only flags are fingers fitted 15-26 cm off)",
+    "marker_median_mm": "the body as a whole is off its own markers",
+    "reproj_views_body_px": "a keypoint off in at least two views: a fit error shows in most "
+                            "views, a bad detection in one",
+    "reproj_views_hands_px": "a hand off in at least two views (the hands are part of the truth)",
+    "reproj_views_face_px": "the head off in at least two views",
+    "penetration_mm": "one body deep inside the other: at least one of the two poses is wrong",
+    "penetration_volume_cm3": "a volume inside both bodies: at least one of the two is wrong",
+    "self_penetration_mm": "limbs through the person's own body: not a pose a body takes",
+    "ground_penetration_mm": "the body below the floor it stands on",
+    "contact_gap_mm": "the annotated contact regions apart in an annotated contact frame: the "
+                      "fits contradict the annotation",
+    "unexpected_contact_mm": "the bodies touching or interpenetrating outside the annotated "
+                             "interval: the annotation says they are apart",
+    "jerk_m_s3": "a keypoint's third difference no body produces: the frame is off its "
+                 "neighbours",
+}
+#: The QA reasons that do not say the fit is wrong (flagged for a reviewer, published valid
+#: unless listed in ``stages.export.withhold``). Why each one:
+NOT_FIT_WRONG = {
+    "markers_repaired": "input side: the cleaning repaired the capture around the frame; the fit "
+                        "on the repaired capture may be right (its residuals say)",
+    "sync_max_frames": "input side: a camera out of sync; the wearer's fit does not use the "
+                       "videos and a partner fit it spoils shows in the cross-view reprojection",
+    "reproj_body_px": "one view off altogether: a detection or camera problem as often as a fit "
+                      "error (the cross-view figures judge the fit)",
+    "reproj_hands_px": "one view off altogether (hands): see reproj_body_px",
+    "reproj_face_px": "one view off altogether (face): see reproj_body_px",
+    "foot_skate_m_s": "feet really slide and pivot on the floor; a look, not a verdict",
+}
+#: The pair reasons (both people): the metric is of the two bodies together.
+PAIR_REASONS = ("penetration_mm", "penetration_volume_cm3", "contact_gap_mm",
+                "unexpected_contact_mm")

@@ -171,6 +171,17 @@ def threshold_name(metric: str) -> str | None:
 
 
 _FIELDS = {f.name for f in dataclasses.fields(QAOptions)}
+#: Every threshold field a reason can be flagged against (the names ``stages.export.withhold``
+#: lists; each classified in ``constants.FIT_WRONG`` or ``constants.NOT_FIT_WRONG``).
+REASON_KINDS = tuple(sorted({*K.FIT_WRONG, *K.NOT_FIT_WRONG}))
+
+
+def reason_people(metric: str) -> tuple[str, ...]:
+    """Whom a flagged reason (a metric name) is about: ``("wearer",)`` / ``("partner",)`` for
+    a ``<person>.`` metric, both people for the others (the pair reasons
+    ``constants.PAIR_REASONS``: interpenetration, contact; a camera's sync offset)."""
+    head = metric.split(".", 1)[0]
+    return (head,) if head in PEOPLE else PEOPLE
 
 
 def _threshold(metric: str, opts: QAOptions) -> float:

@@ -12,9 +12,12 @@ wearer, person 1 = the partner; P = 1 on a sequence without partner):
 - ``camera_parameters/<camera>/<action>.json`` and ``videos/<camera>/<action>.mp4`` (cut to the
   exported frames) when the sequence was filmed;
 - ``valid/<action>.json``: per person and frame whether it is ground truth, and the reason
-  when not (``artifacts.INVALID_REASONS`` of the fit, or ``not_converted`` where the fit is
-  valid but convert marks the SMPL-X frame not valid). Every file's arrays are dense (frames
-  that are not valid are written too): the mask says which are ground truth;
+  when not: ``artifacts.INVALID_REASONS`` of the fit; else ``qa:<reason>`` where the stage
+  ``qa`` flagged the frame for a reason of the option ``withhold`` (the reasons that mean the
+  fit is wrong, ``qa.constants.FIT_WRONG`` by default: :func:`qa_withheld`; a ``<person>.``
+  metric withholds that person, a pair metric both); else ``not_converted`` where convert
+  marks the SMPL-X frame not valid. Every file's arrays are dense (frames that are not valid
+  are written too): the mask says which are ground truth;
 - ``interaction_contact_signature.json``: this action's entry with the signature in every
   released model: ``anny_signature`` as annotated, ``smplx_signature`` with each Anny facet
   mapped to its nearest SMPL-X facet through convert's ``correspondence.npz``
@@ -26,7 +29,8 @@ wearer, person 1 = the partner; P = 1 on a sequence without partner):
 Beside them ``figures.json`` (``artifacts.SequenceFigures``: the fitting figures of marker_fit,
 partner_fit and convert that the release's datasheet lists) and ``export.json``
 (``artifacts.SequenceExport``: frames, every file written, what is absent and why, the
-per-reason counts of frames that are not valid, camera conversions, contact mapping notes).
+per-reason counts of frames that are not valid, the person-frames withheld per QA reason,
+camera conversions, contact mapping notes).
 convert's outputs are read through ``artifacts.SMPLXFit``, ``SurfaceCorrespondence`` and
 ``ConversionReport``.
 
@@ -43,6 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.spec import Stage, StageContext
+from qa import constants as QK
 from stages import common
 
 READS = ("body_model.kind", "cameras", "sequence.fps", "sequence.text", "sequence.markers_on",
@@ -51,13 +56,35 @@ READS = ("body_model.kind", "cameras", "sequence.fps", "sequence.text", "sequenc
 NOT_CONVERTED = "not_converted"  # fit valid, but the SMPL-X conversion of the frame is not
 
 
+#: the QA reasons a flagged person-frame is withheld for by default: those meaning the fit is
+#: wrong (``qa.constants.FIT_WRONG`` says why each; ``NOT_FIT_WRONG`` why the others are not)
+DEFAULT_WITHHOLD = tuple(QK.FIT_WRONG)
+
+
 @dataclass(frozen=True)
 class Options:
     """contact_regions : path of CHI3D's official ``info/contact_regions.json``
     (``rid_to_smplx_fids``): the SMPL-X signature's regions are then the official region of
-    each mapped SMPL-X facet (relative paths: from the recipe's folder). None: our regions."""
+    each mapped SMPL-X facet (relative paths: from the recipe's folder). None: our regions.
+    withhold : QA reasons (``qa.metrics.QAOptions`` threshold names, ``qa.metrics.REASON_KINDS``)
+    for which a frame the stage ``qa`` flags is published not valid (reason ``qa:<name>``) for
+    the person the metric is about (both people for the pair metrics); default
+    ``DEFAULT_WITHHOLD``; empty: QA withholds nothing."""
 
     contact_regions: str | None = None
+    withhold: tuple[str, ...] = DEFAULT_WITHHOLD
+
+    def __post_init__(self):
+        from qa.metrics import REASON_KINDS
+
+        w = tuple(str(x) for x in self.withhold)
+        bad = [x for x in w if x not in REASON_KINDS]
+        if bad:
+            raise ValueError(f"withhold: unknown QA reason(s) {bad} (known: "
+                             f"{', '.join(REASON_KINDS)})")
+        if len(set(w)) != len(w):
+            raise ValueError(f"withhold: a reason listed twice in {list(w)}")
+        object.__setattr__(self, "withhold", w)
 
 
 def _contact_regions_path(recipe) -> Path | None:
@@ -97,13 +124,54 @@ def frame_index(fit_frames, frames, file, who: str) -> np.ndarray:
     return idx
 
 
-def validity(fits_valid, fits_reason, converted=None) -> tuple[np.ndarray, np.ndarray]:
+def qa_withheld(qa, frames, roles, withhold) -> np.ndarray:
+    """(P, F) str: per exported person (``roles``: ``"wearer"`` / ``"partner"`` in person
+    order) and frame (``frames``: video frame indices) the QA reason it is withheld for,
+    ``"qa:<name>"`` (``formats.release.QA_REASON_PREFIX``), or ``""``. ``qa``: the sequence's
+    ``artifacts.QAResult`` or its ``QAMetrics`` (``frames``, ``reasons``, ``flagged``); a
+    flagged reason (a metric name) counts when its threshold name
+    (``qa.metrics.threshold_name``) is in ``withhold``, for the people it is about
+    (``qa.metrics.reason_people``: a ``<person>.`` metric that person, the others both). Of
+    several, the first in ``withhold``'s order. Frames QA did not measure are not withheld."""
+    from formats.release import QA_REASON_PREFIX
+    from qa.metrics import reason_people, threshold_name
+
+    m = getattr(qa, "metrics", qa)
+    frames = np.asarray(frames)
+    out = np.full((len(roles), len(frames)), "", dtype=object)
+    qf = np.asarray(m.frames)
+    rows = np.searchsorted(qf, frames)
+    ok = (rows < len(qf)) & (qf[np.minimum(rows, max(len(qf) - 1, 0))] == frames) if len(qf) \
+        else np.zeros(len(frames), bool)
+    flagged = np.asarray(m.flagged, bool)
+    reasons = [str(r) for r in m.reasons]
+    for kind in reversed(tuple(withhold)):  # the first in withhold's order is written last
+        for c, r in enumerate(reasons):
+            if threshold_name(r) != kind:
+                continue
+            hit = np.zeros(len(frames), bool)
+            hit[ok] = flagged[rows[ok], c]
+            for p, role in enumerate(roles):
+                if role in reason_people(r):
+                    out[p, hit] = QA_REASON_PREFIX + kind
+    return out.astype(str)
+
+
+def validity(fits_valid, fits_reason, converted=None, withheld=None) -> tuple[np.ndarray, np.ndarray]:
     """(P, F) valid and reason names from each person's fit (``valid``, ``invalid_reason``
-    codes at the exported frames) and convert's ``valid`` (P, F) (None: no conversion)."""
+    codes at the exported frames), the QA reasons it is withheld for (``withheld`` (P, F) str,
+    ``""`` = none: :func:`qa_withheld`; None: no QA) and convert's ``valid`` (P, F) (None: no
+    conversion). A frame the fit does not call valid keeps the fit's reason; one QA withholds
+    gets its QA reason (the fit is wrong, whatever the conversion made of it); then
+    ``not_converted``."""
     from artifacts import INVALID_REASONS
 
     valid = np.asarray(fits_valid, bool).copy()
     reason = np.array([[INVALID_REASONS[int(c)] for c in row] for row in fits_reason], dtype=object)
+    if withheld is not None:
+        held = valid & (np.asarray(withheld, str) != "")
+        reason[held] = np.asarray(withheld, object)[held]
+        valid &= ~held
     if converted is not None:
         lost = valid & ~np.asarray(converted, bool)
         reason[lost] = NOT_CONVERTED
@@ -164,6 +232,7 @@ def run(ctx: StageContext) -> None:
         BodyFit,
         ConversionReport,
         FitSummary,
+        QAResult,
         SequenceExport,
         SequenceFigures,
         ShapeFit,
@@ -222,16 +291,25 @@ def run(ctx: StageContext) -> None:
         written.append(Path(p).resolve().relative_to(out_dir).as_posix())
         return p
 
-    # validity
+    # validity: the fits' masks, the QA flags that say a fit is wrong, the conversion's mask
+    o: Options = ctx.params or Options()
+    qa_art = ctx.inputs.get("qa")
+    withheld = withhold = None
+    if qa_art is not None:
+        withhold = o.withhold
+        withheld = qa_withheld(QAResult.load(qa_art), frames, ["wearer", "partner"][:P], withhold)
+    else:
+        absent["qa"] = "no qa artifact: no frame withheld for a QA flag"
     valid, reason = validity([f.valid[i] for f, i in zip(fits, idx, strict=True)],
                              [f.invalid_reason[i] for f, i in zip(fits, idx, strict=True)],
-                             None if sm is None else sm.valid)
+                             None if sm is None else sm.valid, withheld)
     # per joints3d_25 joint: ground truth where the frame is and every joint it hangs on was
     # observed by a marker or a view (BodyFit.observed; e.g. not the arms of a lower-body set)
     reg25 = regressor(model, "joints3d_25")
     joints_valid = np.stack([observed_points(model, reg25, f.joints_observed()[i])
                              for f, i in zip(fits, idx, strict=True)]) & valid[..., None]
-    R.write_valid(rel(f"{R.VALID_DIR}/{action}.json"), valid, reason, frames, joints_valid)
+    R.write_valid(rel(f"{R.VALID_DIR}/{action}.json"), valid, reason, frames, joints_valid,
+                  qa_withhold=withhold)
     # the fitted model's own parameters, and the joints from its mesh
     S = max(len(f.betas) for f in fits)
     betas = np.stack([np.pad(np.asarray(f.betas, float), (0, S - len(f.betas))) for f in fits])
@@ -311,9 +389,12 @@ def run(ctx: StageContext) -> None:
         absent=absent, files=tuple(written), valid_file=named["valid"],
         contact_file=named["contact"] if named["contact"] in written else None,
         text_file=named["text"] if named["text"] in written else None,
-        figures=figures).save(ctx.out)
+        withhold=withhold, withheld=R.withheld_counts(reason), figures=figures).save(ctx.out)
+    held = R.withheld_counts(reason)
     ctx.log(f"{ctx.unit}: exported {F} frames x {P} persons, {int((~valid).sum())} person-frames "
-            f"not valid, {int((valid[..., None] & ~joints_valid).sum())} joint-frames of valid "
+            f"not valid ({sum(held.values())} withheld for QA flags"
+            + (": " + ", ".join(f"{k} {n}" for k, n in held.items()) if held else "") + "), "
+            f"{int((valid[..., None] & ~joints_valid).sum())} joint-frames of valid "
             f"frames not observed, {len(written)} files")
 
 
@@ -380,7 +461,8 @@ def _export_contact(ctx, model, action: str, frames, corr, rel) -> dict:
 
 
 STAGE = Stage(name="export", func=run, per="sequence",
-              upstream=("capture", "shape_fit", "keypoints", "marker_fit", "partner_fit", "convert"),
+              upstream=("capture", "shape_fit", "keypoints", "marker_fit", "partner_fit", "convert",
+                        "qa"),
               params=Options, raw_inputs=raw_inputs, reads=READS, version="1",
               doc="CHI3D-layout files of the sequence (SMPL-X, Anny, joints, cameras, videos, "
                   "validity, contact signature, text)")

@@ -7,7 +7,9 @@ writes
 
 - ``datasheet.json`` and ``datasheet.md``: subjects, sequences, frames per sequence, contact
   events, interaction classes (action names without the take number), which person-frames
-  are not valid and why (counts per reason and person, and the frames as ranges), the fitting
+  are not valid and why (counts per reason and person, and the frames as ranges; of them the
+  person-frames withheld because their QA flags say the fit is wrong, ``qa:<reason>``, per
+  sequence and in total: ``withheld``), the fitting
   figures per sequence (each export's ``artifacts.SequenceFigures``), and the QA summary (each
   sequence's ``artifacts.QAResult``: frames flagged, spans and reasons, cameras out of sync;
   :func:`qa_summary`);
@@ -126,10 +128,12 @@ def datasheet(session: str, subjects: list[str], sequences: dict, exports: dict,
     export (``{unit: artifacts.SequenceExport}``: its facts, figures and validity file);
     ``qa``: the :func:`qa_summary` (None: no QA ran)."""
     from formats.release import read_valid
+    from formats.release import withheld_counts as read_withheld
 
     seqs: dict[str, dict] = {}
     classes: dict[str, list[str]] = defaultdict(list)
     by_reason: dict[str, int] = defaultdict(int)
+    withheld: dict[str, int] = defaultdict(int)
     contact_events = 0
     for unit, exp in exports.items():
         group, action = exp.group, exp.action
@@ -141,6 +145,9 @@ def datasheet(session: str, subjects: list[str], sequences: dict, exports: dict,
                 per[r] = frame_ranges(v["frames"][v["reason"][p] == r])
                 by_reason[r] += int((v["reason"][p] == r).sum())
             not_valid[subj] = per
+        held = read_withheld(v["reason"])
+        for r, n in held.items():
+            withheld[r] += n
         # joints3d_25 joints of valid frames that no marker or view observed (joints_valid)
         jv = v.get("joints_valid")
         unobserved = {subj: 0 if jv is None else int((v["valid"][p][:, None] & ~jv[p]).sum())
@@ -160,6 +167,8 @@ def datasheet(session: str, subjects: list[str], sequences: dict, exports: dict,
             "person_frames_not_valid": exp.person_frames_not_valid,
             "not_valid_by_reason": [dict(x) for x in exp.not_valid_by_reason],
             "not_valid_frames": not_valid,
+            "withhold": None if exp.withhold is None else list(exp.withhold),
+            "withheld": held,
             "joint_frames_not_observed": unobserved,
             "contact": None if c is None else {
                 "event": has_contact, "pairs": dict(c.pairs), "fr_id": c.fr_id,
@@ -181,12 +190,14 @@ def datasheet(session: str, subjects: list[str], sequences: dict, exports: dict,
             "person_frames_not_valid": int(sum(s["person_frames_not_valid"]
                                                for s in seqs.values())),
             "not_valid_by_reason": dict(sorted(by_reason.items())),
+            "withheld": dict(sorted(withheld.items())),
             "joint_frames_not_observed": int(sum(sum(s["joint_frames_not_observed"].values())
                                                  for s in seqs.values())),
         },
         "validity": "a person-frame is ground truth only when fitted from its own evidence "
-                    "(reason 'fitted'); the others are written (the arrays are dense) and marked "
-                    "false in valid/<action>.json with their reason",
+                    "(reason 'fitted') and its QA flags do not say the fit is wrong (withheld: "
+                    "reason 'qa:<QA reason>'); the others are written (the arrays are dense) and "
+                    "marked false in valid/<action>.json with their reason",
         "qa": qa,
     }
 
@@ -209,6 +220,9 @@ def datasheet_md(sheet: dict) -> str:
                                                    sheet["interaction_classes"].items()),
              "- not valid, by reason: " + (", ".join(f"{r} {n}" for r, n in
                                                      t["not_valid_by_reason"].items()) or "none"),
+             "- of them withheld for QA flags (the fit called them valid, QA says the fit is "
+             "wrong): " + (", ".join(f"{r} {n}" for r, n in t.get("withheld", {}).items())
+                           or "none"),
              f"- joints3d_25 joint-frames of valid frames that no marker or view observed (not "
              f"ground truth, valid/<action>.json joints_valid): "
              f"{t.get('joint_frames_not_observed', 0)}",
@@ -217,9 +231,9 @@ def datasheet_md(sheet: dict) -> str:
         lines += [f"- sequences of the recipe not released (an upstream stage failed): "
                   f"{', '.join(sheet['sequences_not_exported'])}", ""]
     lines += ["## Sequences", "",
-              "| sequence | class | persons | frames | not valid | contact (fr_id, video frame) | marker residual "
+              "| sequence | class | persons | frames | not valid | withheld for QA flags | contact (fr_id, video frame) | marker residual "
               "median mm | partner reprojection median px | SMPL-X v2s median mm |",
-              "|---|---|---|---|---|---|---|---|---|"]
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for q, s in sheet["sequences"].items():
         f = s["figures"]
         conv = (f.get("convert") or {}).get("per_person") or []
@@ -229,7 +243,7 @@ def datasheet_md(sheet: dict) -> str:
         ct = "-" if not c else f"{'yes' if c['event'] else 'no'} ({c['fr_id']})"
         lines.append(f"| {q} | {s['interaction_class']} | {', '.join(s['persons'])} | "
                      f"{s['frames']} | {s['person_frames_not_valid']} | "
-                     f"{ct} | "
+                     f"{sum((s.get('withheld') or {}).values())} | {ct} | "
                      f"{_mm((f.get('marker_fit') or {}).get('residual_mm'))} | "
                      f"{_mm((f.get('partner_fit') or {}).get('reprojection_px'))} | {v2s} |")
     lines += ["", "## Frames that are not valid", "",
@@ -432,8 +446,8 @@ def run(ctx: StageContext) -> None:
         raise InputError(file, "<release>", f"{rest} ({len(problems)} problems in the re-read "
                          f"pass: {'; '.join(problems[:5])})")
     ctx.log(f"release: {len(exports)} sequences, {result['files_checked']} files re-read, "
-            f"{sheet['totals']['person_frames_not_valid']} person-frames not valid; manifest "
-            "verified")
+            f"{sheet['totals']['person_frames_not_valid']} person-frames not valid (withheld for QA "
+            f"flags: {sum(sheet['totals']['withheld'].values())}); manifest verified")
 
 
 STAGE = Stage(name="release", func=run, per="session", upstream=("export", "qa"), reads=READS,
