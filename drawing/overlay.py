@@ -26,7 +26,6 @@ from calib import Camera
 from drawing import qa_constants as Q
 from drawing.render import PersonMesh, Renderer
 from drawing.sheet import write_png
-from formats.errors import InputError
 from formats.video import VideoReader, write_mp4
 
 
@@ -166,11 +165,9 @@ def _open_videos(cams, videos) -> list[VideoReader]:
     readers = []
     try:
         for cam, p in zip(cams, videos, strict=True):
-            r = VideoReader(p)
-            readers.append(r)
-            if (r.info.width, r.info.height) != (cam.width, cam.height):
-                raise InputError(p, "<video>", f"{r.info.width}x{r.info.height} but camera "
-                                 f"{cam.name} is {cam.width}x{cam.height}")
+            # frames padded / cropped to the camera's size (a few pixels at most, right / bottom:
+            # formats.video.size_fit; further off: InputError saying both sizes)
+            readers.append(VideoReader(p, size=(cam.width, cam.height)))
     except BaseException:
         for r in readers:
             r.close()

@@ -5,6 +5,15 @@
   decoder's reported position and falls back to decoding from the start if the seek was not
   exact.
 - :func:`write_mp4`: MP4 (``mp4v``) from RGB frames.
+- Real files (:func:`video_info` reads the MP4/MOV container itself, no decoding): the
+  rotation metadata (``VideoInfo.rotation``: degrees the display matrix turns the coded frames;
+  the reader applies it on decode (``CAP_PROP_ORIENTATION_AUTO``), so ``width``/``height`` are
+  the decoded, upright size: taken from the first frame), the frame durations (``fps_min``/``fps_max``, a variable frame rate is
+  flagged by :func:`video_warnings`), :func:`common_length` (cameras of different lengths: the
+  shortest wins, with a warning naming each video) and :func:`size_fit` (a decoded size against
+  the calibration's: equal, or a few pixels smaller (``SIZE_TOL_PX``), padded at the right /
+  bottom so pixel coordinates are unchanged; else an InputError saying both sizes and the
+  rotation). ``VideoReader(path, size=(w, h))`` returns frames padded/cropped that way.
 - :func:`resample_to_video`: markers sampled at the mocap rate (Vicon 100/200/240 Hz) to the
   video frames (e.g. 50 fps) by time. Convention: video frame ``j`` is at video time
   ``j / fps``; the recipe's sync offset is the video time of mocap time 0, so frame ``j``
@@ -26,16 +35,37 @@ from formats.errors import InputError
 MAX_FORWARD_DECODE = 64
 #: Sample-index tolerance under which a video time counts as hitting a mocap sample exactly.
 SAMPLE_HIT_TOL = 1e-6
+#: Largest number of pixels a decoded frame may lack against its calibration, per side: one
+#: codec macroblock (a 1088-pixel sensor side is often encoded 1080 wide: the Pose2Sim demo).
+SIZE_TOL_PX = 16
+#: Relative spread of the container's frame durations, (max - min) / median, above which the
+#: frame rate counts as variable (a timebase rounding of 1/90000 s at 60 fps is 0.15 %).
+VFR_TOL = 0.01
+#: Cap on the MP4 boxes read into memory while looking for the track headers (bytes).
+MP4_MAX_BOX = 256 * 1024 * 1024
 
 
 @dataclass(frozen=True)
 class VideoInfo:
-    """n_frames: frames the container reports; fps: frames per second; width, height: pixels."""
+    """n_frames: frames the container reports; fps: frames per second; width, height: pixels of
+    the decoded (upright) frames; rotation: degrees of the container's display rotation (0, 90,
+    180, 270; OpenCV applies it); fps_min, fps_max: the rates of the longest and the shortest
+    frame duration in the container's timestamps (None: not an MP4/MOV, not measured)."""
 
     n_frames: int
     fps: float
     width: int
     height: int
+    rotation: int = 0
+    fps_min: float | None = None
+    fps_max: float | None = None
+
+    @property
+    def variable_rate(self) -> bool:
+        """The container's frame durations spread more than ``VFR_TOL``."""
+        if self.fps_min is None or self.fps_max is None:
+            return False
+        return (1 / self.fps_min - 1 / self.fps_max) * self.fps > VFR_TOL
 
 
 class VideoReader:
@@ -45,7 +75,9 @@ class VideoReader:
     end raises InputError naming the file and the frame.
     """
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, size: tuple[int, int] | None = None):
+        """size: (width, height) of the calibration; frames are padded (black, right/bottom) or
+        cropped to it (:func:`size_fit`; InputError beyond ``SIZE_TOL_PX``)."""
         import cv2
 
         self.path = Path(path)
@@ -62,8 +94,19 @@ class VideoReader:
             self._cap.release()
             raise InputError(self.path, "<video>", f"no frames or bad header ({n} frames, "
                              f"{w}x{h}, {fps} fps)")
-        self.info = VideoInfo(n, fps, w, h)
-        self._pos = 0  # index of the frame the next read() returns
+        # frames upright as a player shows them (the display rotation of phones' portrait videos)
+        self._cap.set(cv2.CAP_PROP_ORIENTATION_AUTO, 1)
+        ok, first = self._cap.read()  # the decoded size (after the rotation) is the truth
+        if not ok:
+            self._cap.release()
+            raise InputError(self.path, "<video>", "cannot decode frame 0", frame=0)
+        h, w = first.shape[:2]
+        rot, fps_min, fps_max = _container_timing(self.path)
+        rot = rot or int(round(self._cap.get(cv2.CAP_PROP_ORIENTATION_META))) % 360
+        self.info = VideoInfo(n, fps, w, h, rot, fps_min, fps_max)
+        self._first = cv2.cvtColor(first, cv2.COLOR_BGR2RGB)
+        self._pos = 1  # index of the frame the next read() returns
+        self._pad = None if size is None else size_fit(self.path, self.info, *size)
 
     def __len__(self) -> int:
         return self.info.n_frames
@@ -107,13 +150,24 @@ class VideoReader:
         if not 0 <= index < self.info.n_frames:
             raise InputError(self.path, "frame", f"index out of range 0..{self.info.n_frames - 1}",
                              frame=index)
+        if index == 0:
+            return self._fit(self._first.copy())
         if not self._pos <= index <= self._pos + MAX_FORWARD_DECODE:
             self._seek(index)
         while self._pos < index:
             if not self._cap.grab():
                 raise InputError(self.path, "<video>", "cannot decode frame", frame=self._pos)
             self._pos += 1
-        return self._read_next(index)
+        return self._fit(self._read_next(index))
+
+    def _fit(self, img: np.ndarray) -> np.ndarray:
+        if self._pad is None or self._pad == (0, 0):
+            return img
+        w, h = img.shape[1] + self._pad[0], img.shape[0] + self._pad[1]
+        out = np.zeros((h, w, 3), np.uint8)
+        hh, ww = min(h, img.shape[0]), min(w, img.shape[1])
+        out[:hh, :ww] = img[:hh, :ww]
+        return out
 
     def frames(self, indices: Iterable[int] | None = None):
         """Yield frames (all, or ``indices`` in the given order)."""
@@ -125,6 +179,134 @@ def video_info(path: str | Path) -> VideoInfo:
     """Frame count, fps and size of a video file."""
     with VideoReader(path) as v:
         return v.info
+
+
+# ------------------------------------------------------------------------ what real files need
+def size_fit(path, info: VideoInfo, width: int, height: int,
+             tol: int = SIZE_TOL_PX) -> tuple[int, int]:
+    """How the decoded frames of ``path`` meet the calibration's ``width x height``: the
+    ``(dx, dy)`` pixels to pad at the right / bottom (negative: to crop), so that a pixel's
+    coordinates are the same in the video and in the calibration. Accepted when each side is
+    within ``tol`` pixels; else InputError saying both sizes (and the rotation metadata, or
+    that width and height are swapped: a portrait calibration for a landscape video)."""
+    dx, dy = int(width) - info.width, int(height) - info.height
+    if abs(dx) <= tol and abs(dy) <= tol:
+        return dx, dy
+    what = (f"decoded frames are {info.width}x{info.height} (container rotation "
+            f"{info.rotation} deg, applied), the calibration says {width}x{height}")
+    if (info.width, info.height) == (int(height), int(width)) or (
+            abs(info.width - int(height)) <= tol and abs(info.height - int(width)) <= tol):
+        what += ("; width and height are swapped: the video is "
+                 f"{'portrait' if info.height > info.width else 'landscape'} and the "
+                 "calibration is not (rotation metadata missing, or the calibration is of the "
+                 "unrotated sensor)")
+    raise InputError(path, "size", what + f" (at most {tol} px apart per side are accepted)")
+
+
+def common_length(infos: dict) -> tuple[int, list[str]]:
+    """The frames every camera has: ``infos`` ``{path: VideoInfo}`` (recipe order). Returns the
+    shortest length and one warning per video of another length, naming it and both counts."""
+    if not infos:
+        return 0, []
+    n = min(i.n_frames for i in infos.values())
+    short = next(p for p, i in infos.items() if i.n_frames == n)
+    return n, [f"{p}: frames: {i.n_frames} frames, but {short} of the same sequence has {n}: "
+               f"the sequence is cut to the shortest, {n} frames"
+               for p, i in infos.items() if i.n_frames != n]
+
+
+def video_warnings(path, info: VideoInfo) -> list[str]:
+    """What is odd but usable in one video: a variable frame rate (the spread of the
+    container's frame durations, as rates), a display rotation."""
+    out = []
+    if info.variable_rate:
+        out.append(f"{path}: fps: variable frame rate: the container's frame durations give "
+                   f"{info.fps_min:.3f}..{info.fps_max:.3f} fps (nominal {info.fps:g}); frames "
+                   f"are taken as evenly spaced at the nominal rate")
+    if info.rotation:
+        out.append(f"{path}: rotation: the container turns the frames by {info.rotation} deg "
+                   f"(applied on decode: {info.width}x{info.height})")
+    return out
+
+
+def _boxes(f, end: int):
+    """Yield ``(type, payload start, payload end)`` of the MP4 boxes in ``[f.tell(), end)``."""
+    import struct
+
+    pos = f.tell()
+    while pos + 8 <= end:
+        f.seek(pos)
+        size, kind = struct.unpack(">I4s", f.read(8))
+        head = 8
+        if size == 1:
+            size = struct.unpack(">Q", f.read(8))[0]
+            head = 16
+        elif size == 0:
+            size = end - pos
+        if size < head or pos + size > end:
+            return
+        yield kind.decode("latin-1"), pos + head, pos + size
+        pos += size
+
+
+def _container_timing(path: Path) -> tuple[int, float | None, float | None]:
+    """``(rotation deg, fps_min, fps_max)`` of the first video track of an MP4/MOV from its
+    ``tkhd`` display matrix and ``stts`` sample durations (``mdhd`` timescale); ``(0, None,
+    None)`` for another container or a file the parser does not follow."""
+    import math
+    import struct
+
+    try:
+        with open(path, "rb") as f:
+            f.seek(0, 2)
+            size = f.tell()
+            f.seek(0)
+            moov = next(((a, b) for k, a, b in _boxes(f, size) if k == "moov"), None)
+            if moov is None or moov[1] - moov[0] > MP4_MAX_BOX:
+                return 0, None, None
+            f.seek(moov[0])
+            for kind, a, b in list(_boxes(f, moov[1])):
+                if kind != "trak":
+                    continue
+                f.seek(a)
+                found = {}
+
+                def walk(lo, hi, found=found):
+                    f.seek(lo)
+                    for k, x, y in list(_boxes(f, hi)):
+                        if k in ("mdia", "minf", "stbl"):
+                            walk(x, y)
+                        elif k in ("tkhd", "mdhd", "hdlr", "stts"):
+                            f.seek(x)
+                            found[k] = f.read(y - x)
+
+                walk(a, b)
+                if "hdlr" not in found or found["hdlr"][8:12] != b"vide":
+                    continue
+                tk = found.get("tkhd", b"")
+                off = 4 + (32 if tk[:1] == b"" else 20) + 8 + 8
+                rot = 0
+                if len(tk) >= off + 36:
+                    m = struct.unpack(">9i", tk[off:off + 36])
+                    rot = int(round(math.degrees(math.atan2(m[1], m[0])))) % 360
+                md, st = found.get("mdhd", b""), found.get("stts", b"")
+                scale = struct.unpack(">I", md[20:24] if md[:1] == b"" else md[12:16])[0] \
+                    if len(md) >= 24 else 0
+                if not scale or len(st) < 8:
+                    return rot, None, None
+                n = struct.unpack(">I", st[4:8])[0]
+                ent = np.frombuffer(st[8:8 + 8 * n], dtype=">u4").reshape(-1, 2)
+                d = ent[ent[:, 0] > 0, 1]
+                # the last sample's duration is often a muxer's guess: judge the others
+                if len(ent) and ent[-1, 0] == 1 and len(d) > 1:
+                    d = d[:-1]
+                d = d[d > 0]
+                if not len(d):
+                    return rot, None, None
+                return rot, scale / float(d.max()), scale / float(d.min())
+    except (OSError, struct.error, ValueError):
+        pass
+    return 0, None, None
 
 
 def write_mp4(path: str | Path, frames: Iterable[np.ndarray], fps: float) -> Path:

@@ -44,16 +44,16 @@ FPS_TOLERANCE = 1e-4  # relative: 29.97 vs 30000/1001 passes, 30 vs 29.97 (a fra
 
 def check_videos(paths: list[Path], fps: float | None) -> list[str]:
     """One message per problem of a sequence's videos (the recipe's camera order): a video that
-    can't be read, one with fewer or more frames than the longest (the sequence would silently be
-    cut to the shortest), one whose own rate differs from the recipe's ``fps``. Each message
-    names the video and both numbers (:func:`video_errors` as text)."""
+    can't be read, one whose own rate differs from the recipe's ``fps``. Each message names the
+    video and both numbers (:func:`video_errors` as text). Videos of different lengths are not
+    a problem: the sequence is cut to the shortest (:func:`video_length` says so)."""
     return [str(e) for e in video_errors(paths, fps)]
 
 
 def video_errors(paths: list[Path], fps: float | None) -> list:
     """The problems of :func:`check_videos` as ``formats.errors.InputError`` (file = the video,
-    field ``frames`` / ``fps`` or the reader's), for a stage to raise the first one. ``fps``
-    None: the videos must agree with the longest one's rate."""
+    field ``fps`` or the reader's), for a stage to raise the first one. ``fps`` None: the
+    videos must agree with the first readable one's rate."""
     from formats.errors import InputError
     from formats.video import video_info
 
@@ -67,18 +67,35 @@ def video_errors(paths: list[Path], fps: float | None) -> list:
             out.append(InputError(p, "<file>", str(e)))
     if not infos:
         return out
-    longest = max(i.n_frames for i in infos.values())
-    ref = next(p for p, i in infos.items() if i.n_frames == longest)
     if fps is None:  # the recipe leaves the rate to the videos: they must agree with each other
-        fps = infos[ref].fps
+        fps = next(iter(infos.values())).fps
     for p, i in infos.items():
-        if i.n_frames != longest:
-            out.append(InputError(p, "frames", f"{i.n_frames} frames, but {ref} of the same "
-                                  f"sequence has {longest} (all views must cover the same frames)"))
         if abs(i.fps - fps) > FPS_TOLERANCE * fps:
             out.append(InputError(p, "fps", f"the video runs at {i.fps:g} fps, the recipe says "
                                   f"{fps:g} (sequences.<id>.fps)"))
     return out
+
+
+def video_length(paths: list[Path], cams=None) -> tuple[int, list[str]]:
+    """The frames a sequence has (the shortest of its videos) and the warnings about its videos:
+    each video of another length (both counts, ``formats.video.common_length``), a variable
+    frame rate or a rotation (``formats.video.video_warnings``), and, with ``cams`` (the rig's
+    ``calib.Camera``s, same order), a decoded size a few pixels off the calibration's (accepted
+    and padded at the right / bottom); a size further off raises InputError
+    (``formats.video.size_fit``)."""
+    from formats.video import common_length, size_fit, video_info, video_warnings
+
+    infos = {Path(p): video_info(p) for p in paths}
+    n, warnings = common_length(infos)
+    for k, (p, i) in enumerate(infos.items()):
+        warnings += video_warnings(p, i)
+        if cams is not None:
+            dx, dy = size_fit(p, i, cams[k].width, cams[k].height)
+            if (dx, dy) != (0, 0):
+                warnings.append(f"{p}: size: decoded {i.width}x{i.height}, calibration "
+                                f"{cams[k].width}x{cams[k].height}: accepted, pixel coordinates "
+                                f"kept (frames padded by {dx}, {dy} px at the right, bottom)")
+    return n, warnings
 
 
 def markerset_file(subject_spec) -> dict[str, Path]:

@@ -194,8 +194,7 @@ def compute(view, raw: dict[str, Path], o: Options, *, markers, cams, unit: str 
     from detect.run import VideoSource
     from detect.sequence import detect_keypoints
     from fitting.mocap import VideoClock
-    from formats.video import video_info
-    from stages.common import sequence_fps, video_errors
+    from stages.common import sequence_fps, video_errors, video_length
 
     seq = view.sequence
     cam_names = list(view.cameras)
@@ -207,7 +206,9 @@ def compute(view, raw: dict[str, Path], o: Options, *, markers, cams, unit: str 
     if problems:
         raise problems[0]
     fps = sequence_fps(seq.fps, videos[0])
-    n_video = video_info(videos[0]).n_frames
+    n_video, video_warnings = video_length(videos, cams)  # the shortest video wins
+    for w in video_warnings:
+        log(f"keypoints: WARNING {w}")
     frames = frame_indices(n_video, o)
     if len(frames) == 0:
         raise InputError(videos[0], "frames", f"no frame in [{o.start}, {o.stop}) of {n_video}")
@@ -237,7 +238,7 @@ def compute(view, raw: dict[str, Path], o: Options, *, markers, cams, unit: str 
     kp, facts = detect_keypoints(cams, source, xyz, list(markers.names), frames, factory,
                                  o.sequence_options(cores), progress=progress, log=log)
     report = {"detector": kind, "cameras": cam_names, "video_frames": n_video,
-              "stride": o.stride, **facts}
+              "stride": o.stride, "video_warnings": video_warnings, **facts}
     return Computed(kp, report, source)
 
 

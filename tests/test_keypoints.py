@@ -45,21 +45,25 @@ def _tiny_video(path: Path, n: int, fps: float) -> Path:
     return path
 
 
-def test_check_videos_names_a_short_video_and_a_wrong_rate(tmp_path):
-    """One video shorter than the others and one at another rate than the recipe's: one
-    message each, naming that video and both numbers; good videos: no message."""
-    from stages.common import check_videos, video_errors
+def test_check_videos_names_a_wrong_rate_and_cuts_a_short_video(tmp_path):
+    """One video at another rate than the recipe's: one message naming that video and both
+    numbers; one video shorter than the others is not an error: the sequence is cut to the
+    shortest, with a warning naming each longer video and both counts; good videos: no message."""
+    from stages.common import check_videos, video_errors, video_length
 
     good = [_tiny_video(tmp_path / f"cam{i}" / "Test 1.mp4", 6, FPS) for i in range(3)]
     assert check_videos(good, FPS) == []
     short = _tiny_video(tmp_path / "cam3" / "Test 1.mp4", 4, FPS)
     slow = _tiny_video(tmp_path / "cam4" / "Test 1.mp4", 6, 25.0)
     msgs = check_videos(good + [short, slow], FPS)
-    assert len(msgs) == 2, msgs
-    assert msgs[0].startswith(f"{short}: frames: 4 frames, but {good[0]}") and "has 6" in msgs[0]
-    assert msgs[1].startswith(f"{slow}: fps: the video runs at 25 fps, the recipe says 50")
+    assert len(msgs) == 1, msgs
+    assert msgs[0].startswith(f"{slow}: fps: the video runs at 25 fps, the recipe says 50")
     errs = video_errors(good + [short, slow], FPS)
-    assert [(e.file, e.field) for e in errs] == [(str(short), "frames"), (str(slow), "fps")]
+    assert [(e.file, e.field) for e in errs] == [(str(slow), "fps")]
+    n, warnings = video_length(good + [short])
+    assert n == 4 and len(warnings) == 3
+    assert warnings[0].startswith(f"{good[0]}: frames: 6 frames, but {short} of the same "
+                                  "sequence has 4")
     missing = tmp_path / "cam9" / "Test 1.mp4"
     assert check_videos(good + [missing], FPS) == [f"{missing}: <file>: missing"]
 
@@ -349,10 +353,10 @@ def test_bad_inputs_name_the_file(session, tmp_path):
         _compute(root / "recipe.yaml", Options(detector="precomputed"))
 
 
-def test_a_short_video_or_a_wrong_rate_stops_the_stage(session, tmp_path):
-    """One view's video a frame shorter than the others (the stage used to cut the sequence
-    silently), or at another rate than the recipe's fps: an InputError naming that video and
-    both numbers, before any detection runs."""
+def test_a_wrong_rate_stops_the_stage(session, tmp_path):
+    """One view's video at another rate than the recipe's fps: an InputError naming that video
+    and both numbers, before any detection runs. (A shorter view is cut to, with a warning:
+    ``test_check_videos_names_a_wrong_rate_and_cuts_a_short_video``.)"""
     from formats.errors import InputError
     from formats.video import VideoReader, write_mp4
 
@@ -362,9 +366,8 @@ def test_a_short_video_or_a_wrong_rate_stops_the_stage(session, tmp_path):
     with VideoReader(orig) as v:
         imgs = [v[i] for i in range(N_FRAMES)]
     for name, n, fps, pattern in (
-            ("short", N_FRAMES - 1, FPS, rf"frames: {N_FRAMES - 1} frames, but .* has {N_FRAMES}"),
             ("slow", N_FRAMES, FPS / 2, rf"fps: the video runs at {FPS / 2:g} fps, the recipe "
-                                         rf"says {FPS:g}")):
+                                         rf"says {FPS:g}"),):
         video = write_mp4(tmp_path / name / cam / "Test 1.mp4", imgs[:n], fps)
         recipe = json.loads(json.dumps(truth["recipe"]))
         recipe["sequences"]["s01/Test 1"]["videos"][cam] = str(video)
