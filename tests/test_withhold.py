@@ -355,3 +355,41 @@ def test_a_planted_limb_error_is_published_not_valid(planted):
           f"withheld {held}")
     md = (planted["tmp"] / "release" / "datasheet.md").read_text()
     assert "withheld for QA flags" in md and v["reason"][1, row] in md
+
+
+def test_export_and_datasheet_counts_must_agree(tmp_path):
+    from artifacts.base import ArtifactError, JsonFields
+    from artifacts.export import SequenceExport
+    from artifacts.release import DatasheetTotals
+
+    files = ("g/valid/A 1.json",)
+    for f in files:
+        (tmp_path / f).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / f).write_text("{}")
+    kw = dict(sequence="g/A 1", group="g", action="A 1", persons=("a", "b"), model="anny",
+              frames=4, first_frame=0, last_frame=3, video_fps=None, person_frames_not_valid=2,
+              not_valid_by_reason=({"subject": "a", "qa:jerk_m_s3": 1},
+                                   {"subject": "b", "qa:jerk_m_s3": 1}),
+              cameras={}, contact=None, absent={}, files=files, valid_file=files[0])
+    ok = SequenceExport(**kw, withhold=("jerk_m_s3",), withheld={"qa:jerk_m_s3": 2})
+    ok.validate(tmp_path / "export.json", tmp_path)
+    back = SequenceExport.from_json(JsonFields(ok.to_json(), tmp_path / "export.json",
+                                               folder=tmp_path))
+    assert back.withhold == ("jerk_m_s3",) and back.withheld == {"qa:jerk_m_s3": 2}
+    for bad, msg in (({"withhold": ("jerk_m_s3",), "withheld": {"qa:jerk_m_s3": 1}},
+                      r"export\.json: withheld\.qa:jerk_m_s3: 1 person-frames"),
+                     ({"withhold": None, "withheld": {"qa:jerk_m_s3": 2}},
+                      r"withheld\.qa:jerk_m_s3: not among the reasons withheld")):
+        with pytest.raises(ArtifactError, match=msg):
+            SequenceExport(**kw, **bad).validate(tmp_path / "export.json", tmp_path)
+    # an export.json written before (no withhold / withheld) reads as nothing withheld
+    old = {k: v for k, v in ok.to_json().items() if k not in ("withhold", "withheld")}
+    back = SequenceExport.from_json(JsonFields(old, tmp_path / "export.json", folder=tmp_path))
+    assert back.withhold is None and back.withheld == {}
+    t = {"sequences": 1, "frames": 4, "person_frames": 8, "person_frames_not_valid": 2,
+         "not_valid_by_reason": {"qa:jerk_m_s3": 2}}
+    assert DatasheetTotals.from_json(JsonFields({**t, "withheld": {"qa:jerk_m_s3": 2}},
+                                                "datasheet.json", "totals")).withheld
+    with pytest.raises(ArtifactError, match=r"datasheet\.json: totals\.withheld\.qa:jerk_m_s3"):
+        DatasheetTotals.from_json(JsonFields({**t, "withheld": {"qa:jerk_m_s3": 3}},
+                                             "datasheet.json", "totals"))
