@@ -89,7 +89,6 @@ def run(ctx: StageContext) -> None:
     from drawing.plots import partner_fit_plot
     from fitting.contact_signature import load_contact
     from fitting.partner_fit import contact_figures, fit_partner
-    from formats.video import video_info
 
     o: Options = ctx.params or Options()
     rv = ctx.recipe
@@ -100,7 +99,7 @@ def run(ctx: StageContext) -> None:
         action = ctx.unit.split("/", 1)[1]
         family = "smplx" if model.name == "smplx" else "anny"
         contact = load_contact(ctx.raw["contact"], action, model,
-                               video_info(ctx.raw[f"video:{rv.cameras[0]}"]).n_frames,
+                               common.video_length([ctx.raw[f"video:{c}"] for c in rv.cameras])[0],
                                family=family)
     shape_art = ctx.inputs["shape_fit"]
     partner = rv.sequence.partner

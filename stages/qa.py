@@ -139,7 +139,6 @@ def run(ctx: StageContext) -> None:
     from artifacts.qa import QAFiles, QASpan, QASummary
     from drawing.qa_plots import qa_plot
     from fitting.contact_signature import load_contact
-    from formats.video import video_info
     from qa.metrics import capture_repairs, flag_frames, marker_track, sequence_metrics
     from qa.report import write_sequence_report
 
@@ -154,8 +153,8 @@ def run(ctx: StageContext) -> None:
     if "contact" in ctx.raw and has_video:
         action = ctx.unit.split("/", 1)[1]
         family = "smplx" if model.name == "smplx" else "anny"
-        contact = load_contact(ctx.raw["contact"], action, model, video_info(videos[0]).n_frames,
-                               family=family)
+        contact = load_contact(ctx.raw["contact"], action, model,
+                               common.video_length(videos)[0], family=family)  # the shortest
     wearer = BodyFit.load(ctx.inputs["marker_fit"])
     pf_art = ctx.inputs.get("partner_fit")
     partner = BodyFit.load(pf_art) if pf_art is not None else None
