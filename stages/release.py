@@ -119,7 +119,9 @@ def qa_summary(results: dict) -> dict:
             "rate": flagged / max(frames, 1),
             "what": "frames whose QA metrics (stage qa: marker residuals, reprojection, "
                     "interpenetration, ground, skating, contact, jerk, validity) pass a recipe "
-                    "threshold; a flagged frame is not necessarily wrong: it is the one to look at"}
+                    "threshold; a flagged frame is the one to look at, and one flagged for a "
+                    "reason that says the fit is wrong (stage export's withhold) is published not "
+                    "valid (reason qa:<reason>)"}
 
 
 def datasheet(session: str, subjects: list[str], sequences: dict, exports: dict,
