@@ -265,8 +265,9 @@ def _demo_missing(demo_recipe: Path) -> str:
 
 def check(recipe: Session, recipe_path: Path, sequences: list[str] | None = None) -> list[str]:
     """Problems of the recipe the schema cannot see, one message per problem naming the file and
-    the field, found before any stage runs: each sequence's videos must all have the same number
-    of frames and the recipe's ``fps`` (``stages.common.check_videos``). Stage options are
+    the field, found before any stage runs: each sequence's videos must be readable and run at
+    the recipe's ``fps`` (``stages.common.check_videos``; videos of different lengths are cut to
+    the shortest, with a warning, by the keypoints stage). Stage options are
     validated by the engine when it plans (every stage's, before anything runs)."""
     from stages import common
 
