@@ -39,7 +39,7 @@ def raw_inputs(recipe, unit: str) -> dict[str, Path]:
             p = Path(seq.calibration[cam])
             out[f"calibration:{cam}"] = p
             if seq.calibration_format == "easymocap" or (
-                    p.suffix.lower() in (".yml", ".yaml") and ("intri" in p.name or "extri" in p.name)):
+                    p.suffix.lower() in (".yml", ".yaml") and p.stem in ("intri", "extri")):
                 from calib.io import easymocap_pair  # the other file of the pair is read too
 
                 intri, extri = easymocap_pair(p)
