@@ -20,6 +20,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from test_export_release import _Art, _writer
 
 # constants of the planted fault
 PLANT_JOINT = "upperarm01.R"  # the limb turned (as bench/cases/qa.py's limb_rotation)
@@ -145,32 +146,6 @@ def test_valid_file_lists_its_qa_reasons_and_old_files_still_read(tmp_path):
 
 
 # ------------------------------------------------------------------------- end to end
-class _Art:
-    """A completed artifact in a folder (what the engine hands a stage)."""
-
-    def __init__(self, d: Path):
-        from pipeline.store import StoredArtifact
-
-        self._a = StoredArtifact(Path(d), "k", "u", "s", {})
-        self.dir = Path(d)
-
-    def arrays(self, name):
-        return self._a.arrays(name)
-
-    def json(self, name):
-        return self._a.json(name)
-
-    def path(self, f):
-        return self._a.path(f)
-
-
-def _writer(d: Path):
-    from pipeline.store import Writer
-
-    d.mkdir(parents=True, exist_ok=True)
-    return Writer(d)
-
-
 def _ctx(stage, unit, recipe, params, inputs, raw, out: Path):
     from pipeline.spec import StageContext
     from stages import view_for
