@@ -53,8 +53,13 @@ def test_marker_only_chain_cleans_fits_and_reports_leave_one_out(tmp_path, anny)
         _strict(js.read_text())
     sf = _strict((root / "s1" / "shape_fit" / "report.json").read_text())
     assert sf["shape_source"] == "markers"
-    cleaned = sf["cleaned"]["s1/Walk 1"]  # before the placement frames were chosen
-    assert cleaned["removed_samples"] >= 3 and cleaned["unswapped"] == {"LELB": 10, "LFRM": 10}
+    cleaned = sf["cleaned"]["s1/Walk 1"]  # by the capture stage, before placement frames
+    assert cleaned["removed_samples"] >= 3 and cleaned["repaired_by_code"]["unswapped"] == 20
+    from artifacts.capture import Markers as Captured
+
+    cap = Captured.load(root / "s1" / "Walk 1" / "capture")  # the one reading of walk.c3d
+    assert cap.markers_repaired_as("unswapped") == {"LELB", "LFRM"}
+    assert cap.repaired[60:70][:, [i, j]].all() and not cap.observed[40:43, g].any()
     assert sf["placement_slide_mm"]["LKNE"] < 30.0  # the 5 m ghost did not drag it
     assert sf["placement_residual_mm"]["median"] < 5.0
     mf_dir = root / "s1" / "Walk 1" / "marker_fit"
@@ -63,9 +68,9 @@ def test_marker_only_chain_cleans_fits_and_reports_leave_one_out(tmp_path, anny)
     np.testing.assert_array_equal(fit.frames, first + np.arange(F))
     assert mf["fit_rate_hz"] == rate and fit.valid.all()
     assert not fit.visible[40:43, g].any()  # the ghost never reached the fit
-    assert sum(mf["cleaned"]["removed_by_reason"].values()) >= 3
+    assert sum(v for k, v in mf["capture_repaired"].items() if k != "unswapped") >= 3
     assert np.nanmax(fit.marker_residual_m[60:70][:, [i, j]]) < 0.02  # un-swapped, not fitted
-    assert any("removed before the fit" in w for w in mf["warnings"])
+    assert any("repaired by the capture stage" in w for w in mf["warnings"])
     assert mf["residual_mm"]["p90"] < 15.0, mf["residual_mm"]
     assert (mf_dir / "marker_residuals.png").is_file()
     lo_dir = root / "s1" / "Walk 1" / "marker_loo"

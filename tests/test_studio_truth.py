@@ -108,6 +108,20 @@ def test_evaluate_stage_on_a_hand_made_release(tmp_path, model):
     (rel / "valid" / f"{ACTION}.json").write_text(json.dumps(
         {"valid": [[True, True, False], [True, True, True]], "reason": [[""] * 3] * 2,
          "frames": [0, 1, 2]}))
+    # what the release stage adds: manifest, datasheet and its verified re-read record
+    # (evaluate scores only a verified release: artifacts.Release)
+    from artifacts import Release
+
+    root = tmp_path / "release"
+    files = sorted(p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file())
+    (root / "MANIFEST.sha256").write_text("")
+    (root / "datasheet.md").write_text("# hand-made\n")
+    (root / "datasheet.json").write_text(json.dumps({
+        "session": "s", "subjects": ["a", "b"], "sequences_not_exported": [],
+        "sequences": {f"s01/{ACTION}": {"frames": 3, "persons": ["a", "b"]}},
+        "totals": {"sequences": 1, "frames": 3, "person_frames": 6, "person_frames_not_valid": 1,
+                   "not_valid_by_reason": {"too_few_markers": 1}}}))
+    Release(ok=True, files_checked=len(files), files={f: "hand" for f in files}).save(Writer(root))
     recipe = SimpleNamespace(stages={"evaluate": {"truth": "gt"}}, source=tmp_path / "r.yaml",
                              body_model=SimpleNamespace(kind="anny", path=None))
     raw = E.raw_inputs(recipe, "session")
@@ -116,7 +130,7 @@ def test_evaluate_stage_on_a_hand_made_release(tmp_path, model):
     out = tmp_path / "art"
     out.mkdir()
     logs = []
-    ctx = SimpleNamespace(inputs={"release": SimpleNamespace(dir=tmp_path / "release")}, raw=raw,
+    ctx = SimpleNamespace(inputs={"release": tmp_path / "release"}, raw=raw,
                           out=Writer(out), log=logs.append, params=E.Options(truth="gt"))
     E.run(ctx)
     r = json.loads((out / "evaluation.json").read_text())
