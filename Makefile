@@ -20,10 +20,16 @@ SCHEDULER ?=
 WORKERS ?=
 # make bench CASE=real (or CASE="real qa"): only those benchmark cases
 CASE ?=
+# make annotate: the frame shown first, the port, the file to write, who annotates
+FRAME ?=
+PORT ?=
+CONTACT ?=
+ANNOTATOR ?=
 # Every user variable reaches the recipes verbatim, through the environment: `override X :=
 # $(value X)` keeps make from expanding it, and the recipe lines only say "$$X" (quoted), so no
 # value is ever read as make or shell syntax (`make sequence SEQ='x`touch y`'` runs nothing).
-USER_VARS := RECIPE SEQ STAGE FORCE OUT SEED FRAMES SCENARIOS MARKERS STRIDE PRED GT EXECUTOR CLUSTER SCHEDULER WORKERS CASE
+USER_VARS := RECIPE SEQ STAGE FORCE OUT SEED FRAMES SCENARIOS MARKERS STRIDE PRED GT EXECUTOR CLUSTER SCHEDULER WORKERS CASE \
+  FRAME PORT CONTACT ANNOTATOR
 $(foreach v,$(USER_VARS),$(eval override $(v) := $$(value $(v))))
 export $(USER_VARS)
 # bash arrays of the optional arguments, built from those variables (FORCE: words, no globbing)
@@ -40,7 +46,7 @@ ARGS = force=(); read -ra _w <<< "$$FORCE"; for _s in "$${_w[@]}"; do force+=(--
 export PYTHONPATH := $(CURDIR)
 export ANNY_CACHE_DIR ?= $(CURDIR)/assets/cache/anny
 
-.PHONY: cluster-script setup browser demo test test-fast sequence loo release evaluate status bench studio lint clean
+.PHONY: cluster-script setup browser demo test test-fast sequence loo release evaluate status bench studio lint clean annotate
 
 setup:
 	@bash scripts/setup.sh
@@ -74,6 +80,14 @@ evaluate: setup
 	@$(ARGS) if [ -n "$$PRED" ]; then $(PY) -m evaluate "$$PRED" "$$GT"; else \
 	  $(PY) -m pipeline release --recipe "$$RECIPE" --until evaluate "$${force[@]}" && \
 	  $(PY) -m evaluate.session --recipe "$$RECIPE"; fi
+
+# the contact annotation page of one sequence on http://127.0.0.1:$PORT/ (annotate/server.py);
+# it writes the recipe's contact file of the sequence unless CONTACT=<file> names another
+annotate: setup
+	@test -n "$$SEQ" || { echo "usage: make annotate SEQ=<group>/<action> [RECIPE=...] [FRAME=n] [PORT=8765] [CONTACT=file.json] [ANNOTATOR=name]"; exit 2; }
+	@a=(); [ -z "$$FRAME" ] || a+=(--frame "$$FRAME"); [ -z "$$PORT" ] || a+=(--port "$$PORT"); \
+	  [ -z "$$CONTACT" ] || a+=(--out "$$CONTACT"); [ -z "$$ANNOTATOR" ] || a+=(--annotator "$$ANNOTATOR"); \
+	  $(PY) -m annotate --recipe "$$RECIPE" --seq "$$SEQ" "$${a[@]}"
 
 status: setup
 	@$(PY) -m pipeline status --recipe "$$RECIPE"

@@ -59,6 +59,23 @@ else
   echo "$key" > "$STAMP"
 fi
 
+# The annotation page's front-end library (three.js, pinned by annotate/web/package-lock.json)
+# from the npm registry into annotate/web/node_modules (git-ignored); the page never fetches it.
+WEB=annotate/web
+if [ -f "$WEB/package-lock.json" ]; then
+  wkey=$(cat "$WEB/package.json" "$WEB/package-lock.json" | sha256sum | cut -c1-16)
+  if [ "$(cat "$WEB/node_modules/.setup-stamp" 2>/dev/null)" != "$wkey" ]; then
+    if command -v npm >/dev/null 2>&1; then
+      echo "[setup] installing the annotation page's three.js (npm ci)"
+      (cd "$WEB" && npm ci --ignore-scripts --no-audit --no-fund --loglevel=error >/dev/null) \
+        && echo "$wkey" > "$WEB/node_modules/.setup-stamp" \
+        || echo "[setup] WARNING: npm ci failed in $WEB; make annotate cannot start" >&2
+    else
+      echo "[setup] WARNING: npm not found (apt-get install npm); make annotate needs it" >&2
+    fi
+  fi
+fi
+
 # Export Anny once to a compact numpy file (the pipeline never imports torch at run time).
 if [ -f body/anny_export.py ]; then
   "$PY" -m body.anny_export --if-stale

@@ -1,0 +1,6 @@
+"""``python -m annotate``: see :mod:`annotate.server`."""
+import sys
+
+from annotate.server import main
+
+sys.exit(main())
