@@ -1006,3 +1006,113 @@ def contact_figures(model: BodyModel, partner: BodyFit, wearer: BodyFit | None, 
             d = VP[i] @ np.asarray(ground[0], float) - float(ground[1])
             gnd[i] = max(0.0, -float(d.min()))
     return {"penetration_m": pen, "contact_m": con, "ground_m": gnd}
+
+
+# ---------------------------------------------------------------------------- shape from views
+
+#: KP65 bones whose length the shape from the views matches (rest pose, model keypoints):
+#: upper and lower arms and legs, shoulder and hip widths, both sides of the torso
+SHAPE_BONES = (("l_shoulder", "l_elbow"), ("l_elbow", "l_wrist"), ("r_shoulder", "r_elbow"),
+               ("r_elbow", "r_wrist"), ("l_hip", "l_knee"), ("l_knee", "l_ankle"),
+               ("r_hip", "r_knee"), ("r_knee", "r_ankle"), ("l_shoulder", "r_shoulder"),
+               ("l_hip", "r_hip"), ("l_shoulder", "l_hip"), ("r_shoulder", "r_hip"))
+SHAPE_RIDGE = 1e-4  # m^2 per unit beta^2: keeps the betas the bones do not determine at 0
+
+
+@dataclass(frozen=True)
+class ViewShape:
+    """The shape estimated from the views: ``betas``, the observed and fitted bone lengths
+    (metres, :data:`SHAPE_BONES` order; NaN: not seen), the frames used and the rms bone
+    error before / after (mm)."""
+
+    betas: np.ndarray
+    bones_observed_m: np.ndarray
+    bones_fitted_m: np.ndarray
+    frames_used: int
+    rms_before_mm: float
+    rms_after_mm: float
+
+    def report(self) -> dict:
+        def r(a):
+            return [None if not np.isfinite(v) else round(float(v), 4) for v in a]
+
+        return {"source": "views", "frames_used": self.frames_used,
+                "bones": ["-".join(b) for b in SHAPE_BONES],
+                "bones_observed_m": r(self.bones_observed_m),
+                "bones_fitted_m": r(self.bones_fitted_m),
+                "bone_rms_mean_shape_mm": round(self.rms_before_mm, 1),
+                "bone_rms_mm": round(self.rms_after_mm, 1)}
+
+
+def observed_bones(keypoints: Keypoints2D, cams, person: int = PARTNER, frames: int = 20,
+                   min_conf: float = 0.5) -> tuple[np.ndarray, int]:
+    """(B,) median length of each :data:`SHAPE_BONES` bone (metres) over the first ``frames``
+    frames where the person is seen in >= 2 views, from the keypoints triangulated per frame
+    (linear DLT, ``detect.markerless.triangulate_points``), and the frames used."""
+    from detect.markerless import triangulate_points
+
+    idx = {n: i for i, n in enumerate(KP65)}
+    ci = [keypoints.camera(c.name) for c in cams]
+    kp = np.asarray(keypoints.person(person), float)[ci]  # (C, F, 65, 3)
+    lens, used = [], 0
+    for f in range(kp.shape[1]):
+        ok = kp[:, f, :N_BODY, 2] >= min_conf
+        if (ok.sum(1) >= 6).sum() < 2:
+            continue
+        X = triangulate_points(cams, kp[:, f, :N_BODY, :2], ok)
+        lens.append([np.linalg.norm(X[idx[a]] - X[idx[b]]) for a, b in SHAPE_BONES])
+        used += 1
+        if used >= frames:
+            break
+    if not lens:
+        return np.full(len(SHAPE_BONES), np.nan), 0
+    L = np.array(lens, float)
+    seen = np.isfinite(L).any(axis=0)
+    out = np.full(L.shape[1], np.nan)
+    out[seen] = np.nanmedian(L[:, seen], axis=0)
+    return out, used
+
+
+def shape_from_views(model: BodyModel, keypoints: Keypoints2D, cams, person: int = PARTNER,
+                     frames: int = 20, ridge: float = SHAPE_RIDGE) -> ViewShape:
+    """Betas whose rest-pose keypoint bones (:data:`SHAPE_BONES`) match the bones seen in
+    the views (:func:`observed_bones`, the first ``frames`` frames where the person is seen),
+    Gauss-Newton with a ridge toward the mean shape. The keypoints are exactly linear in the
+    betas (``v_template + shapedirs @ betas``, the same for the joints, then the KP65
+    regressor); a bone length is not, hence the iterations."""
+    idx = {n: i for i, n in enumerate(KP65)}
+    obs, used = observed_bones(keypoints, cams, person, frames)
+    S = model.num_betas
+    R = regressor(model, "kp65")
+    A0 = R @ np.concatenate([model.v_template, model.joint_template])  # (65, 3)
+    D = np.concatenate([np.asarray(model.shapedirs, float)[:, :, :S],
+                        np.asarray(model.joint_shapedirs, float)[:, :, :S]])  # (V+J, 3, S)
+    Ad = np.einsum("kn,nds->kds", R.toarray() if hasattr(R, "toarray") else R, D)  # (65, 3, S)
+    ia = np.array([idx[a] for a, _ in SHAPE_BONES])
+    ib = np.array([idx[b] for _, b in SHAPE_BONES])
+    ok = np.isfinite(obs)
+    b = np.zeros(S)
+
+    def bones(beta):
+        P = A0 + Ad @ beta
+        d = P[ia] - P[ib]
+        return np.linalg.norm(d, axis=1), d
+
+    L0, _ = bones(b)
+    if ok.sum() >= 4:
+        for _ in range(8):
+            L, d = bones(b)
+            J = np.einsum("bd,bds->bs", d / L[:, None], Ad[ia] - Ad[ib])[ok]
+            r = (L - obs)[ok]
+            H = J.T @ J + ridge * np.eye(S)
+            step = np.linalg.solve(H, -(J.T @ r + ridge * b))
+            b = b + step
+            if np.abs(step).max() < 1e-6:
+                break
+    L1, _ = bones(b)
+
+    def rms(L):
+        return float(np.sqrt(np.mean((L - obs)[ok] ** 2)) * 1000) if ok.any() else float("nan")
+
+    return ViewShape(betas=b, bones_observed_m=obs, bones_fitted_m=L1, frames_used=used,
+                     rms_before_mm=rms(L0), rms_after_mm=rms(L1))

@@ -162,10 +162,17 @@ class SequenceSpec(_Strict):
     A marker-only sequence has just ``markers_on`` and ``c3d``: no ``partner``, ``videos`` or
     ``calibration``; it is fitted at the C3D's own rate (or ``mocap.rate_hz``) over its whole
     length. ``fps``: the video rate; null means the videos' own rate, or the capture's rate
-    for a marker-only sequence."""
+    for a marker-only sequence.
 
-    markers_on: str
-    c3d: Path
+    A markerless sequence names no marker wearer (``markers_on`` and ``c3d`` absent): its
+    ``people`` (one or two subject ids, none of them wearing markers) are all found in the
+    views and fitted from the video (``videos`` and ``calibration`` required; ``partner``
+    not used: the second person is ``people[1]``). Anyone else in the views (an operator)
+    is a bystander, rejected by the keypoints stage."""
+
+    markers_on: str | None = None
+    c3d: Path | None = None
+    people: list[str] = Field(default_factory=list)
     partner: str | None = None
     videos: dict[str, Path] = Field(default_factory=dict)
     calibration: dict[str, Path] = Field(default_factory=dict)
@@ -181,6 +188,19 @@ class SequenceSpec(_Strict):
     def has_video(self) -> bool:
         """Recorded with the cameras (videos given): the video stages apply."""
         return bool(self.videos)
+
+    @property
+    def markerless(self) -> bool:
+        """No marker wearer: every person is fitted from the video (``people``)."""
+        return self.markers_on is None
+
+    @property
+    def persons(self) -> list[str]:
+        """The subject ids fitted, person 0 first: ``[markers_on, partner]`` (the partner when
+        there is one), or a markerless sequence's ``people``."""
+        if self.markerless:
+            return list(self.people)
+        return [self.markers_on] + ([self.partner] if self.partner is not None else [])
 
 
 def _folder_name(kind: str, name: str) -> str:
@@ -241,7 +261,7 @@ class Session(_Strict):
 
     def sequences_of(self, subject: str) -> list[str]:
         """Ids of the sequences a subject takes part in (wearing markers or as partner)."""
-        return [q for q, s in self.sequences.items() if subject in (s.markers_on, s.partner)]
+        return [q for q, s in self.sequences.items() if subject in s.persons]
 
 
 def _resolve_paths(obj: Any, base: Path) -> Any:
@@ -280,7 +300,23 @@ def _ref_problems(s: Session, src: Path, tainted: dict[str, set[str]],
 
     no_cameras_said = False
     for sid, seq in s.sequences.items():
-        if seq.markers_on == seq.partner:
+        if seq.markerless:
+            for m in _markerless_problems(seq):
+                problem(sid, {"markers_on", "c3d", "people", "partner", "videos"},
+                        f"sequences.{sid}.{m}")
+        elif seq.people:
+            problem(sid, {"markers_on", "people"}, f"sequences.{sid}.people: a sequence with a "
+                    f"marker wearer (markers_on {seq.markers_on!r}) names its partner in partner, "
+                    "not people (people is for markerless sequences: no markers_on, no c3d)")
+        elif seq.c3d is None:
+            problem(sid, {"markers_on", "c3d"}, f"sequences.{sid}.c3d: missing required field "
+                    f"(markers_on {seq.markers_on!r} wears markers; a markerless sequence names "
+                    "no markers_on and its people in people)")
+        for who in seq.people:
+            if who not in s.subjects and who not in gone:
+                problem(sid, {"people"}, f"sequences.{sid}.people: unknown subject {who!r} "
+                        f"(subjects: {', '.join(s.subjects)})")
+        if seq.markers_on is not None and seq.markers_on == seq.partner:
             problem(sid, {"markers_on", "partner"}, f"sequences.{sid}.partner: the same subject "
                     f"as markers_on ({seq.partner!r})")
         for role in ("markers_on", "partner"):
@@ -319,6 +355,28 @@ def _ref_problems(s: Session, src: Path, tainted: dict[str, set[str]],
                 problem(sid, {"keypoints", "keypoints_format"}, f"sequences.{sid}.keypoints_format: "
                         "required when keypoints are given (openpose or coco)")
     return out, bad
+
+
+def _markerless_problems(seq: SequenceSpec) -> list[str]:
+    """What contradicts itself in a markerless sequence (no ``markers_on``), as
+    ``"<field>: why"``."""
+    out = []
+    if seq.c3d is not None:
+        out.append("c3d: a C3D is given but no subject wears the markers (markers_on); name "
+                   "the wearer in markers_on, or drop c3d for a markerless sequence")
+    if not seq.people:
+        out.append("people: a sequence without a marker wearer (markers_on) names the people "
+                   "fitted from the video in people (one or two subject ids)")
+    elif len(seq.people) > 2:
+        out.append(f"people: one or two people are fitted, got {len(seq.people)}")
+    elif len(set(seq.people)) != len(seq.people):
+        out.append(f"people: the same subject twice ({seq.people})")
+    if seq.partner is not None:
+        out.append("partner: a markerless sequence names everyone in people (the second "
+                   f"person as people[1], not partner {seq.partner!r})")
+    if not seq.videos:
+        out.append("videos: a markerless sequence is fitted from the videos, and has none")
+    return out
 
 
 def name_max(folder: Path) -> int:
@@ -450,7 +508,8 @@ def input_files(s: Session) -> list[tuple[str, Path]]:
     if s.body_model.path is not None:
         out.append(("body_model.path", s.body_model.path))
     for q, seq in s.sequences.items():
-        out.append((f"sequences.{q}.c3d", seq.c3d))
+        if seq.c3d is not None:
+            out.append((f"sequences.{q}.c3d", seq.c3d))
         for cam, p in seq.videos.items():
             out.append((f"sequences.{q}.videos.{cam}", p))
         for cam, p in seq.calibration.items():

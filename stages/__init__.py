@@ -36,6 +36,9 @@ PLANNED: tuple[tuple[str, Granularity, tuple[str, ...], str], ...] = (
      "leave-one-out check of the marker fit"),
     ("partner_fit", "sequence", ("capture", "shape_fit", "keypoints", "marker_fit"),
      "pose of the unmarked partner (2D keypoints, contact, collisions)"),
+    ("heldout", "sequence", ("keypoints", "partner_fit"),
+     "a view left out of the fit: reprojection into it against its detections, and the "
+     "triangulation baseline (markerless sequences)"),
     ("convert", "sequence", ("marker_fit", "partner_fit"), "SMPL-X parameters of both"),
     ("qa", "sequence", ("capture", "shape_fit", "keypoints", "marker_fit", "partner_fit"),
      "per-frame quality flags, overlays on the four views, plots, HTML report, 3D scene"),
@@ -100,9 +103,8 @@ def make_upstream_units(all_stages: tuple[Stage, ...]):
             return units(recipe, theirs)
         if theirs == "session":
             return ["session"]
-        if mine == "sequence":  # theirs == "subject"
-            seq = recipe.sequence(unit)
-            return [seq.markers_on] + ([seq.partner] if seq.partner is not None else [])
+        if mine == "sequence":  # theirs == "subject": person 0 first (markerless: ``people``)
+            return recipe.sequence(unit).persons
         if upstream == "capture":  # a subject reads the captures of the sequences it wears
             return [q for q, s in recipe.sequences.items() if s.markers_on == unit]
         return recipe.sequences_of(unit)  # a subject reading sequences
@@ -120,19 +122,29 @@ def _subject_fields(recipe: Session, sid: str | None) -> dict:
 
 
 #: stages that need the videos (and for partner_fit the partner) of a sequence
-VIDEO_STAGES = ("keypoints", "partner_fit")
+VIDEO_STAGES = ("keypoints", "partner_fit", "heldout")
+#: stages of the marker wearer: not in the DAG of a markerless sequence
+MARKER_STAGES = ("capture", "marker_fit", "marker_loo")
 
 
 def applies(recipe: Session, stage: str, unit: str) -> bool:
     """Whether ``stage`` runs for ``unit``: the video stages only on sequences recorded with
-    video (``partner_fit`` also needs a partner); ``evaluate`` only when the recipe names a
+    video (``partner_fit`` also needs a partner, or a markerless sequence; ``heldout`` only on
+    markerless sequences); the
+    marker stages (``capture``, ``marker_fit``, ``marker_loo``) not on a markerless sequence; ``evaluate`` only when the recipe names a
     ground-truth folder (``stages.evaluate.truth``); everything else always."""
     if stage == "evaluate":
         return bool((recipe.stages.get("evaluate") or {}).get("truth"))
-    if stage not in VIDEO_STAGES or unit not in recipe.sequences:
+    if unit not in recipe.sequences:
         return True
     seq = recipe.sequences[unit]
-    return seq.has_video and (stage != "partner_fit" or seq.partner is not None)
+    if stage in MARKER_STAGES:
+        return not seq.markerless
+    if stage not in VIDEO_STAGES:
+        return True
+    if stage == "heldout":  # the honest figure where no markers give one (marker_loo does)
+        return seq.has_video and seq.markerless
+    return seq.has_video and (stage == "keypoints" or seq.markerless or seq.partner is not None)
 
 
 def recipe_view(recipe: Session, unit: str, name: str):
@@ -141,7 +153,9 @@ def recipe_view(recipe: Session, unit: str, name: str):
 
     - ``cameras``: camera ids in recipe order; ``body_model.kind``;
     - per sequence: ``sequence.<fps | mocap | mocap.sync_offset_s | mocap.rate_hz | markers_on |
-      partner | text | keypoints_format | calibration_format | has_keypoints | has_video>``,
+      partner | markerless | people | text | keypoints_format | calibration_format |
+      has_keypoints | has_video>`` (a markerless sequence: ``markers_on`` / ``partner`` are
+      ``people[0]`` / ``people[1]``, the people's slots, and ``markerless`` is true),
       ``wearer.<markerset | sex | label_prefix | marker_labels>`` and ``partner_subject.<...>`` (the subjects
       of ``markers_on`` / ``partner``; all None without a partner);
     - per subject: ``subject.<markerset | sex | label_prefix | marker_labels | has_scan | marker_sequences |
@@ -166,20 +180,28 @@ def recipe_view(recipe: Session, unit: str, name: str):
         if unit not in recipe.sequences:
             raise KeyError(f"{name}: unit {unit!r} is not a sequence")
         seq = recipe.sequences[unit]
+        persons = seq.persons
         if head == "sequence":
-            tree = {"fps": seq.fps, "markers_on": seq.markers_on, "partner": seq.partner,
+            # markerless: person 0 and 1 of ``people`` read as markers_on / partner (the roles
+            # of the people's slots), with ``markerless`` saying nobody wears markers
+            tree = {"fps": seq.fps, "markers_on": persons[0] if persons else None,
+                    "partner": persons[1] if len(persons) > 1 else None,
+                    "markerless": seq.markerless, "people": persons,
                     "text": seq.text, "keypoints_format": seq.keypoints_format,
                     "calibration_format": seq.calibration_format,
                     "has_keypoints": bool(seq.keypoints), "has_video": seq.has_video,
                     "mocap": {"sync_offset_s": seq.mocap.sync_offset_s,
                               "rate_hz": seq.mocap.rate_hz}}
         else:
-            tree = _subject_fields(recipe, seq.markers_on if head == "wearer" else seq.partner)
+            i = 0 if head == "wearer" else 1
+            tree = _subject_fields(recipe, persons[i] if len(persons) > i else None)
         return _pick(tree, rest, name)
     if head == "session":
         tree = {"name": recipe.session, "subjects": list(recipe.subjects),
                 "sequences": {q: {"group": q.split("/", 1)[0], "action": q.split("/", 1)[-1],
-                                  "markers_on": s.markers_on, "partner": s.partner,
+                                  "markers_on": (s.persons or [None])[0],
+                                  "partner": s.persons[1] if len(s.persons) > 1 else None,
+                                  "markerless": s.markerless,
                                   "fps": s.fps, "text": s.text, "has_video": s.has_video}
                               for q, s in recipe.sequences.items()}}
         return _pick(tree, rest, name)

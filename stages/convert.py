@@ -149,9 +149,9 @@ def run(ctx: StageContext) -> None:
     reg_cpu = time.process_time() - t0
     SurfaceCorrespondence.of(corr).save(ctx.out)
 
-    wearer = BodyFit.load(ctx.inputs["marker_fit"])
-    pa = ctx.inputs.get("partner_fit")
-    partner = BodyFit.load(pa) if pa is not None else None
+    people = common.fitted_people(ctx)  # the wearer's marker_fit (markerless: partner_fit's)
+    wearer = BodyFit.load(people[0][0])
+    partner = BodyFit.load(people[1][0]) if len(people) > 1 else None
     frames, idx = _frames(wearer, partner)
     fits = [wearer] + ([partner] if partner is not None else [])
     seq = ctx.recipe.sequence

@@ -256,7 +256,8 @@ def run(ctx: StageContext) -> None:
     group, action = ctx.unit.split("/", 1)
     model = common.load_body(ctx)
     subjects = [rv.sequence.markers_on] + ([rv.sequence.partner] if rv.sequence.partner else [])
-    mf_art, pf_art = ctx.inputs["marker_fit"], ctx.inputs.get("partner_fit")
+    people = common.fitted_people(ctx)  # markerless: both from partner_fit
+    mf_art, pf_art = people[0][0], (people[1][0] if len(people) > 1 else None)
     cv_art = ctx.inputs.get("convert")
     fits = [BodyFit.load(mf_art)] + ([BodyFit.load(pf_art)] if pf_art is not None else [])
     subjects = subjects[:len(fits)]
@@ -370,8 +371,9 @@ def run(ctx: StageContext) -> None:
     shape = ctx.inputs.get("shape_fit") or {}
     figures = SequenceFigures(
         sequence=ctx.unit, subjects=tuple(subjects),
-        marker_fit=FitSummary.load(mf_art).published(),
-        partner_fit=None if pf_art is None else FitSummary.load(pf_art).published(),
+        marker_fit=FitSummary.load(mf_art).published() if "marker_fit" in ctx.inputs else None,
+        partner_fit=None if ctx.inputs.get("partner_fit") is None
+        else FitSummary.load(ctx.inputs["partner_fit"]).published(),
         convert=None if cv_art is None else ConversionReport.load(cv_art).figures(),
         shape_source={s: str(ShapeFit.load(shape[s]).shape_source) for s in subjects if s in shape})
     counts = R.reason_counts(reason)

@@ -63,6 +63,10 @@ class Options:
         and the wearer's mirrored detections dropped, the partner's mirrored ones relabelled.
     overlay_frame : video frame drawn in the overlay PNGs (None: the middle one).
     mcap : write keypoints.mcap.
+    max_candidates / assoc_frac / volume_radius_m : a markerless sequence
+    (``detect.markerless``): people looked for per view, the cross-view association's
+    reprojection threshold (fraction of the person's box height), and how far from the
+    capture volume centre a person may stand before it counts as a bystander (metres).
     """
 
     detector: Literal["auto", "mediapipe", "precomputed"] = "auto"
@@ -84,6 +88,9 @@ class Options:
     identity: bool = True
     overlay_frame: int | None = None
     mcap: bool = True
+    max_candidates: int = 3
+    assoc_frac: float = 0.08
+    volume_radius_m: float = 2.5
 
     def __post_init__(self):
         if self.stride < 1:
@@ -118,12 +125,48 @@ def _precomputed_files(seq, cam: str) -> list[Path]:
 def raw_inputs(recipe, unit: str) -> dict[str, Path]:
     seq = recipe.sequence(unit)  # markers and cameras come from the ``capture`` stage
     out: dict[str, Path] = {}
+    if seq.markerless:  # no capture stage: the calibration is read here
+        out.update(calibration_inputs(recipe, seq))
     for cam in recipe.cameras:
         out[f"video:{cam}"] = Path(seq.videos[cam])
         if seq.keypoints and cam in seq.keypoints:
             for i, p in enumerate(_precomputed_files(seq, cam)):
                 out[f"keypoints:{cam}:{i:06d}"] = p
     return out
+
+
+def calibration_inputs(recipe, seq) -> dict[str, Path]:
+    """``calibration:<camera>`` (and an EasyMocap pair's other file) of a sequence."""
+    out: dict[str, Path] = {}
+    for cam in recipe.cameras:
+        if cam in seq.calibration:
+            p = Path(seq.calibration[cam])
+            out[f"calibration:{cam}"] = p
+            if seq.calibration_format == "easymocap" or (
+                    p.suffix.lower() in (".yml", ".yaml") and p.stem in ("intri", "extri")):
+                from calib.io import easymocap_pair
+
+                intri, extri = easymocap_pair(p)
+                out[f"calibration_pair:{cam}"] = extri if p == intri else intri
+    return out
+
+
+def read_rig(view, raw: dict[str, Path], recipe_path="<recipe>", unit: str = ""):
+    """The ``artifacts.capture.CameraRig`` of a markerless sequence, read from its calibration
+    files (``calib.io.read_camera``, the recipe's ``calibration_format``): the keypoints stage
+    stands in for the capture stage, which does not run without markers."""
+    from artifacts.capture import CameraRig
+    from calib.io import read_camera
+
+    cams = []
+    for c in view.cameras:
+        if f"calibration:{c}" not in raw:
+            raise InputError(recipe_path, f"sequences.{unit}.calibration.{c}",
+                             "a markerless sequence needs every camera's calibration")
+        cams.append((c, raw[f"calibration:{c}"]))
+    fmt = view.sequence.calibration_format
+    return CameraRig.from_cameras([read_camera(p, c, fmt) for c, p in cams],
+                                  [Path(p).name for _, p in cams])
 
 
 def frame_indices(n_video: int, o: Options) -> np.ndarray:
@@ -213,6 +256,12 @@ def compute(view, raw: dict[str, Path], o: Options, *, markers, cams, unit: str 
     if len(frames) == 0:
         raise InputError(videos[0], "frames", f"no frame in [{o.start}, {o.stop}) of {n_video}")
 
+    kind = o.detector
+    if kind == "auto":
+        kind = "precomputed" if seq.has_keypoints else "mediapipe"
+    if markers is None:  # markerless: the people are found in the views
+        return _compute_markerless(view, o, cams, videos, frames, n_video, video_warnings,
+                                   kind, unit, recipe_path, progress, log, cores)
     capture_file = str(markers.source)
     markers = markers.capture()
     xyz = markers_on_frames(markers, frames, VideoClock(fps, seq.mocap.sync_offset_s,
@@ -221,9 +270,6 @@ def compute(view, raw: dict[str, Path], o: Options, *, markers, cams, unit: str 
         raise InputError(capture_file, "markers", "no marker observed at any video frame "
                          "(check mocap.sync_offset_s and fps)")
 
-    kind = o.detector
-    if kind == "auto":
-        kind = "precomputed" if seq.has_keypoints else "mediapipe"
     if kind == "precomputed":
         if not seq.has_keypoints:
             raise InputError(recipe_path, f"sequences.{unit}.keypoints",
@@ -239,6 +285,36 @@ def compute(view, raw: dict[str, Path], o: Options, *, markers, cams, unit: str 
                                  o.sequence_options(cores), progress=progress, log=log)
     report = {"detector": kind, "cameras": cam_names, "video_frames": n_video,
               "stride": o.stride, "video_warnings": video_warnings, **facts}
+    return Computed(kp, report, source)
+
+
+def _compute_markerless(view, o: Options, cams, videos, frames, n_video, video_warnings,
+                        kind, unit, recipe_path, progress, log, cores) -> Computed:
+    """:func:`compute` of a markerless sequence (``detect.markerless``): person detection per
+    view, cross-view association by triangulation, bystanders rejected."""
+    from detect.markerless import MarkerlessOptions, detect_markerless
+    from detect.mediapipe_detector import MediapipeOptions
+    from detect.run import VideoSource
+
+    if kind != "mediapipe":
+        raise InputError(recipe_path, f"sequences.{unit}.keypoints",
+                         "a markerless sequence is detected by the keypoints stage (mediapipe); "
+                         "precomputed keypoints are not read for it yet")
+    people = list(view.sequence.people)
+    mo = MarkerlessOptions(people=len(people), max_candidates=max(o.max_candidates, len(people)),
+                           assoc_frac=o.assoc_frac, volume_radius_m=o.volume_radius_m,
+                           hands=o.hands, workers=o.workers or cores or (os.cpu_count() or 1),
+                           chunk=max(1, min(o.chunk, -(-len(frames) // max(1, o.workers or cores
+                                                                            or 1)))))
+    factory = MediapipeOptions(pose_min_conf=o.pose_min_conf, hand_min_conf=o.hand_min_conf)
+    source = VideoSource(tuple(str(v) for v in videos))
+    kp, facts = detect_markerless(cams, source, frames, factory, mo,
+                                  up=tuple(view.ground_plane.normal), progress=progress, log=log)
+    report = {"detector": kind, "cameras": list(view.cameras), "video_frames": n_video,
+              "stride": o.stride, "video_warnings": video_warnings, "subjects": people, **facts}
+    log(f"keypoints: bystanders in {facts['bystanders']['frames_with']}/{len(frames)} frames "
+        f"({facts['bystanders']['groups']} rejected), people found in "
+        f"{facts['people_found_frames']} frames")
     return Computed(kp, report, source)
 
 
@@ -296,12 +372,19 @@ def write_mcap(path: Path, kp: Keypoints2D, fps: float) -> str:
 
 def run(ctx: StageContext) -> None:
     o: Options = ctx.params or Options()
-    c = compute(ctx.recipe, ctx.raw, o, markers=common.capture_markers(ctx),
-                cams=common.capture_cameras(ctx, list(ctx.recipe.cameras)), unit=ctx.unit,
+    if ctx.recipe.sequence.markerless:  # no capture: the rig is read here and kept beside
+        rig = read_rig(ctx.recipe, ctx.raw, ctx.recipe_path or "<recipe>", ctx.unit)
+        markers, cams = None, rig.cameras(list(ctx.recipe.cameras))
+    else:
+        rig, markers = None, common.capture_markers(ctx)
+        cams = common.capture_cameras(ctx, list(ctx.recipe.cameras))
+    c = compute(ctx.recipe, ctx.raw, o, markers=markers, cams=cams, unit=ctx.unit,
                 recipe_path=ctx.recipe_path or "<recipe>", progress=ctx.progress, log=ctx.log,
                 cores=ctx.cores)
     kp = c.keypoints
     kp.save(ctx.out)
+    if rig is not None:
+        rig.save(ctx.out)
     sample = int(kp.frames[len(kp.frames) // 2]) if o.overlay_frame is None else o.overlay_frame
     report = dict(c.report)
     report["overlays"] = write_overlays(ctx.out, c.source, kp, sample)
@@ -312,10 +395,14 @@ def run(ctx: StageContext) -> None:
     ctx.out.save_json("report", report)
     ctx.log(f"keypoints: {report['fps_per_core']} frames/s per core (all {len(kp.cameras)} "
             f"views), partner tracked in {report['partner_mode_counts']['tracked']} view-frames")
+    if rig is not None:
+        report["rig"] = "rig.npz"  # the cameras of a markerless sequence (no capture stage)
+        ctx.out.save_json("report", report)
 
 
 STAGE = Stage(name="keypoints", func=run, per="sequence", upstream=("capture",), params=Options,
               raw_inputs=raw_inputs, version="1", cores=2, memory_gb=4.0,
               reads=("cameras", "sequence.fps", "sequence.mocap", "sequence.has_keypoints",
-                     "sequence.keypoints_format"),
+                     "sequence.keypoints_format", "sequence.markerless", "sequence.people",
+                     "sequence.calibration_format", "ground_plane"),
               doc="2D body and hand keypoints of both people in every view")

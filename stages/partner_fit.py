@@ -40,7 +40,7 @@ from pipeline.spec import Stage, StageContext
 from stages import common
 
 READS = ("body_model.kind", "cameras", "ground_plane", "sequence.fps", "sequence.markers_on",
-         "sequence.partner", "sequence.has_keypoints")
+         "sequence.partner", "sequence.has_keypoints", "sequence.markerless", "sequence.people")
 
 
 @dataclass(frozen=True)
@@ -49,11 +49,25 @@ class Options(PartnerFitOptions):
     detection pass: second_pass : after a first fit, run the detector again in tight crops
     around the fitted partner in the views that lacked it (``detect.refine``; only for
     sequences whose keypoints the stage detected itself, not precomputed ones), then fit again
-    on the merged keypoints; pose_min_conf / hand_min_conf : its mediapipe thresholds."""
+    on the merged keypoints; pose_min_conf / hand_min_conf : its mediapipe thresholds.
+    A markerless sequence (:func:`run_markerless`): shape_frames : the first frames where a
+    person without scan is seen, whose triangulated bones give its shape
+    (``fitting.partner_fit.shape_from_views``); ic_rounds : after each person is fitted
+    (person 1 against person 0 with ``L_ic``), person 0 is fitted again against person 1 this
+    many times."""
 
     second_pass: bool = True
     pose_min_conf: float = 0.3
     hand_min_conf: float = 0.3
+    shape_frames: int = 20
+    ic_rounds: int = 1
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.shape_frames < 1:
+            raise ValueError(f"shape_frames: must be >= 1, got {self.shape_frames}")
+        if self.ic_rounds < 0:
+            raise ValueError(f"ic_rounds: must be >= 0, got {self.ic_rounds}")
 
 
 #: the report's headline figures the export republishes (``artifacts.FitSummary``)
@@ -94,6 +108,8 @@ def run(ctx: StageContext) -> None:
     rv = ctx.recipe
     model = common.load_body(ctx)
     cams = common.capture_cameras(ctx, list(rv.cameras))
+    if rv.sequence.markerless:
+        return run_markerless(ctx, o, model, cams)
     contact = None
     if "contact" in ctx.raw:  # fails (InputError: file, action, field) before anything is written
         action = ctx.unit.split("/", 1)[1]
@@ -190,13 +206,145 @@ def _second_pass(ctx: StageContext, model, cams, keypoints, fit, o: Options):
                  "detector_calls": ref.calls, "cpu_s": round(ref.cpu_s, 2)}
 
 
+class _SubWriter:
+    """Writes into a sub-folder of the artifact (``person0/``: person 0 of a markerless
+    sequence)."""
+
+    def __init__(self, out, sub: str):
+        self.out, self.sub = out, sub
+        self.dir = Path(out.dir) / sub
+
+    def path(self, name: str) -> Path:
+        return self.out.path(f"{self.sub}/{name}")
+
+    def save_arrays(self, name: str, **arrays) -> Path:
+        return self.out.save_arrays(f"{self.sub}/{name}", **arrays)
+
+    def save_json(self, name: str, obj) -> Path:
+        return self.out.save_json(f"{self.sub}/{name}", obj)
+
+
+#: where person 0 of a markerless sequence is written in the artifact (person 1: the top)
+PERSON0 = "person0"
+
+
+def person_keypoints(keypoints, person: int):
+    """The keypoints with ``person``'s slot in the partner's (the slot the fit reads)."""
+    import dataclasses
+
+    from artifacts.keypoints import PARTNER
+
+    if person == PARTNER:
+        return keypoints
+    order = [1, 0]
+    return dataclasses.replace(keypoints, kp=keypoints.kp[:, :, order],
+                               boxes=keypoints.boxes[:, :, order],
+                               hand_boxes=keypoints.hand_boxes[:, :, order],
+                               cross_view_outlier=keypoints.cross_view_outlier[:, :, order],
+                               conf_raw=keypoints.conf_raw[:, :, order])
+
+
+def run_markerless(ctx: StageContext, o: Options, model, cams) -> None:
+    """Every person of a markerless sequence fitted from the video with the partner fit's
+    terms: person 0 alone (L_2d, L_theta, L_s, L_sc, L_gp), person 1 against person 0 (and
+    L_ic, and L_D / L_N when a contact signature is given), then person 0 again against
+    person 1 (``ic_rounds``). A person without scan gets its shape from the views
+    (``fitting.partner_fit.shape_from_views``, the first ``shape_frames`` frames where it is
+    seen; the betas then stay fixed). Person 1 is written as a partner's fit is (``fit.npz``,
+    ``terms.npz``, ``summary.json``), person 0 the same in ``person0/``; ``report.json`` has
+    each person's report under ``people``."""
+    import dataclasses
+
+    from artifacts import ShapeFit
+    from artifacts.keypoints import Keypoints2D
+    from drawing.plots import partner_fit_plot
+    from fitting.contact_signature import load_contact
+    from fitting.partner_fit import contact_figures, fit_partner, shape_from_views
+
+    rv = ctx.recipe
+    people = list(rv.sequence.people)
+    contact = None
+    if "contact" in ctx.raw and len(people) == 2:
+        action = ctx.unit.split("/", 1)[1]
+        family = "smplx" if model.name == "smplx" else "anny"
+        contact = load_contact(ctx.raw["contact"], action, model,
+                               common.video_length([ctx.raw[f"video:{c}"] for c in rv.cameras])[0],
+                               family=family)
+    keypoints = Keypoints2D.load(ctx.inputs["keypoints"])
+    shape_art = ctx.inputs["shape_fit"]
+    ground = (np.asarray(rv.ground_plane.normal, float), float(rv.ground_plane.offset))
+    shapes, shape_reports, kps = [], [], []
+    for p, sid in enumerate(people):
+        shape = ShapeFit.load(shape_art[sid] if isinstance(shape_art, dict) else shape_art)
+        kp_p = person_keypoints(keypoints, p)
+        if str(shape.shape_source) == "mean":  # no scan, no markers: the shape from the views
+            vs = shape_from_views(model, kp_p, cams, frames=o.shape_frames)
+            shape = dataclasses.replace(shape, betas=vs.betas)  # held fixed from here on
+            shape_reports.append(vs.report())
+            ctx.log(f"{ctx.unit}: {sid}: shape from the views ({vs.frames_used} frames): bone rms "
+                    f"{vs.rms_before_mm:.1f} mm (mean shape) -> {vs.rms_after_mm:.1f} mm")
+        else:
+            shape_reports.append({"source": str(shape.shape_source)})
+        shapes.append(shape)
+        kps.append(kp_p)
+
+    def fit(p, other, with_contact):
+        def log(s):
+            ctx.log(f"{ctx.unit}: {people[p]}: {s}")
+
+        return fit_partner(model, shapes[p], kps[p], cams, other, contact if with_contact else None,
+                           ground, o, progress=ctx.progress, log=log)
+
+    fits, reports = [None] * len(people), [None] * len(people)
+    fits[0], reports[0] = fit(0, None, False)
+    if len(people) == 2:
+        fits[1], reports[1] = fit(1, fits[0], True)
+        for _ in range(o.ic_rounds):
+            fits[0], reports[0] = fit(0, fits[1], False)
+    fps = common.sequence_fps(rv.sequence.fps, ctx.raw[f"video:{rv.cameras[0]}"])
+    summaries = {}
+    for p, sid in enumerate(people):
+        other = fits[1 - p] if len(people) == 2 else None
+        writer = ctx.out if p == 1 else _SubWriter(ctx.out, PERSON0)
+        rep = reports[p]
+        fig = contact_figures(model, fits[p], other, contact if p == 1 else None, ground)
+        per = rep.pop("per_frame")
+        fits[p].save(writer)
+        writer.save_arrays("terms", terms=np.array(rep["terms"]), **per, **fig)
+        ok = fits[p].valid
+        rep.update({"sequence": ctx.unit, "subject": sid, "person": p, "markerless": True,
+                    "shape": shape_reports[p],
+                    "penetration": _summary(fig["penetration_m"][ok]),
+                    "contact_distance": _summary(fig["contact_m"][ok]),
+                    "ground_penetration": _summary(fig["ground_m"][ok]),
+                    "second_pass": {"run": False, "why_not": "a markerless sequence"},
+                    "frames_not_valid_list": {str(int(f)): r for f, r in zip(
+                        fits[p].frames[~ok], [_reason(c) for c in fits[p].invalid_reason[~ok]],
+                        strict=True)}})
+        writer.save_json("report", rep)
+        FitSummary.from_report("partner_fit", rep, PUBLISHED).save(writer)
+        partner_fit_plot(writer.path("partner_fit.png"), fits[p].frames, fps, per["reproj_px"],
+                         fig["penetration_m"] * 1000, fig["contact_m"] * 1000,
+                         fig["ground_m"] * 1000, fits[p].valid, f"{ctx.unit}: {sid} (person {p})",
+                         views=list(rv.cameras))
+        summaries[sid] = rep
+    top = dict(summaries[people[0]]) if len(people) == 1 else dict(summaries[people[1]])
+    top["people"] = {sid: {k: r[k] for k in ("person", "frames_valid", "frames_not_valid",
+                                             "reprojection_px", "shape", "fit_cpu_s", "fps")}
+                     for sid, r in summaries.items()}
+    top["people_files"] = {people[0]: f"{PERSON0}/"} | ({people[1]: ""} if len(people) == 2 else {})
+    ctx.out.save_json("report", top)
+    if len(people) == 1:
+        FitSummary.from_report("partner_fit", top, PUBLISHED).save(ctx.out)
+
+
 def _reason(code) -> str:
     from artifacts import INVALID_REASONS
 
     return INVALID_REASONS[int(code)]
 
 
-STAGE = Stage(name="partner_fit", func=run, per="sequence",
+STAGE = Stage(name="partner_fit", func=run, per="sequence",  # markerless: no marker_fit upstream
               upstream=("capture", "shape_fit", "keypoints", "marker_fit"), params=Options,
               raw_inputs=raw_inputs, reads=READS, version="1",
               doc="pose of the unmarked partner (2D keypoints, contact, collisions)")

@@ -54,7 +54,8 @@ from qa.metrics import QAOptions
 from stages import common
 
 READS = ("body_model.kind", "cameras", "ground_plane", "sequence.fps", "sequence.mocap",
-         "sequence.markers_on", "sequence.partner", "sequence.has_video", "wearer.markerset",
+         "sequence.markers_on", "sequence.partner", "sequence.has_video", "sequence.markerless",
+         "wearer.markerset",
          "wearer.label_prefix", "wearer.marker_labels")
 
 
@@ -155,25 +156,33 @@ def run(ctx: StageContext) -> None:
         family = "smplx" if model.name == "smplx" else "anny"
         contact = load_contact(ctx.raw["contact"], action, model,
                                common.video_length(videos)[0], family=family)  # the shortest
-    wearer = BodyFit.load(ctx.inputs["marker_fit"])
+    people = common.fitted_people(ctx)  # markerless: both from partner_fit
+    wearer = BodyFit.load(people[0][0])
+    partner = BodyFit.load(people[1][0]) if len(people) > 1 else None
     pf_art = ctx.inputs.get("partner_fit")
-    partner = BodyFit.load(pf_art) if pf_art is not None else None
     keypoints = None
     if pf_art is not None and Keypoints2D.exists_in(pf_art):
         keypoints = Keypoints2D.load(pf_art)  # the keypoints the partner fit used
     elif ctx.inputs.get("keypoints") is not None:
         keypoints = Keypoints2D.load(ctx.inputs["keypoints"])
     ground = (np.asarray(rv.ground_plane.normal, float), float(rv.ground_plane.offset))
-    captured, markers, clock = wearer_markers(ctx, videos)
+    if rv.sequence.markerless:  # nobody's markers: no marker metrics, no markers in the scene
+        from fitting.mocap import VideoClock
+
+        markers, repaired = None, None
+        clock = VideoClock(common.sequence_fps(rv.sequence.fps, videos[0]), 0.0, None)
+    else:
+        captured, markers, clock = wearer_markers(ctx, videos)
+        repaired = capture_repairs(captured.repaired, captured.rate_hz, captured.first_frame,
+                                   wearer.frames, clock)
     fps = float(clock.fps)
-    repaired = capture_repairs(captured.repaired, captured.rate_hz, captured.first_frame,
-                               wearer.frames, clock)
     qo = thresholds(o)
 
     t0 = time.perf_counter()
     m = sequence_metrics(model, wearer, partner, keypoints, cams if has_video else [], contact,
                          ground, fps, qo, progress=ctx.progress, repaired=repaired,
-                         marker_track=marker_track(markers, clock) if has_video else None)
+                         marker_track=marker_track(markers, clock)
+                         if has_video and markers is not None else None)
     flags = flag_frames(m, qo)
     metrics_s = time.perf_counter() - t0
     F = len(m.frames)
@@ -326,7 +335,7 @@ def _write_scene(path: Path, model, m, flags, cams, videos, has_video, keypoints
     meshes = [MeshTrack(p, np.asarray(V)[:, ids], tri, colors.get(p, (0.7, 0.7, 0.7, 0.9)))
               for p, V in zip(m.people, m.vertices, strict=True)]
     frames = np.asarray(m.frames)
-    marker_xyz, _visible = video_observations(markers, frames, clock)
+    marker_xyz = None if markers is None else video_observations(markers, frames, clock)[0]
     points = {}
     if keypoints is not None and has_video:
         rows = np.searchsorted(np.asarray(keypoints.frames), frames)
@@ -350,7 +359,8 @@ def _write_scene(path: Path, model, m, flags, cams, videos, has_video, keypoints
         readers = [VideoReader(v) for v in videos]
         images = {c.name: (lambda f, r=r: r[int(f)]) for c, r in zip(cams, readers, strict=True)}
     try:
-        res = write_scene(path, fps, frames, meshes, views, markers=marker_xyz, marker_names=list(markers.names),
+        res = write_scene(path, fps, frames, meshes, views, markers=marker_xyz,
+                          marker_names=None if markers is None else list(markers.names),
                           points3d=points, images=images, metrics=m.values, flags=flags.any,
                           image_scale=o.image_scale)
     finally:
