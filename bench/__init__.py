@@ -23,6 +23,12 @@ what limits it (the case's ``LIMITS``), the cases' own sections (``report(result
 ablation table), then the machine (CPU model, cores, Python, numpy), the date and the command. A row measured on other code than the one
 rendering the table says so in place of pass/FAIL: an old figure never passes a goal.
 ``python -m bench --table`` re-renders the table against the code as it is now.
+
+Time budget: every case that ran adds its own wall time as ``<case>.case_wall_s``; the
+"Time budget" section lists them (slowest first, with their commit) and their sum against the
+45 minutes ``make bench`` may take; a run of every case writes ``bench.total_s`` (goal <=
+2700 s). A run of every case in which none failed starts the results afresh: keys it did not
+produce (a removed case, a renamed key) are dropped, so every row carries this run's commit.
 """
 from __future__ import annotations
 
@@ -46,6 +52,11 @@ REPO = BENCH.parent
 # Files that are results, not code: measuring them must not change the code version.
 NOT_CODE = ("bench/results.json", "bench/measured.json", "bench/RESULTS.md")
 CODE_SUFFIXES = (".py", ".yaml", ".yml", ".toml", ".txt", ".sh", ".cfg", ".json")
+# ``<case>.case_wall_s``: wall seconds of the case's last run (``make bench`` adds them up in
+# the time-budget section; ``bench.total_s`` is written by a run of every case).
+CASE_WALL = "case_wall_s"
+TOTAL_KEY = "bench.total_s"
+TOTAL_GOAL_S = 45 * 60  # the whole ``make bench`` on 2 cores from a fresh clone (issue #29)
 OPS = {"<=": lambda v, g: v <= g, "<": lambda v, g: v < g, ">=": lambda v, g: v >= g,
        ">": lambda v, g: v > g, "==": lambda v, g: v == g}
 
@@ -101,6 +112,8 @@ def run_case(path: Path, work_root: Path) -> CaseResult:
     except Exception:  # noqa: BLE001 - recorded, the other cases still run
         res.error = traceback.format_exc()
     res.seconds = time.perf_counter() - t0
+    if not res.error:  # the time budget: each case's own wall time is one of its figures
+        res.values[f"{path.stem}.{CASE_WALL}"] = round(res.seconds, 1)
     return res
 
 
@@ -167,11 +180,15 @@ def verdict(value: float, goal: tuple[str, float] | None) -> str:
     return "pass" if OPS[goal[0]](value, goal[1]) else "FAIL"
 
 
-def merge(results_file: Path, cases: list[CaseResult]) -> dict:
-    """Update the flat results with this run's values and errors."""
+def merge(results_file: Path, cases: list[CaseResult], full: bool = False) -> dict:
+    """Update the flat results with this run's values and errors. ``full``: this run was of
+    every case and none failed, so every key it did not produce (a case removed or renamed, a
+    key of another prefix a case no longer writes) is dropped: all rows are of this run."""
     try:
         old = json.loads(results_file.read_text()) if results_file.exists() else {}
     except ValueError:
+        old = {}
+    if full and not any(c.error for c in cases):
         old = {}
     for c in cases:
         old.pop(f"{c.name}.error", None)
@@ -185,7 +202,7 @@ def merge(results_file: Path, cases: list[CaseResult]) -> dict:
 
 
 def all_goals(paths: list[Path], ran: list[CaseResult]) -> dict[str, tuple[str, float]]:
-    goals: dict[str, tuple[str, float]] = {}
+    goals: dict[str, tuple[str, float]] = {TOTAL_KEY: ("<=", float(TOTAL_GOAL_S))}
     done = {c.name for c in ran}
     for p in paths:  # goals of cases not run this time, for keys kept from earlier runs
         if p.stem in done:
@@ -277,10 +294,34 @@ def render_markdown(results: dict, goals: dict, ran: list[CaseResult], machine: 
         lines += [f"- `{k[:-6]}`: {v}" for k, v in errs.items()]
     lines += ["", "## This run", "", "| case | seconds | status |", "|---|---|---|"]
     lines += [f"| {c.name} | {c.seconds:.1f} | {'FAILED' if c.error else 'ok'} |" for c in ran]
+    lines += time_budget(results, measured)
     lines += ["", "## Machine", ""]
     lines += [f"- {k}: {v}" for k, v in machine.items()]
     lines += [f"- command: `{command}`", ""]
     return "\n".join(lines)
+
+
+def time_budget(results: dict, measured: dict | None = None) -> list[str]:
+    """The markdown lines of the time-budget section: every case's last wall time
+    (``<case>.case_wall_s``, with the commit it was measured at) and their sum against
+    ``TOTAL_GOAL_S``."""
+    walls = {k[: -len(CASE_WALL) - 1]: v for k, v in results.items()
+             if k.endswith("." + CASE_WALL)}
+    if not walls:
+        return []
+    measured = measured or {}
+    total = sum(walls.values())
+    lines = ["", "## Time budget", "",
+             f"Wall seconds of each case's last run (`<case>.{CASE_WALL}`; a case that reuses "
+             "another's cached work, e.g. generated data or fits, is cheaper after it). Sum "
+             f"{total:.0f} s = {total / 60:.1f} min against the {TOTAL_GOAL_S / 60:.0f} min of "
+             "`make bench`" + (f"; the last full run took {results[TOTAL_KEY]:.0f} s"
+                               if TOTAL_KEY in results else "") + ".", "",
+             "| case | seconds | share | measured at |", "|---|---|---|---|"]
+    for name, v in sorted(walls.items(), key=lambda kv: -kv[1]):
+        at = (measured.get(f"{name}.{CASE_WALL}") or {}).get("commit", "unknown")
+        lines.append(f"| {name} | {v:.0f} | {100 * v / max(total, 1e-9):.0f} % | {at} |")
+    return lines
 
 
 def main(argv: list[str] | None = None, bench_dir: Path = BENCH) -> int:
@@ -320,7 +361,11 @@ def main(argv: list[str] | None = None, bench_dir: Path = BENCH) -> int:
                 g = r.goals.get(k)
                 print(f"[bench]   {k} = {v:.4g}" + (f"  (goal {g[0]} {g[1]:g}: {verdict(v, g)})"
                                                    if g else ""), file=sys.stderr)
-    results = merge(bench_dir / "results.json", ran)
+    full = not argv
+    if full and not any(r.error for r in ran):  # the whole benchmark's own figure
+        total = round(sum(r.seconds for r in ran), 1)
+        ran.append(CaseResult("bench", {TOTAL_KEY: total}, seconds=total))
+    results = merge(bench_dir / "results.json", ran, full=full)
     (bench_dir / "results.json").write_text(json.dumps(results, indent=1) + "\n")
     measured = merge_measured(bench_dir / "measured.json", ran, commit_label(), code)
     (bench_dir / "measured.json").write_text(json.dumps(measured, indent=1) + "\n")

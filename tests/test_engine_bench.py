@@ -128,3 +128,35 @@ def test_code_version_follows_source_files_not_results(tmp_path):
     assert bench.code_version(repo) == v1
     (repo / "a.py").write_text("x = 2\n")
     assert bench.code_version(repo) != v1
+
+
+def test_case_wall_times_budget_and_a_full_run_refreshes_every_row(tmp_path, monkeypatch):
+    monkeypatch.setattr(bench, "code_version", lambda repo=None: "code-one")
+    monkeypatch.setattr(bench, "commit_label", lambda repo=None: "run1")
+    cases = tmp_path / "cases"
+    cases.mkdir()
+    (cases / "fast.py").write_text('def run(work):\n    return {"fast.v": 1}\n')
+    (cases / "slow.py").write_text('import time\ndef run(work):\n    time.sleep(0.3)\n'
+                                   '    return {"slow.v": 2}\n')
+    # a key no case writes any more (a renamed prefix), from an older run
+    (tmp_path / "results.json").write_text(json.dumps({"gone.v": 5.0, "fast.v": 0.0}))
+    assert bench.main(["fast"], bench_dir=tmp_path) == 0  # one case: the old key stays
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert "gone.v" in res and "bench.total_s" not in res and res["fast.case_wall_s"] < 0.3
+    assert bench.main([], bench_dir=tmp_path) == 0  # every case, none failed
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert "gone.v" not in res
+    assert res["slow.case_wall_s"] >= 0.3
+    assert res["bench.total_s"] >= res["slow.case_wall_s"]
+    md = (tmp_path / "RESULTS.md").read_text()
+    assert "(earlier run)" not in md
+    rows = [ln for ln in md.split("## Goals")[0].splitlines() if ln.startswith("| `")]
+    assert rows and all(ln.endswith("| run1 |") for ln in rows)
+    assert "| `bench.total_s` |" in md and "<= 2700 | pass |" in md
+    budget = md.split("## Time budget")[1]
+    assert budget.index("| slow |") < budget.index("| fast |")  # slowest first
+    # a full run with a failed case keeps the earlier keys (nothing is dropped)
+    (cases / "fast.py").write_text('def run(work):\n    raise ValueError("x")\n')
+    assert bench.main([], bench_dir=tmp_path) == 1
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert res["fast.v"] == 1.0 and "fast.error" in res
