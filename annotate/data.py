@@ -4,7 +4,7 @@
 stage's rig, else the recipe's calibration files), the videos, both people's 2D keypoints (the
 partner fit's refined ones, else the ``keypoints`` stage's) and, where the fits exist, both
 people's meshes per frame (person 0 = the marker wearer from ``marker_fit``, person 1 = the
-partner from ``partner_fit``). Artifacts are read from ``<outputs>/<session>/<group>/<action>/
+partner from ``partner_fit``; on a markerless sequence both from ``partner_fit``). Artifacts are read from ``<outputs>/<session>/<group>/<action>/
 <stage>/`` as they are on disk (the page annotates; it runs no stage).
 
 Frames are video frame indices. A frame that a fit does not have shows the fit's nearest frame
@@ -51,6 +51,11 @@ class SequenceData:
         self.seq_id = seq_id
         self.seq = self.recipe.sequence(seq_id)
         self.group, self.action = seq_id.split("/", 1)
+        self.people = [str(p) for p in (getattr(self.seq, "persons", None)
+                                        or [self.seq.markers_on, self.seq.partner]) if p is not None]
+        if len(self.people) != 2:
+            raise InputError(self.recipe_path, f"sequences.{seq_id}", f"contact is annotated "
+                             f"between two people; the sequence has {len(self.people)} ({self.people})")
         self.model = load_model(self.recipe.body_model.kind, common.body_model_file(self.recipe))
         self.family = "smplx" if self.model.name == "smplx" else "anny"
         self.rmap = region_map(self.model)
@@ -102,12 +107,15 @@ class SequenceData:
         from artifacts import BodyFit
         from body import forward, rest_state
 
-        fits = []
-        for stage in ("marker_fit", "partner_fit"):
-            d = _artifact(self.root, stage)
-            if d is None or not BodyFit.exists_in(d):
-                return None
-            fits.append(BodyFit.load(d))
+        # person 0 = the marker wearer (marker_fit), person 1 = the partner (partner_fit); a
+        # markerless sequence has both in partner_fit (person 0 in its person0/ folder)
+        mf, pf = _artifact(self.root, "marker_fit"), _artifact(self.root, "partner_fit")
+        if pf is None:
+            return None
+        sources = [mf, pf] if mf is not None else [pf / "person0", pf]
+        if not all(BodyFit.exists_in(d) for d in sources):
+            return None
+        fits = [BodyFit.load(d) for d in sources]
         frames = np.intersect1d(fits[0].frames, fits[1].frames)
         if not len(frames):
             return None
@@ -128,7 +136,7 @@ class SequenceData:
         from body import forward
 
         out = []
-        for subject in (self.seq.markers_on, self.seq.partner):
+        for subject in self.people:
             betas = np.zeros(1)
             d = _artifact(self.outputs / self.recipe.session / str(subject), "shape_fit") if subject else None
             if d is not None and ShapeFit.exists_in(d):

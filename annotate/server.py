@@ -46,6 +46,7 @@ class Annotator:
         self.data = data
         self.out = Path(out)
         self.annotator = annotator
+        self.frame_given = frame is not None
         self.frame = data.fits.frames[0] if frame is None and data.fits is not None else (frame or 0)
         self.frame = int(min(max(int(self.frame), 0), data.n_frames - 1))
         self.log = log or (lambda s: print(s, file=sys.stderr, flush=True))
@@ -127,11 +128,12 @@ class Annotator:
         d = self.data
         return {
             "sequence": d.seq_id, "action": d.action, "session": d.recipe.session,
-            "n_frames": int(d.n_frames), "frame": self.frame, "cameras": d.cameras,
+            "n_frames": int(d.n_frames), "frame": self.frame, "frame_given": self.frame_given,
+            "cameras": d.cameras,
             "has_video": bool(d.cams), "has_fits": d.has_fits,
             "fit_frames": None if d.fits is None else [int(d.fits.frames[0]), int(d.fits.frames[-1])],
             "has_keypoints": d.keypoints is not None,
-            "people": [str(d.seq.markers_on), str(d.seq.partner)],
+            "people": d.people, "markerless": d.seq.markers_on is None,
             "model": {"name": d.model.name, "num_vertices": int(d.model.num_vertices),
                       "num_faces": int(len(d.model.faces))},
             "family": d.family, "regions": list(d.rmap.names),

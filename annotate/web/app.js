@@ -200,6 +200,9 @@ async function loadMeshes() {
   const buf = await r.arrayBuffer();
   if (token !== meshToken) return;
   state.meshFrame = r.headers.get('X-Mesh-Frame');
+  const mf = state.meshFrame;
+  $('mesh-note').textContent = mf === 'rest' ? (state.session.has_fits ? 'rest pose' : 'rest pose (no fits on disk)')
+    : mf !== String(state.frame) ? `no fit at frame ${state.frame}: the meshes of frame ${mf}` : `meshes of frame ${mf}`;
   const V = new Float32Array(buf);
   const n = V.length / 2;
   const parts = [V.subarray(0, n), V.subarray(n)];
@@ -296,6 +299,8 @@ async function pollProposal() {
   }
   body.replaceChildren();
   if (p.status !== 'ready') { body.textContent = `no proposal: ${p.why}`; return; }
+  // nothing saved and no frame asked for: show the proposed contact frame
+  if (!state.saved && !state.session.frame_given && p.fr_id != null && state.pairs.length === 0) setFrame(p.fr_id);
   const line = document.createElement('div');
   if (p.interval == null) {
     line.textContent = p.source === 'fits'
@@ -374,7 +379,7 @@ async function main() {
   $('title').textContent = `Contact annotation: ${s.sequence}`;
   $('file').textContent = s.out;
   $('annotator').value = s.annotator || '';
-  $('title-0').textContent = `person 0: ${s.people[0]} (markers)`;
+  $('title-0').textContent = `person 0: ${s.people[0]}${s.markerless ? '' : ' (markers)'}`;
   $('title-1').textContent = `person 1: ${s.people[1]} (partner)`;
   $('frame-slider').max = String(s.n_frames - 1);
   $('frame-num').max = String(s.n_frames - 1);
