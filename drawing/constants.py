@@ -5,6 +5,8 @@
 BACKGROUND_RGB = (205, 208, 212)
 FLOOR_RGB = (150, 142, 128)
 FLOOR_HALF_SIZE_M = 12.0
+#: With a room (``Renderer(room=...)``): the colour where no room surface is seen.
+ROOM_VOID_RGB = (60, 60, 62)
 #: Studio lights for the CPU Lambert shading: (direction the light travels, intensity), ambient.
 LIGHTS = (((0.4, -0.6, -1.0), 0.55), ((-0.5, 0.7, -0.6), 0.3))
 AMBIENT_LIGHT = 0.45

@@ -4,7 +4,8 @@
   Forward reads decode sequentially; a backward or far jump seeks, then the reader checks the
   decoder's reported position and falls back to decoding from the start if the seek was not
   exact.
-- :func:`write_mp4`: MP4 (``mp4v``) from RGB frames.
+- :func:`write_mp4`: MP4 (``mp4v``, or the first available of the fourccs asked for, e.g.
+  H.264 ``avc1``) from RGB frames.
 - Real files (:func:`video_info` reads the MP4/MOV container itself, no decoding): the
   rotation metadata (``VideoInfo.rotation``: degrees the display matrix turns the coded frames;
   the reader applies it on decode (``CAP_PROP_ORIENTATION_AUTO``), so ``width``/``height`` are
@@ -309,9 +310,40 @@ def _container_timing(path: Path) -> tuple[int, float | None, float | None]:
     return 0, None, None
 
 
-def write_mp4(path: str | Path, frames: Iterable[np.ndarray], fps: float) -> Path:
-    """Write RGB frames ``(H, W, 3) uint8`` (all the same size) to an MP4 (``mp4v``) at ``fps``."""
+_FOURCC_OK: dict[str, bool] = {}
+
+
+def fourcc_available(fourcc: str) -> bool:
+    """Whether this OpenCV build can write MP4s with ``fourcc`` (probed once per process with a
+    tiny file: ``avc1`` (H.264) needs an FFmpeg with an H.264 encoder)."""
+    if fourcc not in _FOURCC_OK:
+        import os
+        import tempfile
+
+        import cv2
+
+        fd, tmp = tempfile.mkstemp(suffix=".mp4")
+        os.close(fd)
+        try:
+            w = cv2.VideoWriter(tmp, cv2.VideoWriter_fourcc(*fourcc), 25.0, (64, 64))
+            _FOURCC_OK[fourcc] = bool(w.isOpened())
+            w.release()
+        finally:
+            os.unlink(tmp)
+    return _FOURCC_OK[fourcc]
+
+
+def write_mp4(path: str | Path, frames: Iterable[np.ndarray], fps: float,
+              codecs: tuple[str, ...] = ("mp4v",)) -> Path:
+    """Write RGB frames ``(H, W, 3) uint8`` (all the same size) to an MP4 at ``fps``, with the
+    first of ``codecs`` (fourccs, e.g. ``("avc1", "mp4v")``: H.264 where the OpenCV build has
+    an encoder for it) that :func:`fourcc_available` finds; default ``mp4v``."""
     import cv2
+
+    usable = [c for c in codecs if fourcc_available(c)]
+    if not usable:
+        raise InputError(path, "<video>", f"no MP4 writer for {', '.join(codecs)}")
+    fourcc = usable[0]
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -324,9 +356,9 @@ def write_mp4(path: str | Path, frames: Iterable[np.ndarray], fps: float) -> Pat
                                  f"{img.dtype}", frame=j)
             if writer is None:
                 size = (img.shape[1], img.shape[0])
-                writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), size)
+                writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), float(fps), size)
                 if not writer.isOpened():
-                    raise InputError(path, "<video>", "cannot open an mp4v writer")
+                    raise InputError(path, "<video>", f"cannot open an {fourcc} writer")
             elif (img.shape[1], img.shape[0]) != size:
                 raise InputError(path, "frames", f"size {img.shape[1]}x{img.shape[0]} != first "
                                  f"frame's {size[0]}x{size[1]}", frame=j)

@@ -2,7 +2,9 @@
 
 ``--preset markers``: the marker-only session (no cameras, videos, scans or partner).
 ``--realistic-markers``: a two-person session whose marker capture is realistic
-(``studio.mocap.capture``; the demo and bench presets never use it).
+(``studio.mocap.capture``). ``--realistic``: the whole realistic studio (``studio.lab``: lab
+room, bystander, clean plates, camera look, calibration error, a camera out of sync, realistic
+markers; the demo and bench presets' default); ``--kind``: none of it (exact, for tests).
 
 ``python -m studio --recipe-preset demo``: generate the data of ``recipes/demo.yaml`` if any
 file is missing (``studio.ensure_generated``; what ``make demo`` runs).
@@ -27,6 +29,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--preset", choices=sorted(PL.PRESETS), default=None)
     ap.add_argument("--realistic-markers", action="store_true",
                     help="two-person sessions: realistic marker placement and capture")
+    g = ap.add_mutually_exclusive_group()
+    g.add_argument("--realistic", action="store_true", default=None,
+                   help="the realistic studio (default of the demo and bench presets)")
+    g.add_argument("--kind", action="store_true", help="the kind studio: nothing realistic")
     ap.add_argument("--write-recipe", default=None, metavar="PATH",
                     help="with --preset: only write the preset's committed recipe to PATH (paths "
                          "relative to it, pointing into --out); generate nothing")
@@ -59,7 +65,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         scen = PL.parse_scenarios(a.scenarios) if a.scenarios else None
         seed = a.seed if a.seed is not None else (PL.PRESETS[a.preset].seed if a.preset else 3)
-        plan = PL.make_plan(seed, a.frames, scen, a.preset)
+        realism = False if a.kind else (True if a.realistic else None)
+        plan = PL.make_plan(seed, a.frames, scen, a.preset, realism=realism)
         if a.realistic_markers:
             if not isinstance(plan, PL.SessionPlan):
                 raise ValueError("--realistic-markers: the markers preset is always realistic")

@@ -229,3 +229,76 @@ MARKERS_TRIAL_S = (4.0, 6.0)
 MARKERS_CHECK_FPS = 30.0
 #: Mocap before the motion's first checked frame (s; a multiple of 1 / MARKERS_HZ).
 MARKERS_LEAD_S = 0.1
+
+# ------------------------------------------------------------------------------------ the lab
+#: The realistic studio (studio.lab): the room (half size and height, metres; texture
+#: resolution), its colours (RGB 0-255).
+ROOM_HALF_M = 5.5
+ROOM_HEIGHT_M = 3.3
+FLOOR_TEXTURE_PX = 2048
+WALL_TEXTURE_PPM = 180.0
+FLOOR_TILE_M = 0.5
+FLOOR_TILE_RGB = (168, 166, 160)
+MAT_RGB = (30, 70, 170)
+WALKWAY_RGB = (38, 38, 42)
+WALL_RGB = (226, 222, 212)
+SKIRTING_RGB = (110, 105, 100)
+WINDOW_RGB = (185, 200, 215)
+DOOR_RGB = (150, 120, 90)
+CEILING_RGB = (215, 215, 212)
+#: The second camera rig on tripods: azimuth offset from the midpoints between the main
+#: cameras (rad) and distance from the centre (m).
+TRIPOD_AZIMUTH_OFFSET_RAD = 0.35
+TRIPOD_RADIUS_M = (4.1, 4.6)
+#: The bystander (an operator): distance from the room's centre (m) of the candidate spots,
+#: the least distance from any subject's root at any frame (m), the slow turn (rad).
+BYSTANDER_RADIUS_M = (3.1, 3.7)
+BYSTANDER_MIN_DIST_M = 2.2
+BYSTANDER_TURN_RAD = 0.35
+#: Skin tones and hair colours the people are drawn with (RGB).
+SKIN_TONES = ((241, 200, 170), (224, 178, 148), (198, 145, 110), (160, 110, 80), (115, 78, 55),
+              (80, 55, 40))
+HAIR_RGB = ((30, 22, 18), (70, 45, 25), (120, 85, 50), (190, 160, 110), (110, 110, 110))
+#: Per camera look: exposure gain, white-balance multipliers of red and blue, vignetting,
+#: sensor noise sd (8-bit DN at mid grey), JPEG quality of the compression pass (H.264's
+#: artefacts stand-in, upper bound exclusive), shutter (fraction of the frame interval).
+LOOK_GAIN = (0.82, 1.12)
+LOOK_WB = (0.92, 1.08)
+LOOK_VIGNETTE = (0.12, 0.3)
+LOOK_NOISE_SD = (1.5, 3.0)
+LOOK_JPEG_QUALITY = (72, 86)
+LOOK_SHUTTER = (0.3, 0.5)
+#: Motion blur (studio.lab.motion_blur): the motion field's grid (px), the least motion that
+#: is blurred (px), the spacing of the samples along the motion (px) and their most.
+BLUR_CELL_PX = 6
+BLUR_MIN_PX = 0.5
+BLUR_STEP_PX = 1.5
+BLUR_MAX_SAMPLES = 9
+#: Every BLUR_VERTEX_STRIDE-th vertex of a body places the motion field.
+BLUR_VERTEX_STRIDE = 2
+#: Sensor noise: unit noise fields drawn once per session and read at random offsets.
+NOISE_BANK = 3
+NOISE_BANK_MARGIN_PX = 64
+#: Calibration error (the recipe's calibration against the truth): the RMS reprojection
+#: error (px) of points in CALIB_VOLUME_M (x, y, z ranges, metres), drawn per camera; the
+#: shape of the error (sd of the centre (m), orientation (deg), focal (relative), principal
+#: point (px)) before it is scaled to that RMS.
+CALIB_ERROR_PX = (0.3, 0.5)
+CALIB_VOLUME_M = ((-1.5, 1.5), (-1.5, 1.5), (0.0, 2.0))
+CALIB_CENTRE_SD_M = 0.004
+CALIB_ROT_SD_DEG = 0.003
+CALIB_FOCAL_REL_SD = 0.0003
+CALIB_PRINCIPAL_SD_PX = 0.1
+#: The share of the centre error's image shift at the volume's centre that the orientation error
+#: compensates (a calibration trades them; 1: the centre keeps its pixel exactly).
+CALIB_COMPENSATION = 0.6
+#: The realistic studio's video codecs, first available wins (H.264 where OpenCV has an
+#: encoder for it).
+REALISTIC_CODECS = ("avc1", "mp4v")
+#: The realistic presets' camera out of sync: this fraction of a frame late (the last camera).
+DESYNC_FRAMES = 0.3
+#: Frames of the clean plate video (the empty room; noise differs between frames).
+CLEAN_PLATE_FRAMES = 10
+#: The bystander's clothing (the realistic studio's third person).
+BYSTANDER_CLOTHING = {"shirt": (200, 200, 195), "sleeve": (60, 60, 65), "trousers": (45, 50, 70),
+                      "shoes": (90, 60, 40)}

@@ -11,6 +11,9 @@ Layout of a generated session folder ``<out>``::
     scans/<subject>.ply                           one scan per subject
     <group>/camera_parameters/<camera>/<action>.json    CHI3D camera JSON
     <group>/videos/<camera>/<action>.mp4
+    <group>/videos/<camera>/clean_plate.mp4       the empty room (``lab`` plans only; as labs
+                                                  record one; constants.CLEAN_PLATE_FRAMES frames;
+                                                  listed in gt/session.json "clean_plates")
     <group>/mocap/<action>.c3d                    markers of the subject wearing them
     <group>/interaction_contact_signature.json    contact annotations, keyed by action
     gt/...                                        ground truth (never read by the pipeline)
@@ -59,11 +62,13 @@ class Preset:
     frames: int
     scenarios: tuple[str, ...]
     kind: str = "interaction"
+    #: the realistic studio (:func:`realistic`) rather than the kind one
+    realistic: bool = False
 
 
 PRESETS = {
-    "demo": Preset("demo", seed=3, frames=100, scenarios=("handshake", "push")),
-    "bench": Preset("bench", seed=11, frames=120, scenarios=tuple(SCENARIOS)),
+    "demo": Preset("demo", seed=3, frames=100, scenarios=("handshake", "push"), realistic=True),
+    "bench": Preset("bench", seed=11, frames=120, scenarios=tuple(SCENARIOS), realistic=True),
     "markers": Preset("markers", seed=23, frames=0, scenarios=("kick", "grab", "hit", "push"),
                       kind="markers"),
 }
@@ -109,8 +114,27 @@ class SessionPlan:
     mocap_hz: float = C.MOCAP_HZ
     #: realistic marker capture (``studio.mocap.capture``: hand placement, soft tissue,
     #: labelling faults, extra points and analogs; first frame kept 0 so the recipe's sync
-    #: offset stays valid). Off for the demo and bench presets; ``plan_dict`` omits it then.
+    #: offset stays valid). ``plan_dict`` omits it (and every option below) when off.
     marker_realism: bool = False
+    #: The realistic studio (``studio.lab``; all on in the demo and bench presets, all off in
+    #: the kind studio of the unit tests that need exactness):
+    #: lab: a furnished lab room instead of floor and sky, a second camera rig on tripods, a
+    #: bystander (an operator) behind the subjects in some views, and a clean plate per camera;
+    lab: bool = False
+    #: camera_look: clothing patterns, skin tones and hair; per camera gain and white balance,
+    #: vignetting, sensor noise, compression (a JPEG pass before the MP4 writer) and motion blur;
+    camera_look: bool = False
+    #: calib_error: the recipe's calibration is the truth perturbed (constants.CALIB_ERROR_PX
+    #: of reprojection error); the true cameras are in gt/;
+    calib_error: bool = False
+    #: desync_frames: the last camera records this fraction of a frame late (0: in sync).
+    desync_frames: float = 0.0
+
+    @property
+    def kind(self) -> bool:
+        """The kind studio: nothing realistic, every pixel and number exact."""
+        return not (self.marker_realism or self.lab or self.camera_look or self.calib_error
+                    or self.desync_frames)
 
 
 @dataclass(frozen=True)
@@ -206,10 +230,24 @@ def sentence(scenario: str, actor: int, rng: np.random.Generator) -> str:
     return s[0].upper() + s[1:]
 
 
+#: The options of the realistic studio and their values when on (:func:`realistic`).
+REALISM = {"marker_realism": True, "lab": True, "camera_look": True, "calib_error": True,
+           "desync_frames": C.DESYNC_FRAMES}
+
+
+def realistic(plan: SessionPlan, on: bool = True) -> SessionPlan:
+    """The plan with every option of the realistic studio on (REALISM), or all off (the kind
+    studio)."""
+    import dataclasses
+
+    return dataclasses.replace(plan, **(REALISM if on else {k: type(v)() for k, v in REALISM.items()}))
+
+
 def make_plan(seed: int, frames: int | None = None, scenarios: tuple[str, ...] | None = None,
-              preset: str | None = None) -> SessionPlan:
+              preset: str | None = None, realism: bool | None = None) -> SessionPlan:
     """The plan of a session. A preset gives defaults for seed-independent options; explicit
-    ``frames`` / ``scenarios`` override it."""
+    ``frames`` / ``scenarios`` override it. realism: the realistic studio (:func:`realistic`);
+    None: the preset's (the demo and bench presets are realistic), else the kind studio."""
     p = PRESETS[preset] if preset else None
     if p is not None and p.kind == "markers":
         if frames:
@@ -233,8 +271,11 @@ def make_plan(seed: int, frames: int | None = None, scenarios: tuple[str, ...] |
                                  markers_on=subjects[wearer], partner=subjects[1 - wearer],
                                  frames=int(frames), text=sentence(sc, actor, rng), actor=actor))
     session = f"studio_{preset}" if preset else f"studio_seed{seed}"
-    return SessionPlan(session=session, seed=int(seed), group=group, subjects=subjects,
+    plan = SessionPlan(session=session, seed=int(seed), group=group, subjects=subjects,
                        cameras=C.CAMERA_NAMES, sequences=tuple(seqs), preset=preset)
+    if realism is None:
+        realism = bool(p.realistic) if p is not None else False
+    return realistic(plan) if realism else plan
 
 
 def make_marker_plan(seed: int, scenarios: tuple[str, ...], preset: str | None = "markers",
@@ -291,6 +332,12 @@ def camera_path(seq: SequencePlan, cam: str) -> Path:
 
 def video_path(seq: SequencePlan, cam: str) -> Path:
     return Path(seq.group) / "videos" / cam / f"{seq.action}.mp4"
+
+
+def clean_plate_path(group: str, cam: str) -> Path:
+    """The clean plate of a camera (the empty room), beside that camera's videos: the same for
+    every sequence of the group (the room and the cameras do not move)."""
+    return Path(group) / "videos" / cam / "clean_plate.mp4"
 
 
 def c3d_path(seq: SequencePlan) -> Path:

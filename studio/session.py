@@ -55,7 +55,7 @@ import hashlib
 import json
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -72,15 +72,27 @@ from body.markers import (
 )
 from body.regions import region_map
 from calib.io import write_chi3d_cameras
-from drawing.render import PersonMesh, Renderer
+from drawing.render import Renderer
 from drawing.sheet import contact_sheet, write_png
 from formats.c3d import Markers, write_c3d
 from formats.chi3d import write_joints3d_25
-from formats.video import write_mp4
+from formats.video import fourcc_available, write_mp4
 from studio import constants as C
 from studio import plan as PL
 from studio.contact import annotate, check_motion
 from studio.kin import UP, yaw
+from studio.lab import (
+    Developer,
+    bystander_spot,
+    bystander_track,
+    calibration_error,
+    camera_looks,
+    dressed_colors,
+    interpolate,
+    lab_room,
+    motion_blur,
+    people_at,
+)
 from studio.mocap import RealismOptions, capture, observe_markers, realistic_placement, stem
 from studio.motion import Track, make_timeline, synthesize
 from studio.posture import anatomy, arm_directions, idle
@@ -230,9 +242,94 @@ def verified_motion(plan: PL.SessionPlan, seq: PL.SequencePlan, subjects, model)
     return mo, chk, attempt, outs
 
 
+@dataclass
+class StudioLook:
+    """What the realistic studio adds to a session's rendering (``studio.lab``; all None / 0
+    in the kind studio). recipe_cams: the calibration written for the recipe (the true
+    cameras perturbed, or the true ones); developer: per camera gain, noise, compression (and
+    its looks' shutters: the motion blur); bystander: the third person (a Subject) or None;
+    desync_cam: index of the camera out of sync (-1: none) by desync_frames."""
+
+    recipe_cams: list
+    developer: Developer | None = None
+    bystander: Subject | None = None
+    desync_cam: int = -1
+    desync_frames: float = 0.0
+    codecs: tuple = ("mp4v",)
+    facts: dict = field(default_factory=dict)
+
+    def time(self, f: int, c: int) -> float:
+        """The (fractional) frame camera ``c`` records as its frame ``f``."""
+        return f + (self.desync_frames if c == self.desync_cam else 0.0)
+
+    def frames(self, renderer: Renderer, verts: list, faces, colors: list, frames):
+        """The recorded views of ``frames`` (indices into verts' (F, V, 3) arrays), one list
+        of RGB images per frame: rendered at each camera's time, blurred along the motion
+        over its shutter, developed (gain, noise, compression)."""
+        cams = renderer.cams
+        for f in frames:
+            groups: dict = {}
+            for c in range(len(cams)):
+                groups.setdefault(self.time(f, c), []).append(c)
+            views: list = [None] * len(cams)
+            for t, cs in groups.items():
+                imgs = renderer.render(people_at(verts, faces, colors, t), views=cs)
+                for c, img in zip(cs, imgs, strict=True):
+                    if self.developer is not None:
+                        sh = self.developer.looks[c].shutter
+                        a, b = (np.concatenate([interpolate(v, t + e)[::C.BLUR_VERTEX_STRIDE] for v in verts])
+                                for e in (-sh / 2, sh / 2))
+                        img = self.developer(motion_blur(img, cams[c], a, b), c)
+                    views[c] = img
+            yield views
+
+
+def make_look(plan: PL.SessionPlan, model, cams) -> StudioLook:
+    """The session's StudioLook from its plan (every draw from its own random stream)."""
+    look = StudioLook(list(cams))
+    if plan.calib_error:
+        look.recipe_cams, look.facts["calibration_error"] = calibration_error(
+            cams, np.random.default_rng([plan.seed, 6]))
+    if plan.camera_look:
+        rng = np.random.default_rng([plan.seed, 8])
+        looks = camera_looks(rng, len(cams))
+        look.developer = Developer(looks, C.IMAGE_SIZE, rng)
+        look.facts["camera_looks"] = {c.name: lk.as_json() for c, lk in zip(cams, looks, strict=True)}
+        look.facts["motion_blur"] = "directional, along each pixel's motion over the camera's shutter"
+        look.codecs = C.REALISTIC_CODECS
+        codec = next((c for c in look.codecs if fourcc_available(c)), None)
+        look.facts["compression"] = {
+            "jpeg_pass": "each camera's jpeg_quality (the codec's block artefacts)",
+            "codec": codec, "h264": codec == "avc1",
+            "note": "" if codec == "avc1" else "no H.264 encoder in this OpenCV build: mp4v"}
+    if plan.lab:
+        by = make_subjects(model, ("bystander", "unused"), np.random.default_rng([plan.seed, 9]))[0]
+        look.bystander = replace(by, id="bystander", colors=clothing_colors_of(model, by, 2, plan))
+    if plan.desync_frames:
+        look.desync_cam = len(cams) - 1
+        look.desync_frames = float(plan.desync_frames)
+        look.facts["desync"] = {"camera": cams[-1].name, "frames": look.desync_frames,
+                                "seconds": round(look.desync_frames / plan.fps, 6)}
+    return look
+
+
+def clothing_colors_of(model, subject: Subject, palette: int, plan: PL.SessionPlan) -> np.ndarray:
+    """The subject's colours: flat clothing (the kind studio) or dressed (patterns, skin tone,
+    hair: ``plan.camera_look``); palette: index into constants.CLOTHING (2: the bystander's)."""
+    if not plan.camera_look:
+        return subject.colors
+    o = forward(model, subject.betas, np.zeros((1, model.num_joints, 3)), np.eye(3)[None],
+                np.zeros((1, 3)), rest=subject.person.rest)
+    pal = (C.CLOTHING + (C.BYSTANDER_CLOTHING,))[palette]
+    return dressed_colors(subject.part, o.vertices[0], o.joints[0], model.joint_index("head"), pal,
+                          np.random.default_rng([plan.seed, 10, palette]))
+
+
 def generate_sequence(out: Path, plan: PL.SessionPlan, seq: PL.SequencePlan, model, subjects,
-                      cams, renderer: Renderer, markersets, reg25, regions) -> dict:
+                      cams, renderer: Renderer, markersets, reg25, regions,
+                      look: StudioLook | None = None) -> dict:
     t0 = time.time()
+    look = look or StudioLook(list(cams))
     mo, chk, attempt, outs = verified_motion(plan, seq, subjects, model)
     cast, scene, rng, order, trk = mo.cast, mo.scene, mo.rng, mo.order, mo.tracks
     vs = mo.video_samples
@@ -257,7 +354,9 @@ def generate_sequence(out: Path, plan: PL.SessionPlan, seq: PL.SequencePlan, mod
         m_true = marker_positions(mv, model.faces, ms)
         m_obs, m_gap = observe_markers(m_true, rng)
         write_c3d(c3d, Markers(ms.names, m_obs, plan.mocap_hz, 0, wear.id))
-    write_chi3d_cameras(out / seq.group, seq.action, cams)
+    write_chi3d_cameras(out / seq.group, seq.action, look.recipe_cams)
+    if plan.calib_error:  # the truth, copied to gt/<group>/camera_parameters by studio.truth
+        write_chi3d_cameras(out / "gt" / seq.group / "true", seq.action, cams)
     # contact truth and annotation
     hint = tuple(cast.frame_of(h) for h in scene.contact_hint)
     feet = np.array([i for i, n in enumerate(regions.names) if n.endswith(C.INCIDENTAL_REGIONS)])
@@ -265,12 +364,30 @@ def generate_sequence(out: Path, plan: PL.SessionPlan, seq: PL.SequencePlan, mod
                   incidental=feet if seq.scenario != "kick" else None)
     # videos
     colors = [s.colors for s in order]
+    rverts = list(verts)
+    by = {}
+    if look.bystander is not None:  # the operator, a few metres behind the subjects
+        b = look.bystander
+        roots = np.concatenate([o.joints[:, 0, :2] for o in outs])
+        xy, face = bystander_spot(np.random.default_rng([plan.seed, 200 + seq.index]), cams, roots,
+                                  float(np.ptp(b.person.rest.vertices[0, :, 2])))
+        btr = bystander_track(b.person, xy, face, F, plan.fps, np.random.default_rng([plan.seed, 300 + seq.index]))
+        bo = forward(model, b.betas, btr.pose, btr.R, btr.T, rest=b.person.rest)
+        rverts.append(bo.vertices.astype(np.float32))
+        colors.append(b.colors)
+        dist = min(float(np.linalg.norm(o.joints[:, :, :2] - bo.joints[:, None, 0, :2], axis=-1).min())
+                   for o in outs)
+        by = {"bystander_joints": bo.joints.astype(np.float32), "bystander_transl": btr.T,
+              "bystander_global_orient": btr.R, "bystander_body_pose": btr.pose,
+              "bystander_betas": b.betas}
+        seq_by = {"xy": [round(float(v), 3) for v in xy], "min_dist_to_subjects_m": round(dist, 3)}
+    tv = time.time()
     write_videos([out / PL.video_path(seq, cam.name) for cam in cams], plan.fps,
-                 (renderer.render([PersonMesh(verts[k][f], model.faces, colors[k]) for k in range(2)])
-                  for f in range(F)))
+                 look.frames(renderer, rverts, model.faces, colors, range(F)), look.codecs)
+    tv = time.time() - tv
     # contact sheet at the annotated frame (or the middle frame without contact)
     fr = ct.fr_id if ct.fr_id >= 0 else F // 2
-    imgs = renderer.render([PersonMesh(verts[k][fr], model.faces, colors[k]) for k in range(2)])
+    imgs = next(look.frames(renderer, rverts, model.faces, colors, [fr]))
     pts = verts[0][fr][model.faces[ct.faces[:, 0]]].mean(1) if len(ct.faces) else None
     write_png(out / PL.preview_path(seq), contact_sheet(imgs, cams, f"{seq.seq_id}  frame {fr}", pts))
     # ground truth
@@ -303,6 +420,7 @@ def generate_sequence(out: Path, plan: PL.SessionPlan, seq: PL.SequencePlan, mod
         signature_dist=ct.dist,
         min_dist=ct.min_dist,
         **real,
+        **by,
     )
     write_joints3d_25(out / "gt" / seq.group / "joints3d_25" / f"{seq.action}.json", j25)
     info = {
@@ -312,18 +430,22 @@ def generate_sequence(out: Path, plan: PL.SessionPlan, seq: PL.SequencePlan, mod
         "max_penetration_mm": round(1000 * float(chk.depth.max(initial=0.0)), 2),
         "contact_touching": {k: round(chk.touching(k), 3) for k in chk.gaps},
         "motion_ok": chk.ok, "motion_draw": attempt,
+        "video_seconds": round(tv, 2), "video_frames_per_s": round(F / max(tv, 1e-9), 2),
         "seconds": round(time.time() - t0, 1),
     }
+    if by:
+        info["bystander"] = seq_by
     _log(f"{seq.seq_id}: {F} frames, contact {ct.start}..{ct.end} (frame {ct.fr_id}, "
          f"{len(ct.faces)} pairs), deepest interpenetration {info['max_penetration_mm']:.1f} mm"
-         f"{f' (draw {attempt})' if attempt else ''}, {info['seconds']} s")
+         f"{f' (draw {attempt})' if attempt else ''}, videos {F / max(tv, 1e-9):.1f} frames/s "
+         f"({len(cams)} cameras), {info['seconds']} s")
     return info, ct
 
 
-def write_videos(paths: list[Path], fps: float, frames) -> None:
+def write_videos(paths: list[Path], fps: float, frames, codecs: tuple[str, ...] = ("mp4v",)) -> None:
     """Write one MP4 per camera from an iterable of per-frame view lists (each a list of
     (H, W, 3) uint8 RGB, one per path), streaming: one writer thread per file
-    (``formats.video.write_mp4``) fed through a small queue, so each frame is rendered once for
+    (``formats.video.write_mp4`` with the first available of ``codecs``) fed through a small queue, so each frame is rendered once for
     all cameras and never kept."""
     import queue
     import threading
@@ -340,7 +462,7 @@ def write_videos(paths: list[Path], fps: float, frames) -> None:
 
     def work(path, q):
         try:
-            write_mp4(path, drain(q), fps)
+            write_mp4(path, drain(q), fps, codecs)
         except BaseException as e:  # reported by the caller
             errors.append(e)
             while q.get() is not None:  # keep the producer unblocked
@@ -392,6 +514,8 @@ def generate(out: str | Path, plan: PL.SessionPlan | PL.MarkerSessionPlan) -> Pa
     model = load_model("anny")
     cams = make_rig(np.random.default_rng([plan.seed, 1]))
     subjects = make_subjects(model, plan.subjects, np.random.default_rng([plan.seed, 2]))
+    subjects = [replace(s, colors=clothing_colors_of(model, s, s.index, plan)) for s in subjects]
+    look = make_look(plan, model, cams)
     base = plug_in_gait(model)
     reg25 = regressor(model, "joints3d_25")
     regions = region_map(model)
@@ -411,10 +535,21 @@ def generate(out: str | Path, plan: PL.SessionPlan | PL.MarkerSessionPlan) -> Pa
                   num_faces=len(model.faces))
     _log(f"subjects and scans ready ({time.time() - t0:.1f} s)")
     infos, cts = {}, []
-    with Renderer(cams) as renderer:
+    room = lab_room(np.random.default_rng([plan.seed, 7]), cams) if plan.lab else None
+    with Renderer(cams, room=room) as renderer:
+        if plan.lab:  # the empty room, as labs record one: one video per camera and group
+            plates = {}
+            for g in sorted({s.group for s in plan.sequences}):
+                paths = [out / PL.clean_plate_path(g, c.name) for c in cams]
+                write_videos(paths, plan.fps, (
+                    [look.developer(v, c) if look.developer else v
+                     for c, v in enumerate(renderer.render_room())]
+                    for _ in range(C.CLEAN_PLATE_FRAMES)), look.codecs)
+                plates[g] = {c.name: p.relative_to(out).as_posix() for c, p in zip(cams, paths, strict=True)}
+            look.facts["clean_plates"] = plates
         for seq in plan.sequences:
             info, ct = generate_sequence(out, plan, seq, model, subjects, cams, renderer,
-                                         markersets, reg25, regions)
+                                         markersets, reg25, regions, look)
             infos[seq.seq_id] = info
             cts.append(ct)
     groups = sorted({s.group for s in plan.sequences})
@@ -425,6 +560,8 @@ def generate(out: str | Path, plan: PL.SessionPlan | PL.MarkerSessionPlan) -> Pa
         (out / g / "interaction_contact_signature.json").write_text(json.dumps(sig))
     meta = {"plan": plan_dict(plan), "sequences": infos, "studio_source": source_hash(),
             "seconds": round(time.time() - t0, 1)}
+    if look.facts:
+        meta["realism"] = look.facts
     (out / "gt" / "session.json").write_text(json.dumps(meta, indent=1))
     from studio.truth import write_chi3d_truth
 
@@ -436,13 +573,15 @@ def generate(out: str | Path, plan: PL.SessionPlan | PL.MarkerSessionPlan) -> Pa
 
 
 def plan_dict(plan: PL.SessionPlan | PL.MarkerSessionPlan) -> dict:
-    """The plan as stored in ``gt/session.json`` (JSON types). ``marker_realism`` only when on
-    (the demo and bench sessions generated before it existed still match their plans)."""
+    """The plan as stored in ``gt/session.json`` (JSON types). The realistic studio's options
+    (``plan.REALISM``) only when on (sessions generated before they existed, and every kind
+    session, still match their plans)."""
     d = asdict(plan)
     if isinstance(plan, PL.SessionPlan):
         d["sequences"] = [asdict(s) for s in plan.sequences]
-        if not d.get("marker_realism"):
-            d.pop("marker_realism", None)
+        for k in PL.REALISM:
+            if not d.get(k):
+                d.pop(k, None)
     return json.loads(json.dumps(d))
 
 

@@ -4,7 +4,9 @@ against it: from ``gt/<group>/<action>.npz`` (see ``studio.session``), write und
 - ``anny/<action>.json``: the true Anny parameters (``formats.anny_json``), person 0 = the
   marker wearer (CHI3D), betas repeated per frame;
 - ``valid/<action>.json``: every person-frame valid (the truth is known everywhere);
-- ``camera_parameters/<camera>/<action>.json``: a copy of the session's calibration;
+- ``camera_parameters/<camera>/<action>.json``: the true cameras: a copy of the session's
+  calibration, or of ``true/camera_parameters/`` (written by generate) when the recipe's
+  calibration was perturbed (``SessionPlan.calib_error``);
 - ``interaction_contact_signature.json``: a copy of the session's.
 
 ``joints3d_25/<action>.json`` is written by the studio's generate itself. Idempotent (a file
@@ -117,7 +119,9 @@ def write_chi3d_truth(session_dir: str | Path, model=None) -> list[Path]:
             written.append(target)
         for cam in sorted((session_dir / group / "camera_parameters").glob(f"*/{action}.json")):
             target = g / "camera_parameters" / cam.parent.name / f"{action}.json"
-            if _atomic_bytes(target, cam.read_bytes()):
+            # the true camera when the recipe's calibration is not (SessionPlan.calib_error)
+            true = g / "true" / "camera_parameters" / cam.parent.name / f"{action}.json"
+            if _atomic_bytes(target, (true if true.is_file() else cam).read_bytes()):
                 written.append(target)
         src = session_dir / group / CONTACT_FILE
         if src.is_file() and _atomic_bytes(g / CONTACT_FILE, src.read_bytes()):

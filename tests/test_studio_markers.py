@@ -2,7 +2,8 @@
 preset: hand placement a few cm off the template and on its segment, per-marker skin offsets,
 soft-tissue artefact driven by the joints (none on bony markers), labelling faults recorded
 exactly as written into the C3D, the rest of a Vicon file (model outputs, angles, unlabelled
-points, analog channels, a non-zero first frame), and the demo/bench presets untouched."""
+points, analog channels, a non-zero first frame), and the demo/bench presets' realistic markers
+(their committed recipes unchanged)."""
 from __future__ import annotations
 
 import json
@@ -236,7 +237,7 @@ def test_write_c3d_rejects_analogs_that_are_not_a_multiple_of_the_frames(tmp_pat
 
 
 # ------------------------------------------------------------------------------ presets
-def test_demo_and_bench_presets_are_unchanged_and_realism_is_off():
+def test_demo_and_bench_presets_use_realistic_markers_and_kind_plans_do_not():
     from studio import constants as C
     from studio import plan as PL
     from studio import preset_recipe
@@ -245,8 +246,11 @@ def test_demo_and_bench_presets_are_unchanged_and_realism_is_off():
 
     for name in ("demo", "bench"):
         p = PL.make_plan(PL.PRESETS[name].seed, preset=name)
-        assert isinstance(p, PL.SessionPlan) and p.marker_realism is False
-        assert "marker_realism" not in plan_dict(p)  # what gt/session.json of old data holds
+        assert isinstance(p, PL.SessionPlan) and p.marker_realism is True
+        assert plan_dict(p)["marker_realism"] is True
+        k = PL.make_plan(PL.PRESETS[name].seed, preset=name, realism=False)  # the kind studio
+        assert k.marker_realism is False
+        assert "marker_realism" not in plan_dict(k)  # what gt/session.json of kind data holds
         raw = yaml.safe_load((ROOT / "recipes" / f"{name}.yaml").read_text())
         want = preset_recipe(name, ROOT / "recipes", ROOT / "data" / name)
         assert {k: v for k, v in want.items() if k != "stages"} == \
