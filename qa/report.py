@@ -422,10 +422,34 @@ def _stage_html(stage: str, rep) -> str:
     return f"<details><summary>{esc(stage)}{line}</summary>{table_html(rep)}</details>"
 
 
+def heldout_html(rep: dict) -> str:
+    """The held-out view table (stage ``heldout``'s report): per left-out camera and keypoint
+    group, median / p90 px of the fit from the other views and of the triangulation
+    baseline, on the same detections."""
+    groups = ("body", "hands", "face", "all")
+
+    def cell(st):
+        if not st or st.get("median_px") is None:
+            return "<td>–</td>"
+        return f"<td>{esc(fmt_num(st['median_px']))} / {esc(fmt_num(st['p90_px']))}</td>"
+
+    head = "".join(f"<th>{g}: fit</th><th>{g}: triangulation</th>" for g in groups)
+    rows = ""
+    for cam, r in {**rep.get("cameras", {}), "all cameras": rep.get("all", {})}.items():
+        rows += f"<tr><td>{esc(cam)}</td>" + "".join(
+            cell((r.get("fit") or {}).get(g)) + cell((r.get("baseline") or {}).get(g))
+            for g in groups) + "</tr>"
+    return ("<h3>Held-out view (px, median / p90)</h3><p class=\"gloss\">Each camera left out "
+            "in turn: the fit from the other views and the plain triangulation of the other "
+            "views, projected into it, against its own detections (every "
+            f"{esc(fmt_num(rep.get('stride')))}th frame).</p>"
+            f'<table class="kv"><tr><th>left out</th>{head}</tr>{rows}</table>')
+
+
 def write_sequence_report(out_dir: Path, *, sequence: str, title: str, summary: dict,
                           spans: list[dict], figures: list[tuple[str, str]], video: str | None,
-                          stage_reports: dict[str, dict], links: dict[str, str] | None = None
-                          ) -> Path:
+                          stage_reports: dict[str, dict], links: dict[str, str] | None = None,
+                          heldout: dict | None = None) -> Path:
     """Write ``out_dir/report.html``: the QA summary, links (the MCAP scene with a line on
     opening it in Foxglove), the tiled video, the figures, the flagged spans with their reasons in
     plain words and overlay images, a "Sample of the rest" (spans with ``"sample": True``) and
@@ -485,6 +509,8 @@ def write_sequence_report(out_dir: Path, *, sequence: str, title: str, summary: 
             "</tr>" for c, o in sync.items())
         b.append("<h3>Camera time offsets (video frames; 0 = in sync)</h3><table class=\"kv\">"
                  f"<tr><th>camera</th><th>offset</th></tr>{rows}</table>")
+    if heldout:
+        b.append(heldout_html(heldout))
     if thresholds:
         b.append("<details><summary>Thresholds</summary>" + table_html(
             {k: f"{fmt_num(v)} {metric_unit(k, units)}".strip() for k, v in thresholds.items()})

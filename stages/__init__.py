@@ -40,7 +40,7 @@ PLANNED: tuple[tuple[str, Granularity, tuple[str, ...], str], ...] = (
      "a view left out of the fit: reprojection into it against its detections, and the "
      "triangulation baseline (markerless sequences)"),
     ("convert", "sequence", ("marker_fit", "partner_fit"), "SMPL-X parameters of both"),
-    ("qa", "sequence", ("capture", "shape_fit", "keypoints", "marker_fit", "partner_fit"),
+    ("qa", "sequence", ("capture", "shape_fit", "keypoints", "marker_fit", "partner_fit", "heldout"),
      "per-frame quality flags, overlays on the four views, plots, HTML report, 3D scene"),
     ("export", "sequence", ("capture", "shape_fit", "keypoints", "marker_fit", "partner_fit",
                             "convert", "qa"),

@@ -282,7 +282,9 @@ def run(ctx: StageContext) -> None:
                           video="overlay.mp4" if (out / "overlay.mp4").exists() else None,
                           stage_reports={"qa": {k: report[k] for k in ("summary", "timing", "rendered")},
                                          **stage_reports},
-                          links={"3D scene (open in Foxglove)": "scene.mcap"} if scene else None)
+                          links={"3D scene (open in Foxglove)": "scene.mcap"} if scene else None,
+                          heldout=common.stage_report(ctx.inputs["heldout"])
+                          if ctx.inputs.get("heldout") is not None else None)
     ctx.out.save_json("report", report)
     QAResult(
         metrics=metrics,
@@ -370,6 +372,6 @@ def _write_scene(path: Path, model, m, flags, cams, videos, has_video, keypoints
 
 
 STAGE = Stage(name="qa", func=run, per="sequence",
-              upstream=("capture", "shape_fit", "keypoints", "marker_fit", "partner_fit"),
+              upstream=("capture", "shape_fit", "keypoints", "marker_fit", "partner_fit", "heldout"),
               params=Options, raw_inputs=raw_inputs, reads=READS, version="1",
               doc="per-frame quality flags, overlays on the four views, plots, HTML report, 3D scene")
