@@ -12,7 +12,9 @@ time) and a small JSON/binary API over one :class:`annotate.data.SequenceData`:
   (``annotate.proposals``, computed in the background at start);
 - ``POST /api/save`` ``{"fr_id", "start", "end", "pairs": [[f0, f1], ...], "annotator"}``:
   written by ``annotate.signature.save`` (validated, atomic); 400 with ``{"error"}`` naming the
-  file and field when refused; ``GET /api/load``: the file read back.
+  file and field when refused (only ``Content-Type: application/json``, so another site's page
+  cannot post it; requests whose ``Host`` is not local are refused); ``GET /api/load``: the
+  file read back.
 
 The file is ``--out``, default the recipe's ``contact`` file of the sequence (the one the
 partner fit reads), else ``<outputs>/<session>/<group>/annotate/interaction_contact_signature.json``.
@@ -36,6 +38,7 @@ from formats.errors import InputError
 WEB = Path(__file__).resolve().parent / "web"
 VENDOR = WEB / "node_modules"
 VENDOR_ALLOWED = ("three/build/", "three/examples/jsm/")
+LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1")
 
 
 class Annotator:
@@ -169,7 +172,17 @@ def make_handler(app: Annotator):
                 ctype = "text/javascript"
             self._send(200, path.read_bytes(), ctype)
 
+        def _local(self) -> bool:
+            """Only requests addressed to this server by a local name (no DNS rebinding)."""
+            host = (self.headers.get("Host") or "").rsplit(":", 1)[0].strip("[]")
+            if host in LOCAL_HOSTS:
+                return True
+            self._json({"error": f"refused: Host {self.headers.get('Host')!r} is not local"}, 403)
+            return False
+
         def do_GET(self):  # noqa: N802 (http.server's name)
+            if not self._local():
+                return
             u = urllib.parse.urlsplit(self.path)
             q = urllib.parse.parse_qs(u.query)
             route = urllib.parse.unquote(u.path)
@@ -224,7 +237,14 @@ def make_handler(app: Annotator):
                 pass
 
         def do_POST(self):  # noqa: N802
+            if not self._local():
+                return
             route = urllib.parse.urlsplit(self.path).path
+            # JSON only: another site's page cannot send that without a CORS preflight, which
+            # this server never grants, so it cannot write the file behind the annotator's back
+            if (self.headers.get("Content-Type") or "").split(";")[0].strip() != "application/json":
+                self._json({"error": "POST /api/save: Content-Type must be application/json"}, 415)
+                return
             if route != "/api/save":
                 self._json({"error": f"not found: {route}"}, 404)
                 return

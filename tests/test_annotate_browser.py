@@ -225,3 +225,27 @@ def test_annotate_save_and_reopen(chromium, server, anny, tmp_path):
     # a correspondence is removable
     b.click_element("#pairs tbody tr:first-child button.remove")
     assert _rows(b) == 1 and b.eval("window.annotateState.pairs") == [proposed]
+
+
+def test_server_refuses_cross_site_posts_and_foreign_hosts(server):
+    """A form post from another site (not JSON) and a request for another host name (DNS
+    rebinding) are refused; the file is not written."""
+    import http.client
+    import urllib.parse
+
+    url, out = server
+    u = urllib.parse.urlsplit(url)
+    before = out.read_bytes() if out.exists() else None
+    body = json.dumps({"fr_id": 3, "start": 2, "end": 5, "pairs": []})
+    for headers, code in (({"Content-Type": "text/plain"}, 415),
+                          ({"Content-Type": "application/json", "Host": "evil.example:80"}, 403)):
+        c = http.client.HTTPConnection(u.hostname, u.port, timeout=10)
+        c.request("POST", "/api/save", body=body, headers=headers)
+        r = c.getresponse()
+        assert r.status == code, (headers, r.status, r.read())
+        c.close()
+    c = http.client.HTTPConnection(u.hostname, u.port, timeout=10)
+    c.request("GET", "/api/session", headers={"Host": "evil.example"})
+    assert c.getresponse().status == 403
+    c.close()
+    assert (out.read_bytes() if out.exists() else None) == before
