@@ -298,7 +298,13 @@ def serve(args) -> int:
         return 2
     out = args.out or default_out(data, args.outputs)
     app = Annotator(data, out, args.annotator, args.frame, proposals=not args.no_proposals)
-    httpd = ThreadingHTTPServer(("127.0.0.1", args.port), make_handler(app))
+    try:
+        httpd = ThreadingHTTPServer(("127.0.0.1", args.port), make_handler(app))
+    except OSError as e:
+        print(f"annotate: cannot listen on 127.0.0.1:{args.port}: {e.strerror} (PORT=0: any free "
+              "port)", file=sys.stderr)
+        data.close()
+        return 2
     httpd.daemon_threads = True
     print(f"annotate: {data.seq_id}: {data.n_frames} frames, fits {'yes' if data.has_fits else 'no'}, "
           f"keypoints {'yes' if data.keypoints is not None else 'no'}; file {out}", flush=True)

@@ -264,3 +264,13 @@ def test_make_annotate_passes_variables_verbatim(tmp_path):
     r = subprocess.run(["make", "-s", "-C", str(REPO), "-o", "setup", "annotate", f"PY={fake}"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "usage: make annotate" in r.stdout
+
+
+def test_cli_bad_sequence_is_one_line_and_exit_2(small_session):
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "annotate", "--recipe", str(small_session),
+                        "--seq", "s01/Nope 1", "--port", "0"], cwd=REPO, capture_output=True,
+                       text=True, timeout=120, env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert r.returncode == 2
+    assert "no sequence 's01/Nope 1'" in r.stderr and "Traceback" not in r.stderr
