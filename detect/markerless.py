@@ -382,7 +382,10 @@ def detect_markerless(cams, source, frames: np.ndarray, factory, o: MarkerlessOp
                       candidates: list | None = None) -> tuple[Keypoints2D, dict]:
     """The people of a markerless sequence in every view of ``frames``: a
     :class:`Keypoints2D` with person ``p`` in slot ``p`` (a one-person sequence leaves slot 1
-    empty), and the report's facts (bystanders per frame, people found per frame, speed).
+    empty), and the report's facts (bystanders per frame, people found per frame, speed;
+    ``roots``: arrays of the people's triangulated roots ``people_root (F, 2, 3)`` and of every
+    bystander group ``bystander_frame / _root / _views``, which the stage writes to
+    ``people.npz``).
     ``candidates``: the per-view detections ``[F][C] (N, 65, 3)`` when already known (tests;
     then ``source`` and ``factory`` are not used)."""
     frames = np.asarray(frames, np.int64)
@@ -417,6 +420,22 @@ def detect_markerless(cams, source, frames: np.ndarray, factory, o: MarkerlessOp
                       cross_view_outlier=np.zeros((C, F, 2, layout.N), bool),
                       conf_raw=kp[..., 2].copy(), cameras=np.array([c.name for c in cams], str))
     n_cands = np.array([[len(candidates[f][c]) for c in range(C)] for f in range(F)])
+    people_root = np.full((F, 2, 3), np.nan)
+    by_frame, by_root, by_views = [], [], []
+    for f in range(F):
+        for g, grp in enumerate(groups[f]):
+            if g in sel.slot[f]:
+                people_root[f, sel.slot[f].index(g)] = grp.root
+            elif np.all(np.isfinite(grp.root)):
+                by_frame.append(int(frames[f]))
+                by_root.append(grp.root)
+                by_views.append(len(grp.members))
+    #: the people's and the bystanders' places in 3D (the bench counts frames where a fitted
+    #: person is nearer a bystander than the person found)
+    roots = {"people_root": people_root,
+             "bystander_frame": np.array(by_frame, np.int64),
+             "bystander_root": np.array(by_root, float).reshape(-1, 3),
+             "bystander_views": np.array(by_views, np.int64)}
     wall = time.perf_counter() - w0
     total_cpu = cpu + (time.process_time() - t0)
     facts = {
@@ -437,5 +456,6 @@ def detect_markerless(cams, source, frames: np.ndarray, factory, o: MarkerlessOp
         "fps_per_core": round(F / max(total_cpu, 1e-9), 3),
         "partner_mode_counts": {"missing": int((out.partner_mode == 0).sum()), "tracked": 0,
                                 "whole_image": int((out.partner_mode == 2).sum())},
+        "roots": roots,
     }
     return out, facts

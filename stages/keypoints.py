@@ -310,8 +310,10 @@ def _compute_markerless(view, o: Options, cams, videos, frames, n_video, video_w
     source = VideoSource(tuple(str(v) for v in videos))
     kp, facts = detect_markerless(cams, source, frames, factory, mo,
                                   up=tuple(view.ground_plane.normal), progress=progress, log=log)
+    roots = facts.pop("roots")
     report = {"detector": kind, "cameras": list(view.cameras), "video_frames": n_video,
-              "stride": o.stride, "video_warnings": video_warnings, "subjects": people, **facts}
+              "stride": o.stride, "video_warnings": video_warnings, "subjects": people, **facts,
+              "_roots": roots}
     log(f"keypoints: bystanders in {facts['bystanders']['frames_with']}/{len(frames)} frames "
         f"({facts['bystanders']['groups']} rejected), people found in "
         f"{facts['people_found_frames']} frames")
@@ -385,6 +387,8 @@ def run(ctx: StageContext) -> None:
     kp.save(ctx.out)
     if rig is not None:
         rig.save(ctx.out)
+        roots = c.report.pop("_roots")
+        ctx.out.save_arrays("people", frames=kp.frames, **roots)  # people and bystanders in 3D
     sample = int(kp.frames[len(kp.frames) // 2]) if o.overlay_frame is None else o.overlay_frame
     report = dict(c.report)
     report["overlays"] = write_overlays(ctx.out, c.source, kp, sample)

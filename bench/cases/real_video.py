@@ -1,0 +1,276 @@
+"""Real video (issue #28 item 5): the Pose2Sim demo lab recording
+(``/work/shared/real/video/pose2sim_demo``: four Qualisys video cameras, 60 fps, 100 frames,
+one person, an operator in the background of two views; ``recipes/pose2sim_demo.yaml``, a
+markerless sequence) through the engine as ``make sequence`` runs it (same ``outputs/``
+folder: a ``make sequence RECIPE=recipes/pose2sim_demo.yaml SEQ="demo/Walk 1"`` before makes
+this case read its cache), and the studio's markerless preset (the small studio session with
+nobody's markers used and no scans: :func:`markerless_recipe`) measured the same way and
+against its truth.
+
+No 3D truth on the real recording: the honest figure is the held-out view (stage
+``heldout``: each camera left out, the fit from the other three projected into it against its
+detections), beside the plain per-keypoint triangulation of the other three views.
+
+Keys (``<p>`` = ``real_video`` for the lab recording, ``real_video.studio`` for the preset):
+- ``<p>.heldout_median_px`` / ``heldout_p90_px``: all keypoints, all cameras;
+  ``<p>.heldout_<group>_median_px`` (body, hands, face);
+- ``<p>.baseline_median_px`` / ``baseline_p90_px`` (and per group): the triangulation;
+- ``<p>.heldout_minus_baseline_px``: median fit - median baseline (goal < 0);
+- ``<p>.heldout_<camera>_median_px``: per left-out camera;
+- ``<p>.operator_frames`` (lab): frames with a bystander found in 3D (the operator);
+  ``<p>.operator_fitted_frames``: of the fitted frames, those whose fitted root (pelvis) is
+  nearer a bystander's root than the subject's triangulated root (goal 0);
+- ``<p>.frames_valid_share``: valid fitted frames / frames;
+- ``<p>.fps_per_cpu_s``: frames per CPU second of the keypoints and the fit together;
+- ``<p>.shape_bone_rms_mm``: the shape from the views, bone rms after the fit (and
+  ``..._mean_shape_mm`` before);
+- studio: ``real_video.studio.mpjpe_mm`` / ``pa_mpjpe_mm`` (the evaluator against the truth).
+The overlay of the fitted mesh on all four views: ``bench/work/real_video/real_video_overlay.png``.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+REPO = Path(__file__).resolve().parents[2]
+RECIPE = REPO / "recipes" / "pose2sim_demo.yaml"
+SEQ = "demo/Walk 1"
+STUDIO_SEQ = "s01/Handshake 1"
+STUDIO_PLAN = {"seed": 7, "frames": 24, "scenarios": ("handshake", "push")}  # tests' session
+GOALS = {"real_video.heldout_median_px": ("<=", 8.0),
+         "real_video.heldout_minus_baseline_px": ("<", 0.0),
+         "real_video.operator_fitted_frames": ("==", 0.0),
+         "real_video.studio.heldout_minus_baseline_px": ("<", 0.0)}
+LIMITS = {"real_video.heldout_median_px": (
+    "the Qualisys calibration: the cap centroid's cross-view reprojection is ~18 px median "
+    "with the reader's conversion (SOURCES.md says ~13 px is achievable); a held-out view "
+    "cannot be better than the calibration that puts the other three into it, and the "
+    "triangulation baseline pays the same price")}
+
+
+def markerless_recipe(src: Path, dst: Path, sequences: list[str] | None = None,
+                      scans: bool = False, stages: dict | None = None) -> Path:
+    """A markerless recipe from a studio recipe: the same videos and calibration, nobody's
+    markers (``markers_on`` and ``c3d`` dropped, the wearer and partner become ``people``),
+    scans dropped unless ``scans`` (the shape is then estimated from the views), the truth
+    kept for ``evaluate``; paths made absolute (the studio's data stay where they are)."""
+    src, dst = Path(src).resolve(), Path(dst)
+    r = yaml.safe_load(src.read_text())
+    base = src.parent
+
+    def ab(p):
+        return str((base / p).resolve())
+
+    for s in r["subjects"].values():
+        if scans and s.get("scan"):
+            s["scan"] = ab(s["scan"])
+        else:
+            s.pop("scan", None)
+    seqs = {}
+    for q, s in r["sequences"].items():
+        if sequences is not None and q not in sequences:
+            continue
+        t = {k: v for k, v in s.items() if k not in ("markers_on", "partner", "c3d", "mocap")}
+        t["people"] = [s["markers_on"]] + ([s["partner"]] if s.get("partner") else [])
+        t["videos"] = {c: ab(p) for c, p in s["videos"].items()}
+        t["calibration"] = {c: ab(p) for c, p in s["calibration"].items()}
+        if s.get("contact"):
+            t["contact"] = ab(s["contact"])
+        seqs[q] = t
+    r["sequences"] = seqs
+    r["session"] = f"{r['session']}_markerless"
+    st = dict(stages or {})
+    truth = (r.get("stages") or {}).get("evaluate", {}).get("truth")
+    if truth:
+        st["evaluate"] = {"truth": ab(truth)}
+    r["stages"] = st
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    dst.write_text(yaml.safe_dump(r, sort_keys=False))
+    return dst
+
+
+def studio_recipe(work: Path) -> Path:
+    """The small studio session (the tests' one, reused from ``assets/cache/test_session``
+    when it is there, else generated into ``work``)."""
+    from studio import plan as PL
+    from studio.session import generate, source_hash
+
+    cached = REPO / "assets" / "cache" / "test_session" / source_hash() / "recipe.yaml"
+    if cached.is_file():
+        return cached
+    own = work / f"studio_{source_hash()}"
+    if not (own / "recipe.yaml").is_file():
+        shutil.rmtree(own, ignore_errors=True)
+        generate(own, PL.make_plan(STUDIO_PLAN["seed"], STUDIO_PLAN["frames"],
+                                   STUDIO_PLAN["scenarios"]))
+    return own / "recipe.yaml"
+
+
+def _heldout_keys(p: str, rep: dict) -> dict[str, float]:
+    out: dict[str, float] = {}
+    a = rep["all"]
+    for who, key in (("fit", "heldout"), ("baseline", "baseline")):
+        out[f"{p}.{key}_median_px"] = a[who]["all"]["median_px"]
+        out[f"{p}.{key}_p90_px"] = a[who]["all"]["p90_px"]
+        for g in ("body", "hands", "face"):
+            if a[who][g]["median_px"] is not None:
+                out[f"{p}.{key}_{g}_median_px"] = a[who][g]["median_px"]
+    out[f"{p}.heldout_minus_baseline_px"] = (a["fit"]["all"]["median_px"]
+                                            - a["baseline"]["all"]["median_px"])
+    for cam, r in rep["cameras"].items():
+        if r["fit"]["all"]["median_px"] is not None:
+            out[f"{p}.heldout_{cam}_median_px"] = r["fit"]["all"]["median_px"]
+            out[f"{p}.baseline_{cam}_median_px"] = r["baseline"]["all"]["median_px"]
+    return {k: float(v) for k, v in out.items() if v is not None}
+
+
+def _fit_keys(p: str, base: Path) -> dict[str, float]:
+    """Validity, speed and the shape from the views, from the keypoints and partner_fit
+    reports of a markerless sequence's artifact folder ``base``."""
+    kr = json.loads((base / "keypoints" / "report.json").read_text())
+    pr = json.loads((base / "partner_fit" / "report.json").read_text())
+    people = pr.get("people") or {}
+    frames = int(pr["frames"])
+    valid = [r["frames_valid"] for r in people.values()] or [pr["frames_valid"]]
+    cpu = float(kr["cpu_s"]) + sum(float(r["fit_cpu_s"]) for r in people.values())
+    out = {f"{p}.frames_valid_share": float(np.mean(valid)) / max(frames, 1),
+           f"{p}.fps_per_cpu_s": frames / cpu if cpu > 0 else float("nan"),
+           f"{p}.keypoints_fps_per_cpu_s": float(kr["fps_per_core"])}
+    bones = [r["shape"] for r in people.values() if r["shape"].get("source") == "views"]
+    if bones:
+        out[f"{p}.shape_bone_rms_mm"] = float(np.mean([b["bone_rms_mm"] for b in bones]))
+        out[f"{p}.shape_bone_rms_mean_shape_mm"] = float(
+            np.mean([b["bone_rms_mean_shape_mm"] for b in bones]))
+    return out
+
+
+def operator_counts(base: Path) -> dict[str, float]:
+    """Frames with a bystander found in 3D, and fitted frames whose fitted pelvis is nearer a
+    bystander's root than the subject's own triangulated root (the operator fitted as the
+    subject)."""
+    from artifacts import BodyFit
+    from body import forward, load_model
+
+    z = np.load(base / "keypoints" / "people.npz")
+    fr = np.asarray(z["frames"])
+    subj = np.asarray(z["people_root"])[:, 0]
+    bf, broot = np.asarray(z["bystander_frame"]), np.asarray(z["bystander_root"])
+    fit = BodyFit.load(base / "partner_fit" / "person0")
+    model = load_model("anny")
+    J = forward(model, np.asarray(fit.betas, float), fit.body_pose, fit.global_orient,
+                fit.transl).joints
+    pelvis = J[:, 0]  # the root joint
+    wrong = 0
+    for i, f in enumerate(np.asarray(fit.frames)):
+        if not fit.valid[i]:
+            continue
+        k = np.searchsorted(fr, f)
+        ops = broot[bf == f]
+        if not len(ops) or k >= len(fr) or not np.all(np.isfinite(subj[k])):
+            continue
+        if np.linalg.norm(ops - pelvis[i], axis=1).min() < np.linalg.norm(subj[k] - pelvis[i]):
+            wrong += 1
+    return {"operator_frames": float(len(np.unique(bf))), "operator_fitted_frames": float(wrong)}
+
+
+def overlay_png(base: Path, videos: list[Path], dst: Path, frame: int | None = None) -> Path:
+    """The fitted mesh on all four views (``videos`` in the rig's order) at one frame (the
+    middle one), tiled: ``dst``."""
+    from artifacts import BodyFit
+    from artifacts.capture import CameraRig
+    from body import forward, load_model
+    from drawing.overlay import render_overlays
+
+    model = load_model("anny")
+    rig = CameraRig.load(base / "keypoints")
+    fits = [BodyFit.load(base / "partner_fit" / "person0")]
+    if (base / "partner_fit" / "fit.npz").is_file():
+        fits.append(BodyFit.load(base / "partner_fit"))
+    frames = np.asarray(fits[0].frames)
+    f = int(frames[len(frames) // 2]) if frame is None else int(frame)
+    verts = [forward(model, np.asarray(b.betas, float), b.body_pose, b.global_orient,
+                     b.transl).vertices for b in fits]
+    index = {int(x): i for i, x in enumerate(frames)}
+    tmp = dst.parent / "overlay_tmp"
+    out = render_overlays(rig.cameras(), videos, [f], verts, np.asarray(model.faces), index, tmp,
+                          titles={f: f"{base.parent.name}/{base.name} frame {f}: fitted mesh"},
+                          scale=0.5)
+    shutil.copyfile(out[f], dst)
+    shutil.rmtree(tmp, ignore_errors=True)
+    return dst
+
+
+def _run(recipe: Path, seq: str, outputs: Path, until: str | None = None) -> None:
+    from pipeline.cli import main
+
+    logs: list[str] = []
+    args = ["sequence", seq, "--recipe", str(recipe), "--outputs", str(outputs)]
+    if until:
+        args += ["--until", until]
+    rc = main(args, log=logs.append)
+    print("\n".join(logs[-8:]), flush=True)
+    if rc != 0:
+        raise RuntimeError(f"pipeline {' '.join(args)} failed (exit {rc}):\n" + "\n".join(logs[-20:]))
+
+
+def run(work: Path) -> dict[str, float]:
+    from recipes import load_recipe
+
+    out: dict[str, float] = {}
+    # the lab recording, in the engine's own outputs/ (what make sequence writes)
+    t0 = time.perf_counter()
+    _run(RECIPE, SEQ, REPO / "outputs")
+    g, a = SEQ.split("/")
+    base = REPO / "outputs" / load_recipe(RECIPE).session / g / a
+    out.update(_heldout_keys("real_video", json.loads((base / "heldout" / "report.json").read_text())))
+    out.update(_fit_keys("real_video", base))
+    out.update({f"real_video.{k}": v for k, v in operator_counts(base).items()})
+    lab = load_recipe(RECIPE)
+    overlay_png(base, [lab.sequences[SEQ].videos[c] for c in lab.cameras],
+                work / "real_video_overlay.png")
+    out["real_video.pipeline_wall_s"] = time.perf_counter() - t0
+    # the studio's markerless preset: the same studio, nobody's markers, no scans
+    src = studio_recipe(work)
+    rec = markerless_recipe(src, work / "studio_markerless.yaml", [STUDIO_SEQ],
+                            stages={"qa": {"video": False, "scene": False}})
+    from pipeline.cli import main
+
+    logs: list[str] = []
+    rc = main(["release", "--recipe", str(rec), "--outputs", str(work / "outputs"),
+               "--executor", "serial"], log=logs.append)
+    print("\n".join(logs[-8:]), flush=True)
+    if rc != 0:
+        raise RuntimeError("studio markerless release failed:\n" + "\n".join(logs[-20:]))
+    r = load_recipe(rec)
+    g, a = STUDIO_SEQ.split("/")
+    sb = work / "outputs" / r.session / g / a
+    out.update(_heldout_keys("real_video.studio", json.loads((sb / "heldout" / "report.json").read_text())))
+    out.update(_fit_keys("real_video.studio", sb))
+    ev = next((work / "outputs" / r.session / "session").glob("evaluate/evaluation.json"), None)
+    if ev is not None:
+        e = json.loads(ev.read_text())
+        over = e.get("overall") or e.get("all") or {}
+        for k in ("mpjpe_mm", "pa_mpjpe_mm", "pelvis_mm"):
+            v = _find(over, k) if over else _find(e, k)
+            if v is not None:
+                out[f"real_video.studio.{k}"] = float(v)
+    overlay_png(sb, [r.sequences[STUDIO_SEQ].videos[c] for c in r.cameras],
+                work / "real_video_studio_overlay.png")
+    return out
+
+
+def _find(d, key):
+    """The first value of ``key`` anywhere in a nested dict (the evaluator's layout)."""
+    if isinstance(d, dict):
+        if key in d and isinstance(d[key], (int, float)):
+            return d[key]
+        for v in d.values():
+            r = _find(v, key)
+            if r is not None:
+                return r
+    return None
