@@ -13,7 +13,6 @@ Frames are video frame indices. A frame that a fit does not have shows the fit's
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -24,12 +23,43 @@ VIEW_SIZE = 450  # px: each view of the 2x2 tile the page shows
 KP_RADIUS = 3
 
 
-@dataclass
 class Fits:
-    """Both people's vertices on the common frames of their fits: frames (F,), V (2, F, V, 3)."""
+    """Both people's fits on their common frames (``frames (F,)``); ``at(i)`` -> (2, V, 3)
+    float32 vertices at row ``i``, skinned on demand (a few recent rows kept): a long sequence
+    is never held as meshes in memory."""
 
-    frames: np.ndarray
-    V: np.ndarray
+    CACHE = 16
+
+    def __init__(self, model, fits, frames: np.ndarray):
+        from body import rest_state
+
+        self.model, self.frames = model, np.asarray(frames, np.int64)
+        self._fits = fits
+        self._rows = [np.searchsorted(f.frames, self.frames) for f in fits]
+        self._rest = [rest_state(model, np.asarray(f.betas, float)) for f in fits]
+        self._cache: dict[int, np.ndarray] = {}
+        self._lock = threading.Lock()
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def at(self, i: int) -> np.ndarray:
+        from body import forward
+
+        i = int(i)
+        with self._lock:
+            if i in self._cache:
+                return self._cache[i]
+        out = np.empty((2, self.model.num_vertices, 3), np.float32)
+        for p, fit in enumerate(self._fits):
+            r = self._rows[p][i:i + 1]
+            out[p] = forward(self.model, None, fit.body_pose[r], fit.global_orient[r],
+                             fit.transl[r], rest=self._rest[p]).vertices[0]
+        with self._lock:
+            if len(self._cache) >= self.CACHE:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[i] = out
+        return out
 
 
 def _artifact(root: Path, stage: str) -> Path | None:
@@ -105,7 +135,6 @@ class SequenceData:
 
     def _fits(self) -> Fits | None:
         from artifacts import BodyFit
-        from body import forward, rest_state
 
         # person 0 = the marker wearer (marker_fit), person 1 = the partner (partner_fit); a
         # markerless sequence has both in partner_fit (person 0 in its person0/ folder)
@@ -119,15 +148,7 @@ class SequenceData:
         frames = np.intersect1d(fits[0].frames, fits[1].frames)
         if not len(frames):
             return None
-        V = np.empty((2, len(frames), self.model.num_vertices, 3), np.float32)
-        for p, fit in enumerate(fits):
-            rows = np.searchsorted(fit.frames, frames)
-            rest = rest_state(self.model, np.asarray(fit.betas, float))
-            for s in range(0, len(rows), 64):
-                i = rows[s:s + 64]
-                V[p, s:s + 64] = forward(self.model, None, fit.body_pose[i], fit.global_orient[i],
-                                         fit.transl[i], rest=rest).vertices
-        return Fits(np.asarray(frames, np.int64), V)
+        return Fits(self.model, fits, frames)
 
     def _rest(self) -> np.ndarray:
         """(2, V, 3) both subjects at their rest pose (their shape fits' betas, else the
@@ -163,7 +184,7 @@ class SequenceData:
         if frame is None or self.fits is None:
             return self.rest
         row = int(np.argmin(np.abs(self.fits.frames - int(frame))))
-        return self.fits.V[:, row]
+        return self.fits.at(row)
 
     def keypoints_at(self, frame: int) -> np.ndarray | None:
         """(C, 2, 65, 3) keypoints at video ``frame`` in the page's camera order (None: none)."""

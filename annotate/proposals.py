@@ -24,6 +24,7 @@ PER_REGION_PAIR = 3  # candidate facet pairs kept per region pair
 MAX_PAIRS = 24       # candidate facet pairs in all
 SPREAD_M = 0.02      # candidates of one region pair at least this far apart
 VERTEX_STRIDE = 2    # person 0's vertices sampled for the per-frame scan
+MAX_SCAN_FRAMES = 600  # longer sequences: every k-th frame is scanned
 SCAN_MARGIN_M = 0.05  # only person 0's vertices within person 1's box + this are scanned
 KP_MARGIN_M = 0.05   # keypoints-only interval: within this of the closest approach
 
@@ -58,22 +59,33 @@ def _runs(mask: np.ndarray, gap: int) -> list[tuple[int, int]]:
     return out
 
 
-def from_fits(frames: np.ndarray, V: np.ndarray, faces: np.ndarray, rmap, near_m: float = NEAR_M,
-              progress=None) -> dict:
-    """Proposal from both fitted meshes. frames (F,) video frames; V (2, F, V, 3) metres.
+def from_fits(frames: np.ndarray, V, faces: np.ndarray, rmap, near_m: float = NEAR_M,
+              progress=None, max_frames: int = MAX_SCAN_FRAMES) -> dict:
+    """Proposal from both fitted meshes. frames (F,) video frames; V: (2, F, V, 3) metres, or a
+    function of the row giving (2, V, 3). Over ``max_frames`` frames, every k-th frame is
+    scanned (``"stride"``: k; the interval's ends are then that coarse).
 
     Returns {"source": "fits", "near_mm", "distance_mm" (F,) the closest approach per frame
     (negative: through the other body), "touching" (F,) vertices within ``near_m``,
     "frames" (F,), "interval" [start, end] | None, "fr_id" | None, "pairs" [[f0, f1], ...],
     "pair_distance_mm" [...]}."""
     F = np.asarray(faces)
-    Vs = np.asarray(V, float)
-    n = Vs.shape[1]
+    if callable(V):
+        get = V
+    else:
+        Varr = np.asarray(V)
+
+        def get(i):
+            return Varr[:, i]
+    stride = max(1, -(-len(frames) // max_frames))
+    rows = np.arange(0, len(frames), stride)
+    frames = np.asarray(frames)[rows]
+    n = len(rows)
     dmin = np.full(n, np.inf)
     touching = np.zeros(n, np.int64)
-    sub = np.arange(0, Vs.shape[2], VERTEX_STRIDE)
-    for i in range(n):
-        P0, V1 = Vs[0, i, sub], Vs[1, i]
+    for i, row in enumerate(rows):
+        Vi = np.asarray(get(int(row)), float)
+        P0, V1 = Vi[0, ::VERTEX_STRIDE], Vi[1]
         lo, hi = V1.min(0) - SCAN_MARGIN_M, V1.max(0) + SCAN_MARGIN_M
         inbox = np.all((P0 >= lo) & (P0 <= hi), axis=1)
         if not inbox.any():  # far apart: the closest approach from a coarse sample
@@ -85,7 +97,7 @@ def from_fits(frames: np.ndarray, V: np.ndarray, faces: np.ndarray, rmap, near_m
         touching[i] = int((d < near_m).sum())
         if progress is not None:
             progress(i + 1, n)
-    out = {"source": "fits", "near_mm": near_m * 1000, "frames": np.asarray(frames).tolist(),
+    out = {"source": "fits", "near_mm": near_m * 1000, "stride": stride, "frames": frames.tolist(),
            "distance_mm": np.round(dmin * 1000, 2).tolist(), "touching": touching.tolist(),
            "interval": None, "fr_id": None, "pairs": [], "pair_distance_mm": []}
     runs = _runs(dmin < near_m, GAP)
@@ -95,7 +107,8 @@ def from_fits(frames: np.ndarray, V: np.ndarray, faces: np.ndarray, rmap, near_m
     peak = s + int(np.argmax(touching[s:e + 1]))
     out["interval"] = [int(frames[s]), int(frames[e])]
     out["fr_id"] = int(frames[peak])
-    pairs, dist = contact_pairs(Vs[0, peak], Vs[1, peak], F, rmap, near_m)
+    Vp = np.asarray(get(int(rows[peak])), float)
+    pairs, dist = contact_pairs(Vp[0], Vp[1], F, rmap, near_m)
     out["pairs"], out["pair_distance_mm"] = pairs.tolist(), np.round(dist * 1000, 2).tolist()
     return out
 

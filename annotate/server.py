@@ -69,7 +69,7 @@ class Annotator:
             self.proposal.update(done=i, total=n)
         try:
             if d.fits is not None:
-                p = P.from_fits(d.fits.frames, d.fits.V, d.model.faces, d.rmap, progress=progress)
+                p = P.from_fits(d.fits.frames, d.fits.at, d.model.faces, d.rmap, progress=progress)
             elif d.keypoints is not None and len(d.cams) >= 2:
                 kp, idx = d.keypoints
                 p = P.from_keypoints(d.cams, kp.kp[idx], kp.frames, progress=progress)

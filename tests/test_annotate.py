@@ -60,6 +60,25 @@ def test_proposal_from_fits_finds_the_frames_and_regions_in_contact(anny, rmap, 
     assert np.array_equal(near.face, pairs[:, 1])
 
 
+def test_proposal_from_fits_strides_long_sequences(anny, rmap, truth):
+    """Over max_frames frames every k-th is scanned (meshes asked for row by row)."""
+    from annotate.proposals import from_fits
+
+    frames, V, _ = truth
+    V = V.copy()
+    V[1, :10] += np.array([0.0, 0.0, 0.6], np.float32)
+    asked = []
+
+    def at(i):
+        asked.append(i)
+        return V[:, i]
+
+    p = from_fits(frames, at, anny.faces, rmap, max_frames=6)
+    assert p["stride"] == 4 and p["frames"] == frames[::4].tolist()
+    assert p["interval"] == [int(frames[12]), int(frames[20])]
+    assert set(asked) <= set(range(0, 24, 4))
+
+
 def test_proposal_from_fits_without_contact(anny, rmap, truth):
     from annotate.proposals import from_fits
 
