@@ -16,6 +16,15 @@ onto the selected video frames (``fitting.mocap``), calls the domain function, a
   (``fps_per_core``: the detector processes' CPU plus ``guard_cpu_s``, the cross-view and
   identity checks).
 
+A markerless sequence (no marker wearer; ``sequence.people``) has no ``capture`` stage: this
+stage reads its calibration (``calib.io.read_camera``, the recipe's ``calibration_format``)
+and writes the rig beside the keypoints (``rig.npz``, ``artifacts.capture.CameraRig``; later
+stages find it through ``stages.common.capture_cameras``), finds the people in the views
+(:func:`detect.markerless.detect_markerless`: person detection per view, association across
+views by triangulation, bystanders rejected and counted in the report's ``bystanders``) and
+writes ``people.npz``: the people's triangulated roots per frame (``people_root (F, 2, 3)``)
+and every bystander's (``bystander_frame``, ``bystander_root``, ``bystander_views``).
+
 The videos of a sequence must have the same length and the recipe's frame rate
 (:func:`stages.common.check_videos`); ``stride`` keeps every n-th video frame (the detector
 dominates the pipeline's run time).
