@@ -23,6 +23,7 @@
 """
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -311,11 +312,17 @@ def _container_timing(path: Path) -> tuple[int, float | None, float | None]:
 
 
 _FOURCC_OK: dict[str, bool] = {}
+_FOURCC_LOCK = threading.Lock()
 
 
 def fourcc_available(fourcc: str) -> bool:
     """Whether this OpenCV build can write MP4s with ``fourcc`` (probed once per process with a
     tiny file: ``avc1`` (H.264) needs an FFmpeg with an H.264 encoder)."""
+    with _FOURCC_LOCK:
+        return _probe(fourcc)
+
+
+def _probe(fourcc: str) -> bool:
     if fourcc not in _FOURCC_OK:
         import os
         import tempfile
@@ -324,11 +331,17 @@ def fourcc_available(fourcc: str) -> bool:
 
         fd, tmp = tempfile.mkstemp(suffix=".mp4")
         os.close(fd)
+        saved = os.dup(2)  # a failed probe is not an error: FFmpeg's complaint goes nowhere
+        null = os.open(os.devnull, os.O_WRONLY)
         try:
+            os.dup2(null, 2)
             w = cv2.VideoWriter(tmp, cv2.VideoWriter_fourcc(*fourcc), 25.0, (64, 64))
             _FOURCC_OK[fourcc] = bool(w.isOpened())
             w.release()
         finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            os.close(null)
             os.unlink(tmp)
     return _FOURCC_OK[fourcc]
 

@@ -25,6 +25,25 @@ With ``plan.marker_realism`` the marker placement and capture are those of
 :func:`studio.mocap.capture` and the sequence npz also holds its ground truth (below; first
 frame 0).
 
+The realistic studio (``studio.lab``; the demo and bench presets) adds, per plan option:
+
+- ``lab``: the lab room, the second rig and the bystander are drawn in every video; the
+  bystander's truth is in the sequence npz (``bystander_betas``, ``bystander_body_pose``,
+  ``bystander_global_orient``, ``bystander_transl``, ``bystander_joints (F, J, 3)``) and its
+  spot and least distance to the subjects in ``gt/session.json`` (``sequences.<id>.bystander``);
+  a clean plate per camera (the empty room: ``<group>/videos/<camera>/clean_plate.mp4``, the
+  same look as the camera's videos) listed in ``gt/session.json`` ``realism.clean_plates``
+  (the recipe schema has no field for it: a stage finds it beside the camera's videos);
+- ``camera_look``: ``realism.camera_looks`` (gain, white balance, vignetting, noise, JPEG
+  quality, shutter per camera) and ``realism.compression`` (the codec used);
+- ``calib_error``: the recipe's calibration is perturbed; the true cameras are
+  ``gt/<group>/true/camera_parameters/<camera>/<action>.json`` (and ``studio.truth`` copies
+  them, not the recipe's, to ``gt/<group>/camera_parameters``); the error per camera in
+  ``realism.calibration_error``;
+- ``desync_frames``: ``realism.desync`` (the camera, frames, seconds): that camera's frame
+  ``f`` shows the motion at frame ``f + desync_frames`` (interpolated); the npz is at the
+  frames of the other cameras.
+
 A marker-only session (preset ``markers``, :func:`generate_markers`) has no scans, cameras,
 videos or partner; its ground truth:
 

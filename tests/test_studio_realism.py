@@ -344,3 +344,17 @@ def test_bystander_in_some_views_only_and_far_from_both_subjects_and_clean_plate
         assert np.median(diff[~people]) < 12 and np.percentile(diff[~people], 99) < 60
         # on the people it is not
         assert np.median(diff[ids[c] >= 0]) > 40
+
+
+def test_write_mp4_takes_the_first_codec_this_machine_has(tmp_path):
+    from formats.errors import InputError
+    from formats.video import VideoReader, fourcc_available, write_mp4
+
+    assert fourcc_available("mp4v")
+    assert not fourcc_available("zzzz")
+    frames = [np.full((48, 64, 3), 40 * i, np.uint8) for i in range(3)]
+    p = write_mp4(tmp_path / "a.mp4", frames, 25.0, codecs=("zzzz", "avc1", "mp4v"))
+    with VideoReader(p) as v:
+        assert len(v) == 3 and np.abs(v[2].astype(int) - 80).max() < 8
+    with pytest.raises(InputError, match="no MP4 writer"):
+        write_mp4(tmp_path / "b.mp4", frames, 25.0, codecs=("zzzz",))
