@@ -29,7 +29,7 @@ from typing import Any, Callable
 import numpy as np
 
 from artifacts.keypoints import Keypoints2D
-from calib.camera import normalized_from_pixels
+from calib.dlt import triangulate_points
 from detect import constants as K
 from detect import layout
 from detect.base import call_detector
@@ -165,36 +165,6 @@ def detect_candidates(source, factory, frames: np.ndarray, n_cam: int, o: Marker
 
 
 # ------------------------------------------------------------------------------ 3D
-
-
-def dlt(Ps: np.ndarray, xn: np.ndarray) -> np.ndarray:
-    """Linear triangulation of one point: ``Ps (V, 3, 4)`` normalised projection matrices
-    ``[R | -R T]``, ``xn (V, 2)`` undistorted normalised image points. Returns (3,)."""
-    A = np.concatenate([xn[:, :1] * Ps[:, 2] - Ps[:, 0], xn[:, 1:2] * Ps[:, 2] - Ps[:, 1]])
-    _, _, vt = np.linalg.svd(A)
-    X = vt[-1]
-    return X[:3] / X[3] if abs(X[3]) > 1e-12 else np.full(3, np.nan)
-
-
-def projection_matrices(cams) -> np.ndarray:
-    """(C, 3, 4) ``[R | -R T]`` (normalised image coordinates; T the camera centre)."""
-    return np.stack([np.hstack([np.asarray(c.R, float), -(np.asarray(c.R, float)
-                                                          @ np.asarray(c.T, float))[:, None]])
-                     for c in cams])
-
-
-def triangulate_points(cams, uv: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    """Per-keypoint DLT: ``uv (V, K, 2)`` pixels in the views ``cams``, ``ok (V, K)``.
-    Returns (K, 3), NaN where fewer than two views see the keypoint."""
-    P = projection_matrices(cams)
-    xn = np.stack([normalized_from_pixels(c, np.asarray(uv[v], float).reshape(-1, 2))
-                   for v, c in enumerate(cams)])  # (V, K, 2)
-    X = np.full((uv.shape[1], 3), np.nan)
-    for k in range(uv.shape[1]):
-        sel = np.flatnonzero(ok[:, k])
-        if len(sel) >= 2:
-            X[k] = dlt(P[sel], xn[sel, k])
-    return X
 
 
 def _project(cam, X: np.ndarray) -> np.ndarray:

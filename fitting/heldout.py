@@ -5,7 +5,7 @@ fit, :func:`fitting.partner_fit.fit_partner`, on a stride of the frames), their 
 keypoints projected into the left-out view and compared with that view's own detections
 (pixels, per keypoint group: ``face`` (nose, eyes, ears), ``body`` (the other 18 body and
 foot keypoints), ``hands`` (42)). Beside it the plain baseline: each keypoint triangulated
-from the other views alone (linear DLT, ``detect.markerless.triangulate_points``) and
+from the other views alone (linear DLT, ``calib.dlt.triangulate_points``) and
 projected into the left-out view. Both are measured on the same detections (the ones the
 baseline can predict: seen in at least two of the other views), so the difference is what
 the body model adds.
@@ -51,7 +51,7 @@ def triangulated(cams, kp: np.ndarray, min_conf: float) -> np.ndarray:
     """(F, K, 3) every keypoint triangulated per frame from the views ``cams`` (``kp (C, F,
     K, 3)``, detections at confidence >= ``min_conf``); NaN where fewer than two views see
     it."""
-    from detect.markerless import triangulate_points
+    from calib.dlt import triangulate_points
 
     kp = np.asarray(kp, float)
     ok = kp[..., 2] >= min_conf

@@ -1048,8 +1048,8 @@ def observed_bones(keypoints: Keypoints2D, cams, person: int = PARTNER, frames: 
                    min_conf: float = 0.5) -> tuple[np.ndarray, int]:
     """(B,) median length of each :data:`SHAPE_BONES` bone (metres) over the first ``frames``
     frames where the person is seen in >= 2 views, from the keypoints triangulated per frame
-    (linear DLT, ``detect.markerless.triangulate_points``), and the frames used."""
-    from detect.markerless import triangulate_points
+    (linear DLT, ``calib.dlt.triangulate_points``), and the frames used."""
+    from calib.dlt import triangulate_points
 
     idx = {n: i for i, n in enumerate(KP65)}
     ci = [keypoints.camera(c.name) for c in cams]
