@@ -346,7 +346,7 @@ def _hand_observations(model, rest, skel, keypoints, frames, cams, opts: MarkerF
 def fit_markers(model, shape: ShapeFit, template: Placement, markers, clock: mocap.VideoClock,
                 frames: np.ndarray, cams=(), keypoints=None,
                 opts: MarkerFitOptions = MarkerFitOptions(), progress=None, log=None,
-                source: str = "markers") -> tuple[BodyFit, dict]:
+                source: str = "markers", graphs: dict | None = None) -> tuple[BodyFit, dict]:
     """The marker-wearing subject's motion over a sequence's video frames.
 
     model : BodyModel; shape : the subject's :class:`artifacts.ShapeFit` (betas and marker
@@ -358,7 +358,9 @@ def fit_markers(model, shape: ShapeFit, template: Placement, markers, clock: moc
     cams : ``calib.Camera`` per view, in the order of the keypoints' cameras they name (only
     needed with keypoints); keypoints : ``artifacts.Keypoints2D`` or None (person 0's hand
     keypoints drive the fingers when ``opts.use_hands``); progress : iterable wrapper for the
-    per-frame loop; log : ``log(str)``; source : the capture's file, named in input errors.
+    per-frame loop; log : ``log(str)``; source : the capture's file, named in input errors;
+    graphs : a dict the caller keeps across calls (leave-one-out's refits of one sequence):
+    graphs built here are stored in it by their spec and reused (building one costs ~1 s).
 
     Frames before the first one with ``MIN_MARKERS`` visible markers are held at the first
     solution (``held_before_first_marker``), later frames with fewer are held by the prior and
@@ -400,7 +402,11 @@ def fit_markers(model, shape: ShapeFit, template: Placement, markers, clock: moc
                      skinned.support_of(hands[0]) if hands else (), len(cams) if hands else 0,
                      cams[0].model if hands else "h36m")
     t0 = time.perf_counter()
-    graph = MarkerGraph(spec, compiled.CompileOptions(mode=opts.compile), log=log)
+    graph = None if graphs is None else graphs.get((spec, opts.compile))
+    if graph is None:
+        graph = MarkerGraph(spec, compiled.CompileOptions(mode=opts.compile), log=log)
+        if graphs is not None:
+            graphs[(spec, opts.compile)] = graph
     t_build = time.perf_counter() - t0
     prior = priors.default_prior(skel.names[1:])
     solver = FrameSolver(graph, skel, u, Hm, prior, opts, Hk=hands[0] if hands else None,

@@ -109,3 +109,20 @@ def test_refits_run_with_the_given_marker_fit_options(anny, capture):
                           opts=MarkerFitOptions(max_frames=8, weights={"L_theta": 10.0}),
                           stride=1)
     assert stiff["median_mm"] > 3 * r["median_mm"], (stiff["median_mm"], r["median_mm"])
+
+
+def test_refits_set_up_once_match_fit_markers_per_marker(anny, capture):
+    """The default path (graph, solver and subject set up once for every held marker) gives
+    the numbers of calling ``fit_markers`` once per held marker (``reference=True``), frame by
+    frame, a misplaced marker (a large held-out error) included."""
+    betas, tpl, m = capture
+    wrong, _ = _moved(anny, tpl, WRONG, 0.03)
+    sf = to_shape_fit(betas, wrong, "given", "given")
+    clock = mocap.VideoClock(FPS)
+    ref = leave_one_out(anny, sf, tpl, m, clock, np.arange(F), held=HELD, stride=2,
+                        reference=True)
+    new = leave_one_out(anny, sf, tpl, m, clock, np.arange(F), held=HELD, stride=2)
+    assert np.array_equal(np.isnan(ref["error_mm"]), np.isnan(new["error_mm"]))
+    assert np.nanmax(np.abs(ref["error_mm"] - new["error_mm"])) < 1e-6
+    assert ref["per_marker"][WRONG]["median_mm"] > 20
+    assert new["fps_per_cpu_s"] == pytest.approx(F / new["cpu_s"])
