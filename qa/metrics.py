@@ -585,6 +585,26 @@ def _in_box(P, box):
     return np.all((P >= lo) & (P <= hi), axis=1)
 
 
+class _Surface:
+    """Exact distances to one posed full mesh (libigl's AABB tree, what
+    ``geometry.nearest_surface`` builds on every call), the tree built once on first use and
+    kept for the frame's other queries against the same mesh."""
+
+    def __init__(self, V, faces):
+        self.V = np.ascontiguousarray(V, dtype=np.float64)
+        self.F = faces
+        self.tree = None
+
+    def distance(self, P: np.ndarray) -> np.ndarray:
+        import igl
+
+        if self.tree is None:
+            self.tree = igl.AABB()
+            self.tree.init(self.V, self.F)
+        d2, _, _ = self.tree.squared_distance(self.V, self.F, np.ascontiguousarray(P, np.float64))
+        return np.sqrt(np.maximum(np.asarray(d2), 0.0))
+
+
 def _pair_frame(VA, VB, faces, proxy, need_near: bool):
     """Deepest interpenetration (m), penetrating volume (m^3) and (when ``need_near``) the
     closest distance (m, clipped at NEAR_M; 0 when penetrating) of two posed meshes VA, VB
@@ -596,21 +616,23 @@ def _pair_frame(VA, VB, faces, proxy, need_near: bool):
     point of the other's full mesh). The volume counts the cells of a grid over the bounding
     box of the penetrating points inside both proxies; the closest distance is that of the
     proxy points to the other full mesh (both ways)."""
-    from geometry import nearest_surface, winding_number
+    from geometry import winding_number
 
     PA, PB = proxy.points(VA), proxy.points(VB)
     pf = proxy.faces
+    faces = np.ascontiguousarray(faces, dtype=np.int64)
+    SA, SB = _Surface(VA, faces), _Surface(VB, faces)  # each tree built at most once
     pen, inside_pts = 0.0, []
     boxA, boxB = _bbox(VA), _bbox(VB)
     overlap = np.all(boxA[0] <= boxB[1]) and np.all(boxB[0] <= boxA[1])
     if overlap:
-        for X, (WP, W, box) in ((PA, (PB, VB, boxB)), (PB, (PA, VA, boxA))):
+        for X, (WP, W, box) in ((PA, (PB, SB, boxB)), (PB, (PA, SA, boxA))):
             cand = np.flatnonzero(_in_box(X, box))
             if not len(cand):
                 continue
             ins = cand[winding_number(X[cand], WP, pf) > 0.5]
             if len(ins):
-                d = nearest_surface(X[ins], W, faces).distance
+                d = W.distance(X[ins])
                 pen = max(pen, float(d.max()))
                 inside_pts.append(X[ins])
     vol = 0.0
@@ -637,10 +659,10 @@ def _pair_frame(VA, VB, faces, proxy, need_near: bool):
             near = 0.0
         else:
             near = K.NEAR_M
-            for X, (W, box) in ((PA, (VB, boxB)), (PB, (VA, boxA))):
+            for X, (W, box) in ((PA, (SB, boxB)), (PB, (SA, boxA))):
                 cand = _in_box(X, (box[0] - K.NEAR_M, box[1] + K.NEAR_M))
                 if cand.any():
-                    d = nearest_surface(X[cand], W, faces).distance
+                    d = W.distance(X[cand])
                     near = min(near, float(d.min()))
     return pen, vol, near
 
@@ -649,6 +671,20 @@ def _contact_gap(VA, VB, faces, sel):
     from geometry import facet_distances
 
     return max(float(facet_distances(VA, faces, a, VB, faces, b).a_to_b.min()) for a, b in sel)
+
+
+_PROXIES: dict = {}  # id(model) -> (model, its proxy): one decimation per model and process
+
+
+def _proxy(model, ProxyMesh):
+    """The model's ``ProxyMesh`` of ``K.PROXY_VERTICES`` (``igl.qslim``: ~0.7 s), built once
+    per model object in this process (the qa stage runs once per sequence)."""
+    hit = _PROXIES.get(id(model))
+    if hit is None or hit[0] is not model:
+        hit = (model, ProxyMesh.from_model(model, K.PROXY_VERTICES))
+        _PROXIES.clear()  # keep one: a model object is the session's
+        _PROXIES[id(model)] = hit
+    return hit[1]
 
 
 def _foot_vertices(model) -> list[np.ndarray]:
@@ -798,7 +834,7 @@ def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, f
     units: dict[str, str] = {}
     seq: dict = {"frames": int(F), "fps": float(fps)}
     fits = [(n, f) for n, f in zip(PEOPLE, (wearer, partner), strict=True) if f is not None]
-    proxy = ProxyMesh.from_model(model, K.PROXY_VERTICES)
+    proxy = _proxy(model, ProxyMesh)
     feet = _foot_vertices(model) if ground is not None else []
     verts, people = [], []
     seq["people"] = []

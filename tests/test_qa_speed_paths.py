@@ -1,0 +1,42 @@
+"""The qa metrics' faster paths give the numbers of the plain ones: a posed mesh's AABB tree
+kept for the frame's queries measures what ``geometry.nearest_surface`` measures, and the
+proxy is decimated once per model object."""
+from __future__ import annotations
+
+import numpy as np
+
+from geometry import nearest_surface
+from qa import metrics as QM
+
+
+def test_surface_tree_distances_are_nearest_surface_distances(anny):
+    from body import forward
+
+    rng = np.random.default_rng(3)
+    pose = rng.normal(0, 0.2, (1, anny.num_joints, 3))
+    V = forward(anny, np.zeros(1), pose, np.eye(3)[None], np.zeros((1, 3))).vertices[0]
+    faces = np.asarray(anny.faces)
+    s = QM._Surface(V, np.ascontiguousarray(faces, np.int64))
+    for n in (1, 50, 400):  # the same tree answers several queries
+        P = V[rng.integers(0, len(V), n)] + rng.normal(0, 0.05, (n, 3))
+        np.testing.assert_array_equal(s.distance(P), nearest_surface(P, V, faces).distance)
+
+
+def test_proxy_is_built_once_per_model(anny):
+    from fitting.collision import ProxyMesh
+
+    calls = []
+
+    class Counting(ProxyMesh):
+        @classmethod
+        def from_model(cls, model, n_vertices=2000, rmap=None):
+            calls.append(model)
+            return ProxyMesh.from_model(model, n_vertices, rmap)
+
+    QM._PROXIES.clear()
+    a = QM._proxy(anny, Counting)
+    assert QM._proxy(anny, Counting) is a and len(calls) == 1
+    # an entry under the model's id but made for another object (ids are reused) is no hit
+    QM._PROXIES[id(anny)] = (object(), "stale")
+    b = QM._proxy(anny, Counting)
+    assert b != "stale" and len(calls) == 2 and b.num_vertices == a.num_vertices
