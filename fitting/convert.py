@@ -42,7 +42,7 @@ import scipy.sparse.linalg as spla
 
 from body.lbs import forward, rest_state
 from body.model import BodyModel
-from body.rotations import rodrigues, rotmat_to_rotvec
+from body.rotations import rodrigues, rotmat_to_rotvec, skew
 from fitting.skinned import (
     _fk_np,
     fit_skeleton,
@@ -577,97 +577,465 @@ class PersonConversion:
     v2s_p95_mm: np.ndarray
     v2s_max_mm: np.ndarray
     cpu_s: float
-    restarts: int = 0  # frames whose warm start was replaced by a restart from the joints
+    restarts: int = 0  # kept for the report's layout: frames are fitted independently now
 
 
-SHAPE_FRAMES = 4
-SHAPE_ITERS = 8
-ITERS_FIRST = 12
 ITERS = 3
-#: a warm-started frame whose RMS distance to its correspondence points exceeds this is also
-#: fitted from the joint-name start, and the better of the two is kept (a fast motion over a
-#: stride lets the warm start fall into a wrong pose that later frames inherit)
-RESTART_RMS_M = 0.015
+SHAPE_ITERS = 6
+FRAME_BLOCK = 32  # frames fitted together (memory: the Gram matrices are (block, 162, 162))
+
+
+@dataclasses.dataclass(frozen=True)
+class RestSolution:
+    """The target fitted at the source template's rest posture (source betas 0): the start of
+    every subject's rest fit. ``G (Q, 3, 3)`` global rotations of the fitted joints, ``t0 (3,)``
+    root position, ``betas (K,)``."""
+
+    G: np.ndarray
+    t0: np.ndarray
+    betas: np.ndarray
+
+
+def template_rest(source: BodyModel, target: BodyModel, corr: Correspondence) -> RestSolution:
+    """The target on the source template at rest: joint-name start, then the joint LM on pose
+    and betas of :class:`TargetRig` (slow, once per model pair: see :func:`cached_rest`)."""
+    rig = TargetRig(target, subsample_vertices(target))
+    out = forward(source, np.zeros(source.num_betas), np.zeros((1, source.num_joints, 3)),
+                  np.eye(3)[None], np.zeros((1, 3)))
+    si, ti = joint_pairs(source, target)
+    jrig = JointRig(target, ti)
+    x = init_from_joints(rig, jrig, out.joints[0][si], shape=True)
+    xs = rig.fit_shape([x], [corr.target_points(out.vertices[0])[rig.vertices]],
+                       iters=SHAPE_ITERS + 2)
+    G, t = _fk_np(rig.skel, rig.u, xs[0])
+    return RestSolution(G=G, t0=t[0].copy(), betas=rig.betas.copy())
+
+
+def cached_rest(source, target, corr, key: str, cache_dir: Path) -> RestSolution:
+    """:func:`template_rest` from ``cache_dir/<key>.rest.npz`` (the correspondence's key), else
+    computed now and written there atomically."""
+    path = Path(cache_dir) / f"{key}.rest.npz"
+    if path.exists():
+        try:
+            with np.load(path) as z:
+                return RestSolution(G=z["G"], t0=z["t0"], betas=z["betas"])
+        except Exception:  # a truncated cache entry: compute it again
+            pass
+    rs = template_rest(source, target, corr)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz.tmp")
+    os.close(fd)
+    try:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, G=rs.G, t0=rs.t0, betas=rs.betas)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return rs
+
+
+def anchor_joints(source: BodyModel, target: BodyModel, rig) -> np.ndarray:
+    """(Q,) the source joint each fitted target joint turns with (``joint_pairs``), -1: none."""
+    si, ti = joint_pairs(source, target)
+    anchors = -np.ones(rig.Q, np.int64)
+    pos = {int(j): i for i, j in enumerate(rig.skel.joints)}
+    for s_, t_ in zip(si, ti, strict=True):
+        if int(t_) in pos:
+            anchors[pos[int(t_)]] = s_
+    return anchors
 
 
 def convert_motion(source: BodyModel, target: BodyModel, corr: Correspondence, betas,
-                   body_pose, global_orient, transl, shape_frames: int = SHAPE_FRAMES,
-                   iters: int = ITERS, progress=None, rig: TargetRig | None = None,
-                   fit_shape: bool = True, shape_at_rest: bool = True) -> PersonConversion:
+                   body_pose, global_orient, transl, iters: int = ITERS, progress=None,
+                   rig=None, fit_shape: bool = True, rest: RestSolution | None = None,
+                   adjacency: np.ndarray | None = None, **_ignored) -> PersonConversion:
     """Convert one person's source motion (body.forward arguments of ``source``: betas (S,),
-    body_pose (F, Js, 3), global_orient (F, 3, 3), transl (F, 3)) to ``target``."""
+    body_pose (F, Js, 3), global_orient (F, 3, 3), transl (F, 3)) to ``target``.
+
+    Betas once per subject, at its rest posture (pose 0, where the registration was made):
+    :meth:`GlobalRig.fit_pose` on pose, root and betas from ``rest`` (:func:`template_rest`).
+    Then every frame on its own, all frames batched: each target joint starts turned as its
+    source anchor joint turned from rest (:func:`initial_rotations`), then ``iters`` LM
+    iterations on the global rotations and the root. ``v2s``: every target vertex's distance to
+    the posed source surface near its correspondence (:func:`surface_distance`), mm."""
     t_cpu = time.process_time()
+    body_pose = np.asarray(body_pose, float)
     F = len(body_pose)
-    rest_src = rest_state(source, betas)
+    rig = rig if rig is not None else GlobalRig(target, subsample_vertices(target))
+    rest = rest if rest is not None else template_rest(source, target, corr)
     Fs = np.asarray(source.faces, np.int64)
-    rig = rig if rig is not None else TargetRig(target, subsample_vertices(target))
-    rig.set_betas(np.zeros(rig.K))
-    jrig = None
-    si, ti = joint_pairs(source, target)
-
-    def source_frame(f):
-        if f is None:  # the subject's rest posture (pose 0), where the registration was made
-            out = forward(source, None, np.zeros((1, source.num_joints, 3)), np.eye(3)[None],
-                          np.zeros((1, 3)), rest=rest_src)
-        else:
-            out = forward(source, None, body_pose[f:f + 1], global_orient[f:f + 1],
-                          transl[f:f + 1], rest=rest_src)
-        return out.vertices[0], out.joints[0]
-
-    def init(f, shape):
-        nonlocal jrig
-        Vs, Js = source_frame(f)
-        if jrig is None:
-            jrig = JointRig(target, ti)
-        jrig.set_betas(rig.betas)
-        x = init_from_joints(rig, jrig, Js[si], shape=shape)
-        return rig.fit(x, corr.target_points(Vs)[rig.vertices], iters=ITERS_FIRST)[0]
-
-    # shape once per subject: frames spread over the motion, poses and betas alternating
-    if fit_shape and shape_at_rest:  # betas depend on the subject only: one static fit
-        tg = [corr.target_points(source_frame(None)[0])[rig.vertices]]
-        rig.fit_shape([init(None, shape=True)], tg, iters=SHAPE_ITERS)
-    elif fit_shape and shape_frames > 0:
-        sf = np.unique(np.linspace(0, F - 1, min(shape_frames, F)).round().astype(int))
-        tg = [corr.target_points(source_frame(f)[0])[rig.vertices] for f in sf]
-        xs = [init(f, shape=(i == 0)) for i, f in enumerate(sf)]
-        rig.fit_shape(xs, tg, iters=SHAPE_ITERS)
-    K, Jt = rig.K, target.num_joints
+    TT = adjacency if adjacency is not None else igl.triangle_triangle_adjacency(Fs)[0]
+    rest_src = rest_state(source, betas)
+    src0 = forward(source, None, np.zeros((1, source.num_joints, 3)), np.eye(3)[None],
+                   np.zeros((1, 3)), rest=rest_src)
+    rig.set_betas(rest.betas)
+    G_rest, t0 = rest.G[None].copy(), rest.t0[None].copy()
+    if fit_shape:
+        tg = corr.target_points(src0.vertices)[:, rig.vertices]
+        t0 = best_t0(rig, G_rest, tg, rig.correctives(G_rest))
+        G_rest, t0, _ = rig.fit_pose(G_rest, t0, tg, iters=SHAPE_ITERS, shape_prior=BETA_PRIOR)
+    anchors = anchor_joints(source, target, rig)
+    full_b = np.zeros(target.num_betas)
+    full_b[:rig.K] = rig.betas
+    skin = FullSkin(rig, full_b)
+    Jt = target.num_joints
     R_all = np.zeros((F, 3, 3))
     T_all = np.zeros((F, 3))
     P_all = np.zeros((F, Jt, 3))
     stats = np.full((4, F), np.nan)
-    full_b = np.zeros(target.num_betas)
-    full_b[:K] = rig.betas
-    rest_t = rest_state(target, full_b)
-    x = x_prev = None
-    restarts = 0
-    loop = range(F) if progress is None else progress(range(F), total=F, desc="convert")
-    for f in loop:
-        Vs, _ = source_frame(f)
-        tgt = corr.target_points(Vs)
-        if x is None:
-            x0 = init(f, shape=False)
-        elif x_prev is None:
-            x0 = x
-        else:  # constant-velocity prediction of the warm start
-            x0 = 2 * x - x_prev
-        x_prev = x
-        x, cost = rig.fit(x0, tgt[rig.vertices], iters=iters)
-        if np.sqrt(cost / len(rig.vertices)) > RESTART_RMS_M:  # the warm start lost the pose
-            xr, cr = rig.fit(init(f, shape=False), tgt[rig.vertices], iters=iters)
-            if cr < cost:
-                x, x_prev, restarts = xr, None, restarts + 1
-        R, T, pose = rig.params(x)
-        R_all[f], T_all[f], P_all[f] = R, T, pose
-        Vt = forward(target, None, pose[None], R[None], T[None], rest=rest_t).vertices[0]
-        d, _, _, _ = closest_on_mesh(Vt, Vs, Fs)
-        d = d * 1e3
-        stats[:, f] = d.mean(), np.median(d), np.percentile(d, 95), d.max()
+    blocks = [np.arange(i, min(i + FRAME_BLOCK, F)) for i in range(0, F, FRAME_BLOCK)]
+    loop = blocks if progress is None else progress(blocks, total=len(blocks), desc="convert")
+    for fb in loop:
+        out = forward(source, None, body_pose[fb], global_orient[fb], transl[fb], rest=rest_src)
+        Vs = out.vertices
+        tg = corr.target_points(Vs)
+        G = initial_rotations(rig, out.joint_rot, src0.joint_rot[0], anchors, G_rest[0])
+        t0 = best_t0(rig, G, tg[:, rig.vertices], rig.correctives(G))
+        G, t0, _ = rig.fit_pose(G, t0, tg[:, rig.vertices], iters=iters)
+        D = rig.local_rotations(G)
+        R_all[fb] = G[:, 0]
+        T_all[fb] = t0 - rig.u[0]
+        P_all[np.ix_(fb, rig.skel.joints[1:])] = rotmat_to_rotvec(D[:, 1:])
+        Vt = skin(G, t0)
+        for i, f in enumerate(fb):
+            d = surface_distance(Vt[i], corr.tgt_vert_face, Vs[i], Fs, TT) * 1e3
+            stats[:, f] = d.mean(), np.median(d), np.percentile(d, 95), d.max()
     return PersonConversion(global_orient=R_all, transl=T_all, body_pose=P_all,
                             betas=rig.betas.copy(), v2s_mean_mm=stats[0], v2s_median_mm=stats[1],
                             v2s_p95_mm=stats[2], v2s_max_mm=stats[3],
-                            cpu_s=time.process_time() - t_cpu, restarts=restarts)
+                            cpu_s=time.process_time() - t_cpu, restarts=0)
+
+
+# ----------------------------------------------------------------------------- batched fit (global rotations)
+#
+# The target's LBS in *global* joint rotations: with G_q the world rotation of fitted joint q and
+# t_0 the world position of the root joint, a skinned point is exactly
+#     v = (sum_q W_q) t_0 + sum_q G_q c_q,
+#     c_q = l_q + W_q d + sum_{k child of q} S_k u_k       (S_k = sum of W over k's subtree)
+# with (l, W) the slot coefficients of fitting/skinned.py, u the reduced-tree offsets and d the
+# pose correctives (rest frame). It is linear in each G_q and in t_0, and turning G_q by a world
+# rotation vector w moves v by w x (G_q c_q) alone: Gauss-Newton on independent global
+# rotations has normal equations built from one Gram matrix P^T P of the points' per-joint parts
+# p_q = G_q c_q, for all frames at once.
+
+class GlobalRig:
+    """Points of the target (rest vertices ``vertices``) as functions of the global rotations
+    ``G (F, Q, 3, 3)`` of the fitted joints, the root position ``t0 (F, 3)`` and ``betas``."""
+
+    def __init__(self, model: BodyModel, vertices: np.ndarray, num_betas: int = 10):
+        self.model = model
+        J = model.num_joints
+        fit = [j for j in range(J) if model.joint_names[j] not in EYE_JOINTS]
+        self.skel = fit_skeleton(model, fit)
+        Q = len(self.skel.joints)
+        self.Q = Q
+        self.K = min(num_betas, model.num_shape or model.num_betas)
+        self.vertices = np.asarray(vertices, np.int64)
+        W = model.weights[self.vertices]
+        A = subtree(self.skel).astype(float)
+        self.children = np.zeros((Q, Q))
+        for q in range(1, Q):
+            self.children[self.skel.parents[q], q] = 1.0
+
+        def coeffs(betas):
+            rest = rest_state(model, betas)
+            u, _ = reduced_offsets(model, rest, self.skel)
+            H = vertex_coeffs(model, rest, self.skel, W, rest.vertices[0][self.vertices])
+            return u, H
+
+        u0, H0 = coeffs(np.zeros(model.num_betas))
+        self.Wq = H0[..., 3]  # (N, Q)
+        self.SW = self.Wq @ A.T  # (N, Q): weight of q's subtree
+        self.Wsum = self.Wq.sum(1)  # (N,)
+        self._c0, self._u0 = self._c(H0[..., :3], u0), u0
+        dc, du = [], []
+        for k in range(self.K):
+            e = np.zeros(model.num_betas)
+            e[k] = 1.0
+            u, H = coeffs(e)
+            du.append(u - u0)
+            dc.append(self._c(H[..., :3] - H0[..., :3], u - u0))
+        self._dc = np.stack(dc) if dc else np.zeros((0,) + self._c0.shape)  # (K, N, Q, 3)
+        self._du = np.stack(du) if du else np.zeros((0, Q, 3))
+        pd = model.posedirs
+        self.posedirs = (None if pd is None else np.ascontiguousarray(
+            pd.reshape(pd.shape[0], -1, 3)[:, self.vertices].reshape(pd.shape[0], -1)))
+        nz = (self.SW > 0) | (self.Wq > 0)
+        for k in range(self.K):
+            nz |= np.abs(self._dc[k]).sum(-1) > 0
+        self.pn, self.pq = np.nonzero(nz)  # the (point, joint) pairs with a part
+        self.pw = self.Wq[self.pn, self.pq]
+        N = len(self.vertices)
+        self.S = sp.csr_matrix((np.ones(len(self.pn)), (self.pn, np.arange(len(self.pn)))),
+                               shape=(N, len(self.pn)))
+        self._dcp = self._dc[:, self.pn, self.pq]  # (K, nnz, 3)
+        self.set_betas(np.zeros(self.K))
+
+    def _c(self, l, u):
+        return l + np.einsum("pq,nq,qx->npx", self.children, self.SW, u)
+
+    def set_betas(self, betas):
+        self.betas = np.asarray(betas, float)[: self.K].copy()
+        self.c = self._c0 + np.einsum("k,knqx->nqx", self.betas, self._dc)
+        self.u = self._u0 + np.einsum("k,kqx->qx", self.betas, self._du)
+        if hasattr(self, "pn"):
+            self.cp = self.c[self.pn, self.pq]  # (nnz, 3)
+
+    # --- kinematics
+    def local_rotations(self, G):
+        """(F, Q, 3, 3) D_q = G_p^T G_q (D_0 = G_0)."""
+        D = G.copy()
+        par = self.skel.parents
+        D[:, 1:] = np.swapaxes(G[:, par[1:]], -1, -2) @ G[:, 1:]
+        return D
+
+    def correctives(self, G):
+        """(F, N, 3) rest-frame pose correctives of the points, or None."""
+        if self.posedirs is None:
+            return None
+        D = self.local_rotations(G)
+        J = self.model.num_joints
+        full = np.broadcast_to(np.eye(3), (len(G), J, 3, 3)).copy()
+        full[:, self.skel.joints] = D
+        feat = (full[:, 1:] - np.eye(3)).reshape(len(G), -1)
+        return (feat @ self.posedirs).reshape(len(G), -1, 3)
+
+    def parts_sparse(self, G, d=None):
+        """(F, nnz, 3) the nonzero parts p_q = G_q (c_q + W_q d) of the (point, joint) pairs."""
+        Gq = G[:, self.pq]  # (F, nnz, 3, 3)
+        c = np.broadcast_to(self.cp, (len(G),) + self.cp.shape)
+        if d is not None:
+            c = c + self.pw[None, :, None] * d[:, self.pn]
+        return np.einsum("fpab,fpb->fpa", Gq, c)
+
+    def parts(self, G, d=None):
+        """(F, N, Q, 3) p_q = G_q c_q (+ W_q G_q d), zero where the pair has no part."""
+        ps = self.parts_sparse(G, d)
+        p = np.zeros((len(G), len(self.vertices), self.Q, 3))
+        p[:, self.pn, self.pq] = ps
+        return p
+
+    def sum_parts(self, ps):
+        F = ps.shape[0]
+        return (self.S @ ps.transpose(1, 0, 2).reshape(ps.shape[1], F * 3)).reshape(-1, F, 3).transpose(1, 0, 2)
+
+    def positions(self, G, t0, d=None):
+        return self.Wsum[None, :, None] * t0[:, None] + self.sum_parts(self.parts_sparse(G, d))
+
+    # --- fits
+    def fit_pose(self, G, t0, targets, iters: int = 3, lam: float = 1e-3, shape_prior=None):
+        """Batched LM on (G, t0) of every frame: ``sum_n |v_n - target_n|^2``; with
+        ``shape_prior`` (one frame only) the betas too, with ridge ``shape_prior * N``.
+        Returns (G, t0, cost (F,))."""
+        F, Q = G.shape[:2]
+        G, t0 = G.copy(), t0.copy()
+        N = targets.shape[1]
+        K = self.K if shape_prior is not None else 0
+        if K and F != 1:
+            raise ValueError("fit_pose: betas are fitted on one frame")
+        n3 = 3 * Q
+        n = n3 + 3 + K
+        ws = self.Wsum
+        lamf = np.full(F, lam)
+        mu = 0.0 if not K else shape_prior * N
+
+        def evaluate(G, t0, b):
+            if K:
+                self.set_betas(b)
+            d = self.correctives(G)
+            ps = self.parts_sparse(G, d)
+            r = ws[None, :, None] * t0[:, None] + self.sum_parts(ps) - targets
+            p = np.zeros((len(G), N, Q, 3))
+            p[:, self.pn, self.pq] = ps
+            c = (r * r).sum((1, 2)) + mu * float(b @ b)
+            return p, r, c
+
+        b = self.betas.copy()
+        p, r, cost = evaluate(G, t0, b)
+        for _ in range(iters):
+            P = p.reshape(F, N, n3).astype(np.float32)
+            M = np.matmul(np.swapaxes(P, 1, 2), P).astype(float).reshape(F, Q, 3, Q, 3)
+            M = M.transpose(0, 1, 3, 2, 4)  # (F, a, b, 3, 3) = sum_n p_a p_b^T
+            tr = np.trace(M, axis1=-2, axis2=-1)
+            A = np.zeros((F, n, n))
+            blk = tr[..., None, None] * np.eye(3) - np.swapaxes(M, -1, -2)
+            A[:, :n3, :n3] = blk.transpose(0, 1, 3, 2, 4).reshape(F, n3, n3)
+            pf = p.reshape(F, N, n3)
+            s = (ws[None, None, :] @ pf)[:, 0].reshape(F, Q, 3)
+            A[:, n3:n3 + 3, :n3] = (-skew(s)).transpose(0, 2, 1, 3).reshape(F, 3, n3)
+            A[:, :n3, n3:n3 + 3] = np.swapaxes(A[:, n3:n3 + 3, :n3], 1, 2)
+            A[:, n3:n3 + 3, n3:n3 + 3] = np.eye(3) * float((ws ** 2).sum())
+            g = np.empty((F, n))
+            g[:, :n3] = _grad_rot(pf, r, Q)
+            g[:, n3:n3 + 3] = np.einsum("fnx,n->fx", r, ws)
+            if K:
+                B = np.einsum("qab,knqb->nak", G[0], self._dc)  # (N, 3, K) d v / d betas
+                A[0, n3 + 3:, n3 + 3:] = np.einsum("nak,nal->kl", B, B) + mu * np.eye(K)
+                Aab = np.cross(p[0][:, :, :, None], B[:, None, :, :], axis=2).sum(0)  # (Q,3,K)
+                A[0, :n3, n3 + 3:] = Aab.reshape(n3, K)
+                A[0, n3:n3 + 3, n3 + 3:] = np.einsum("n,nak->ak", ws, B)
+                A[0, n3 + 3:, :n3 + 3] = A[0, :n3 + 3, n3 + 3:].T
+                g[0, n3 + 3:] = np.einsum("nak,na->k", B, r[0]) + mu * b
+            diag = np.einsum("fii->fi", A).copy()
+            while True:
+                Ad = A + (lamf[:, None] * diag + 1e-12)[..., None] * np.eye(n)
+                step = -np.linalg.solve(Ad, g[..., None])[..., 0]
+                Gn = rodrigues(step[:, :n3].reshape(F, Q, 3)) @ G
+                tn = t0 + step[:, n3:n3 + 3]
+                bn = b + step[0, n3 + 3:] if K else b
+                pn, rn, cn = evaluate(Gn, tn, bn)
+                ok = cn < cost
+                if ok.all() or (lamf[~ok] > 1e6).all():
+                    break
+                lamf = np.where(ok, lamf, lamf * 10)
+            G[ok], t0[ok], p[ok], r[ok], cost[ok] = Gn[ok], tn[ok], pn[ok], rn[ok], cn[ok]
+            if K and ok[0]:
+                b = bn
+            lamf = np.where(ok, np.maximum(lamf / 3, 1e-7), lamf)
+        if K:
+            self.set_betas(b)
+        return G, t0, cost
+
+
+def _grad_rot(pf, r, Q):
+    """(F, 3Q) sum_n p_nq x r_n of parts pf (F, N, 3Q) and residuals r (F, N, 3)."""
+    F = len(pf)
+    pr = (np.swapaxes(pf, 1, 2) @ r).reshape(F, Q, 3, 3)  # sum_n p_a r_b
+    g = np.stack([pr[..., 1, 2] - pr[..., 2, 1], pr[..., 2, 0] - pr[..., 0, 2],
+                  pr[..., 0, 1] - pr[..., 1, 0]], -1)
+    return g.reshape(F, 3 * Q)
+
+
+def initial_rotations(rig: GlobalRig, G_src, src_rest, anchors, G_rest):
+    """(F, Q, 3, 3): each fitted target joint turned as its source anchor joint turned from the
+    rest posture (``G_src (F, Js, 3, 3)`` source joint rotations, ``src_rest (Js, 3, 3)`` at
+    rest, ``anchors (Q,)`` source joint or -1, ``G_rest (Q, 3, 3)`` the target at rest);
+    joints without an anchor keep their rest rotation relative to their parent."""
+    F, Q = len(G_src), rig.Q
+    G = np.empty((F, Q, 3, 3))
+    par = rig.skel.parents
+    for q in range(Q):
+        a = anchors[q]
+        if a >= 0:
+            G[:, q] = G_src[:, a] @ (src_rest[a].T @ G_rest[q])
+        else:
+            p = par[q]
+            G[:, q] = G[:, p] @ (G_rest[p].T @ G_rest[q]) if p >= 0 else G_rest[q]
+    return G
+
+
+def best_t0(rig, G, targets, d=None):
+    p = rig.parts(G, d).sum(2)
+    ws = rig.Wsum
+    return np.einsum("fnx,n->fx", targets - p, ws) / float((ws ** 2).sum())
+
+
+def joint_positions(rig: GlobalRig, G, t0):
+    """(F, Q, 3) world positions of the fitted joints: t_q = t_p + G_p u_q."""
+    t = np.empty(G.shape[:2] + (3,))
+    t[:, 0] = t0
+    par = rig.skel.parents
+    for q in range(1, rig.Q):
+        t[:, q] = t[:, par[q]] + G[:, par[q]] @ rig.u[q]
+    return t
+
+
+class FullSkin:
+    """The whole target mesh from a GlobalRig's unknowns (betas fixed at construction)."""
+
+    def __init__(self, rig: GlobalRig, betas_full):
+        model = rig.model
+        self.rest = rest_state(model, betas_full)
+        _, self.s = reduced_offsets(model, self.rest, rig.skel)
+        self.rig = rig
+        self.W = model.weights.tocsr()
+        pd = model.posedirs
+        self.posedirs = None if pd is None else np.asarray(pd, np.float32)
+
+    def __call__(self, G, t0):
+        rig, F = self.rig, len(G)
+        own = rig.skel.owner
+        tq = joint_positions(rig, G, t0)
+        Gj = G[:, own]  # (F, J, 3, 3)
+        tj = tq[:, own] + np.einsum("fjab,jb->fja", Gj, self.s)
+        h = self.rest.joints[0]
+        tt = tj - np.einsum("fjab,jb->fja", Gj, h)
+        J = Gj.shape[1]
+        T12 = np.concatenate([Gj.reshape(F, J, 9), tt], -1)
+        M = (self.W @ T12.transpose(1, 0, 2).reshape(J, F * 12)).reshape(-1, F, 12)
+        M = M.transpose(1, 0, 2)
+        v = np.broadcast_to(self.rest.vertices[0], (F,) + self.rest.vertices.shape[1:])
+        if self.posedirs is not None:
+            D = rig.local_rotations(G)
+            full = np.broadcast_to(np.eye(3), (F, J, 3, 3)).copy()
+            full[:, rig.skel.joints] = D
+            feat = (full[:, 1:] - np.eye(3)).reshape(F, -1).astype(np.float32)
+            v = v + (feat @ self.posedirs).reshape(F, -1, 3)
+        return np.einsum("fvab,fvb->fva", M[..., :9].reshape(F, -1, 3, 3), v) + M[..., 9:]
+
+
+def _point_triangle(p, a, b, c):
+    """Exact distance (N,) of points p (N, 3) to triangles (a, b, c) and whether the point's
+    projection falls inside (N,), plus the unclamped barycentric coordinates (N, 3)."""
+    e0, e1, v2 = b - a, c - a, p - a
+    d00 = (e0 * e0).sum(1)
+    d01 = (e0 * e1).sum(1)
+    d11 = (e1 * e1).sum(1)
+    d20 = (v2 * e0).sum(1)
+    d21 = (v2 * e1).sum(1)
+    den = d00 * d11 - d01 * d01
+    den = np.where(np.abs(den) < 1e-30, 1e-30, den)
+    v = (d11 * d20 - d01 * d21) / den
+    w = (d00 * d21 - d01 * d20) / den
+    bary = np.stack([1 - v - w, v, w], 1)
+    inside = (bary >= 0).all(1)
+    n = np.cross(e0, e1)
+    nn = np.linalg.norm(n, axis=1)
+    dist = np.abs((v2 * n).sum(1)) / np.maximum(nn, 1e-30)
+    out = ~inside
+    if out.any():
+        po, ao, bo, co = p[out], a[out], b[out], c[out]
+        best = None
+        for s0, s1 in ((ao, bo), (bo, co), (co, ao)):
+            e = s1 - s0
+            t = np.clip(((po - s0) * e).sum(1) / np.maximum((e * e).sum(1), 1e-30), 0, 1)
+            dd = np.linalg.norm(po - s0 - t[:, None] * e, axis=1)
+            best = dd if best is None else np.minimum(best, dd)
+        dist[out] = best
+    return dist, inside, bary
+
+
+def surface_distance(points, faces0, V, F, TT, steps: int = 6):
+    """Distance (N,) of each point to the surface (V, F) near its start facet: from
+    ``faces0`` walk to the neighbouring facet (``TT``, igl.triangle_triangle_adjacency) across the
+    edge the point's projection lies beyond, until it falls inside a facet; then the three
+    facets around the last one too; the smallest exact point-to-facet distance seen. An upper
+    bound of the distance to the whole surface, equal to it unless another part of the body is
+    closer (contact) or the walk is cut short (``steps``)."""
+    N = len(points)
+    f = np.asarray(faces0, np.int64).copy()
+    best = np.full(N, np.inf)
+    active = np.arange(N)
+    for _ in range(steps):
+        tri = V[F[f[active]]]
+        d, inside, bary = _point_triangle(points[active], tri[:, 0], tri[:, 1], tri[:, 2])
+        best[active] = np.minimum(best[active], d)
+        go = ~inside
+        if not go.any():
+            break
+        a = active[go]
+        k = np.argmin(bary[go], 1)  # the vertex the projection is farthest beyond
+        nxt = TT[f[a], (k + 1) % 3]  # facet across the opposite edge
+        ok = nxt >= 0
+        f[a[ok]] = nxt[ok]
+        active = a[ok]
+    for e in range(3):  # the last facet's neighbours (a ridge between two facets)
+        nb = TT[f, e]
+        nb = np.where(nb >= 0, nb, f)
+        tri = V[F[nb]]
+        best = np.minimum(best, _point_triangle(points, tri[:, 0], tri[:, 1], tri[:, 2])[0])
+    return best
 
 
 def smplx_arrays(target: BodyModel, pose: np.ndarray) -> dict[str, np.ndarray]:

@@ -5,7 +5,9 @@ path; relative to the recipe file's folder), else ``$SMPLX_MODEL_PATH``, else th
 stand-in (``body.smplx_standin``); its content is a raw input (part of the key). The surface
 correspondence source <-> target is registered once per model pair and cached under
 ``assets/cache/correspondence/<key>.npz`` (key: both model files' sha256 and the registration
-code), then copied into the artifact. Person 0 is the marker wearer (marker_fit), person 1 the
+code), then copied into the artifact; next to it ``<key>.rest.npz``, the target fitted on the
+source template at rest (``fitting.convert.cached_rest``), every subject's starting point.
+Conversion: ``fitting.convert.convert_motion`` (batched LM on global joint rotations). Person 0 is the marker wearer (marker_fit), person 1 the
 partner (partner_fit) when the sequence has one; frames are marker_fit's frames that
 partner_fit also has. Frames flagged not valid in a source fit stay not valid (still
 converted). Writes
@@ -21,7 +23,8 @@ converted). Writes
 - ``report.json`` (``artifacts.ConversionReport``): ``target`` {path, sha256, kind,
   n_vertices, standin, description}, ``per_person`` [{subject, v2s_median_mm (median over frames of v2s_mm), v2s_p95_mm (median
   over frames of the per-frame 95th percentile), v2s_max_mm, frames}], ``fps_per_core``,
-  ``cpu_s`` (conversion, registration excluded), ``registration_cpu_s``, ``warnings``.
+  ``cpu_s`` (conversion: the rig, every person's rest fit, frames and v2s; registration and the
+template rest fit excluded), ``registration_cpu_s``, ``warnings``.
 """
 from __future__ import annotations
 
@@ -46,16 +49,13 @@ READS = ("body_model.kind", "sequence.markers_on", "sequence.partner")
 @dataclass(frozen=True)
 class Options:
     """target : SMPL-family model file (.npz/.pkl; relative to the recipe's folder), empty:
-    ``$SMPLX_MODEL_PATH`` or the stand-in; shape_frames : frames the betas are fitted on;
-    iters : LM iterations per frame (warm-started)."""
+    ``$SMPLX_MODEL_PATH`` or the stand-in; iters : LM iterations per frame (each frame starts
+    from its source joints' rotations; betas are fitted once per subject at its rest posture)."""
 
     target: str = ""
-    shape_frames: int = 4
     iters: int = 3
 
     def __post_init__(self):
-        if self.shape_frames < 1:
-            raise ValueError(f"shape_frames: must be >= 1, got {self.shape_frames}")
         if self.iters < 1:
             raise ValueError(f"iters: must be >= 1, got {self.iters}")
 
@@ -123,12 +123,15 @@ def _frames(wearer, partner):
 
 
 def run(ctx: StageContext) -> None:
+    import igl
+
     from artifacts import BodyFit, ConversionReport, SMPLXFit, SurfaceCorrespondence
     from artifacts.smplx_fit import PersonConversion, TargetInfo
     from body import load_model
     from fitting.convert import (
-        TargetRig,
+        GlobalRig,
         cached_correspondence,
+        cached_rest,
         convert_motion,
         file_sha256,
         smplx_arrays,
@@ -146,6 +149,7 @@ def run(ctx: StageContext) -> None:
     t0 = time.process_time()
     corr, key, fresh = cached_correspondence(source, target, ctx.raw["body_model"], tfile,
                                              CACHE_DIR, log=ctx.log)
+    rest = cached_rest(source, target, corr, key, CACHE_DIR)
     reg_cpu = time.process_time() - t0
     SurfaceCorrespondence.of(corr).save(ctx.out)
 
@@ -160,7 +164,10 @@ def run(ctx: StageContext) -> None:
     if F == 0:
         raise InputError("partner_fit/fit.npz", "frames",
                          "no frame of marker_fit is also in partner_fit: nothing to convert")
-    rig = TargetRig(target, subsample_vertices(target), NUM_BETAS)
+    t1 = time.process_time()
+    rig = GlobalRig(target, subsample_vertices(target), NUM_BETAS)
+    adjacency = igl.triangle_triangle_adjacency(np.asarray(source.faces, np.int64))[0]
+    setup_cpu = time.process_time() - t1  # the rig and the source's facet adjacency
     K = rig.K
     arrays = {"transl": np.zeros((P, F, 3)), "global_orient": np.zeros((P, F, 3, 3)),
               "betas": np.zeros((P, NUM_BETAS)), "expression": np.zeros((P, 10)),
@@ -168,11 +175,11 @@ def run(ctx: StageContext) -> None:
     v2s = {k: np.full((P, F), np.nan) for k in ("v2s_mm", "v2s_median_mm", "v2s_p95_mm",
                                                  "v2s_max_mm")}
     poses = []
-    per_person, warnings, cpu = [], [], 0.0
+    per_person, warnings, cpu = [], [], setup_cpu
     for p, (fit, ix) in enumerate(zip(fits, idx, strict=True)):
         res = convert_motion(source, target, corr, fit.betas, fit.body_pose[ix],
-                             fit.global_orient[ix], fit.transl[ix], shape_frames=o.shape_frames,
-                             iters=o.iters, progress=ctx.progress, rig=rig)
+                             fit.global_orient[ix], fit.transl[ix], iters=o.iters,
+                             progress=ctx.progress, rig=rig, rest=rest, adjacency=adjacency)
         cpu += res.cpu_s
         arrays["transl"][p], arrays["global_orient"][p] = res.transl, res.global_orient
         arrays["betas"][p, :K] = res.betas
@@ -212,5 +219,5 @@ def run(ctx: StageContext) -> None:
 
 
 STAGE = Stage(name="convert", func=run, per="sequence", upstream=("marker_fit", "partner_fit"),
-              params=Options, raw_inputs=raw_inputs, reads=READS, version="1",
+              params=Options, raw_inputs=raw_inputs, reads=READS, version="2",
               doc="SMPL-X parameters of both people (surface-correspondence fit)")

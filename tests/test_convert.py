@@ -80,7 +80,7 @@ def converted(tmp_path_factory, anny, target_path, monkeypatch_module):
     tree = {"body_model": {"kind": "anny"}, "sequence": {"markers_on": "s1", "partner": "s2"}}
     raw = {"body_model": Path(anny.source), "target": target_path}
     ctx = StageContext(stage="convert", unit="g/A 1", recipe=RecipeView(tree, "convert"),
-                       params=C.Options(shape_frames=3), inputs={"marker_fit": wear,
+                       params=C.Options(), inputs={"marker_fit": wear,
                                                                 "partner_fit": part},
                        raw=raw, out=_writer(tmp / "out"),
                        progress=lambda it, total=None, desc="": it, log=lambda s: None)
@@ -169,7 +169,7 @@ def test_recovers_known_smplx_pose(target, tmp_path):
     go = rodrigues(np.array([[0.1, 0.5 + 0.1 * i, 0.0] for i in range(F)]))
     tr = np.array([[0.2, 0.1 * i, 1.0] for i in range(F)])
     corr = register(target, target)
-    res = convert_motion(target, target, corr, betas, pose, go, tr, shape_frames=3, iters=8)
+    res = convert_motion(target, target, corr, betas, pose, go, tr, iters=8)
     assert np.median(res.v2s_mean_mm) < 1.0, res.v2s_mean_mm
     truth = forward(target, betas, pose, go, tr).vertices
     b = np.zeros(target.num_betas)
@@ -227,10 +227,10 @@ def test_bench_case_reads_convert_artifacts(converted, tmp_path):
         collect(tmp_path / "empty")
 
 
-def test_a_lost_warm_start_is_restarted_from_the_joints(target):
+def test_a_sudden_turn_converts_like_a_smooth_frame(target):
     """A sudden half-turn and a new arm pose between two frames (a fast motion over a stride):
-    the warm start from the previous frame cannot follow in a few iterations, so the frame is
-    also fitted from the joint-name start, and the conversion stays on the surface."""
+    every frame starts from its own source joints, not from the previous frame, so the frames
+    after the jump stay on the surface too."""
     from body.rotations import rodrigues
     from fitting.convert import convert_motion, register
 
@@ -245,5 +245,39 @@ def test_a_lost_warm_start_is_restarted_from_the_joints(target):
     corr = register(target, target)
     res = convert_motion(target, target, corr, np.zeros(target.num_betas), pose, go, tr,
                          iters=3)
-    assert res.restarts >= 1
-    assert res.v2s_mean_mm[2] < 5.0 and np.nanmax(res.v2s_mean_mm) < 5.0, res.v2s_mean_mm
+    assert np.nanmax(res.v2s_mean_mm) < 1.0, res.v2s_mean_mm
+    assert abs(res.v2s_mean_mm[2] - res.v2s_mean_mm[0]) < 0.5, res.v2s_mean_mm
+
+
+def test_surface_distance_matches_libigl_away_from_contact(anny, target_path, target):
+    """The v2s walk (distance near each vertex's correspondence) is an upper bound of libigl's
+    distance to the whole surface, equal to it for most points up to 6 mm off the surface,
+    and 0.14 mm above it on average (points in a fold are nearer another part of the body)."""
+    import igl
+
+    from body import forward
+    from body.rotations import rodrigues
+    from fitting.convert import closest_on_mesh, surface_distance
+
+    rng = np.random.default_rng(3)
+    pose = np.zeros((1, anny.num_joints, 3))
+    pose[0, np.asarray(anny.fit_joints[1:])] = rng.normal(0, 0.1, (len(anny.fit_joints) - 1, 3))
+    V = forward(anny, np.zeros(anny.num_betas), pose, rodrigues(np.array([[0, 0, 0.4]])),
+                np.zeros((1, 3))).vertices[0]
+    F = np.asarray(anny.faces, np.int64)
+    TT = igl.triangle_triangle_adjacency(F)[0]
+    face0 = rng.integers(0, len(F), 3000)
+    bary = rng.dirichlet(np.ones(3), 3000)
+    on = np.einsum("nk,nkx->nx", bary, V[F[face0]])
+    # points 0-6 mm off the surface along the facet normal, started one facet away
+    n = np.cross(V[F[face0, 1]] - V[F[face0, 0]], V[F[face0, 2]] - V[F[face0, 0]])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    pts = on + rng.uniform(0, 6e-3, (3000, 1)) * n
+    start = TT[face0, 0]
+    start = np.where(start >= 0, start, face0)
+    walk = surface_distance(pts, start, V, F, TT)
+    exact = closest_on_mesh(pts, V, F)[0]
+    assert (walk >= exact - 1e-9).all()
+    close = np.abs(walk - exact) < 1e-6
+    assert close.mean() > 0.85, close.mean()
+    assert (walk - exact).mean() < 2e-4
