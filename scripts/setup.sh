@@ -76,11 +76,24 @@ if [ -f "$WEB/package-lock.json" ]; then
   fi
 fi
 
-# Export Anny once to a compact numpy file (the pipeline never imports torch at run time).
-if [ -f body/anny_export.py ]; then
-  "$PY" -m body.anny_export --if-stale
-fi
-# The SMPL-X-schema stand-in target (Anny re-rigged on its own remeshed surface; ~5-25 s).
-if [ -f body/smplx_standin.py ]; then
-  "$PY" -m body.smplx_standin --if-stale
+# The two built models below are checked by Python (numpy imports, a hash of the model file:
+# 1-4 s); the check is skipped when nothing it reads changed since it last passed (the
+# builders' sources, the installed stack's stamp, the built files' size/mtime/inode).
+assets_key() {
+  { cat body/anny_export.py body/smplx_standin.py body/smplx_from_anny.py "$STAMP" 2>/dev/null || true
+    stat -c '%s %Y %i' assets/build/anny_model.npz assets/build/smplx_standin/SMPLX_NEUTRAL.npz \
+      2>/dev/null || true
+  } | sha256sum | cut -c1-16
+}
+ASTAMP=$VENV/.assets-stamp
+if [ -n "${ANNY_MODEL_PATH:-}" ] || [ "$(cat "$ASTAMP" 2>/dev/null)" != "$(assets_key)" ]; then
+  # Export Anny once to a compact numpy file (the pipeline never imports torch at run time).
+  if [ -f body/anny_export.py ]; then
+    "$PY" -m body.anny_export --if-stale
+  fi
+  # The SMPL-X-schema stand-in target (Anny re-rigged on its own remeshed surface; ~5-25 s).
+  if [ -f body/smplx_standin.py ]; then
+    "$PY" -m body.smplx_standin --if-stale
+  fi
+  assets_key > "$ASTAMP"
 fi
