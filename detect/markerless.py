@@ -48,6 +48,7 @@ class MarkerlessOptions:
     the body keypoints). volume_radius_m : a person farther than this from the capture
     volume centre on the ground is a bystander. track_m : a person moves at most this far
     between detected frames (beyond it the nearest group is not the same person).
+    duplicate_m : a group this near a chosen person is a duplicate of it, not a bystander.
     refine_crop : detect again in a crop around each person found on the whole image.
     hands : detect hand keypoints. workers / chunk : detector processes, frames per task."""
 
@@ -58,6 +59,7 @@ class MarkerlessOptions:
     assoc_frac: float = 0.08
     volume_radius_m: float = 2.5
     track_m: float = 0.6
+    duplicate_m: float = 0.5
     refine_crop: bool = True
     hands: bool = True
     workers: int = 1
@@ -69,7 +71,7 @@ class MarkerlessOptions:
         if self.max_candidates < self.people:
             raise ValueError(f"max_candidates: at least people ({self.people}), got "
                              f"{self.max_candidates}")
-        for name in ("assoc_frac", "volume_radius_m", "track_m"):
+        for name in ("assoc_frac", "volume_radius_m", "track_m", "duplicate_m"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name}: must be > 0, got {getattr(self, name)}")
         if self.workers < 1 or self.chunk < 1:
@@ -89,6 +91,24 @@ def _box(kp: np.ndarray, conf: float) -> np.ndarray:
     return box_from_points(kp[:N_BODY, :2], kp[:N_BODY, 2] >= conf)
 
 
+def box_iou(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection over union of two boxes (x0, y0, x1, y1); 0 when either is NaN."""
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        return 0.0
+    w = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
+    h = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+    inter = w * h
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return float(inter / union) if union > 0 else 0.0
+
+
+def is_duplicate(kp: np.ndarray, others: list, conf: float, iou: float = 0.4) -> bool:
+    """Whether a candidate is a person already found in this view (the detector finding what
+    the painting left of it): its box overlaps an earlier one's by ``iou``."""
+    b = _box(kp, conf)
+    return any(box_iou(b, _box(k, conf)) > iou for k in others)
+
+
 def view_candidates(image: np.ndarray, det, o: MarkerlessOptions, cam: int = 0,
                     frame: int = 0) -> np.ndarray:
     """(N, 65, 3) the people found in one image (N <= ``max_candidates``), each painted out
@@ -99,7 +119,9 @@ def view_candidates(image: np.ndarray, det, o: MarkerlessOptions, cam: int = 0,
 
     img = image
     out = []
-    for _ in range(o.max_candidates):
+    for _ in range(o.max_candidates + 2):  # duplicates do not count
+        if len(out) >= o.max_candidates:
+            break
         found = call_detector(det, img, kind="body", cam=cam, frame=frame).kp
         if not len(found) or _n_good(found[0], o.min_conf) < o.min_body_kp:
             break
@@ -114,6 +136,9 @@ def view_candidates(image: np.ndarray, det, o: MarkerlessOptions, cam: int = 0,
         mask = silhouette_mask(img.shape[:2], kp, layout.EDGES, max(0.06 * h, 4.0),
                                polygons=(layout.TORSO,), blobs=((layout.FACE, 0.12 * h),),
                                min_conf=o.min_conf)
+        if is_duplicate(kp, out, o.min_conf):  # what is left of someone found: paint, go on
+            img = paint_out(img, mask)
+            continue
         if o.hands:
             boxes, wrists = _partner_hand_boxes(kp, o.min_conf)
             _hands(image, kp, boxes, wrists, det, PeopleOptions(), cam, frame, who=f"c{len(out)}")
@@ -287,12 +312,16 @@ def _horizontal(d: np.ndarray, up: np.ndarray) -> np.ndarray:
 class Selection:
     """The people chosen at every frame: ``slot[f]`` list (per person slot) of a group index
     or None; ``groups[f]`` the frame's groups; ``bystanders (F,)`` groups not fitted;
-    ``far (F,)`` of those, the ones rejected for their distance to the volume centre."""
+    ``far (F,)`` of those, the ones rejected for their distance to the volume centre;
+    ``duplicates (F,)`` groups within ``duplicate_m`` of a chosen person (what is left of it
+    in some views, associated: not another person), ``duplicate[f]`` per group."""
 
     slot: list
     groups: list
     bystanders: np.ndarray
     far: np.ndarray
+    duplicates: np.ndarray
+    duplicate: list
 
 
 def select_people(groups_per_frame: list[list[Group]], centre: np.ndarray, up: np.ndarray,
@@ -305,7 +334,7 @@ def select_people(groups_per_frame: list[list[Group]], centre: np.ndarray, up: n
 
     up = np.asarray(up, float) / np.linalg.norm(up)
     prev: list = [None] * o.people
-    slots, nby, nfar = [], [], []
+    slots, nby, nfar, ndup, dups = [], [], [], [], []
     for groups in groups_per_frame:
         roots = np.array([g.root for g in groups]).reshape(-1, 3)
         okg = np.all(np.isfinite(roots), axis=1)
@@ -337,10 +366,18 @@ def select_people(groups_per_frame: list[list[Group]], centre: np.ndarray, up: n
             if g is not None:
                 prev[p] = roots[g]
         chosen = {g for g in slot if g is not None}
+        dup = np.zeros(len(roots), bool)
+        for g in range(len(roots)):
+            if g not in chosen and okg[g]:
+                dup[g] = any(np.linalg.norm(_horizontal(roots[g] - roots[c], up)) < o.duplicate_m
+                             for c in chosen)
         slots.append(slot)
-        nby.append(int(okg.sum()) - len(chosen))
+        nby.append(int((okg & ~dup).sum()) - len(chosen))
         nfar.append(int((okg & ~near).sum()))
-    return Selection(slots, groups_per_frame, np.array(nby, np.int64), np.array(nfar, np.int64))
+        ndup.append(int(dup.sum()))
+        dups.append(dup)
+    return Selection(slots, groups_per_frame, np.array(nby, np.int64), np.array(nfar, np.int64),
+                     np.array(ndup, np.int64), dups)
 
 
 # ------------------------------------------------------------------------------ the sequence
@@ -392,20 +429,36 @@ def detect_markerless(cams, source, frames: np.ndarray, factory, o: MarkerlessOp
     n_cands = np.array([[len(candidates[f][c]) for c in range(C)] for f in range(F)])
     people_root = np.full((F, 2, 3), np.nan)
     by_frame, by_root, by_views = [], [], []
+    v_frame, v_cam, v_uv = [], [], []
     for f in range(F):
+        taken = {c: [] for c in range(C)}
         for g, grp in enumerate(groups[f]):
             if g in sel.slot[f]:
                 people_root[f, sel.slot[f].index(g)] = grp.root
-            elif np.all(np.isfinite(grp.root)):
+                for c, n in grp.members.items():
+                    taken[c].append(candidates[f][c][n])
+            elif np.all(np.isfinite(grp.root)) and not sel.duplicate[f][g]:
                 by_frame.append(int(frames[f]))
                 by_root.append(grp.root)
                 by_views.append(len(grp.members))
+        for c in range(C):  # in 2D: every candidate that is none of the people fitted
+            for k in candidates[f][c]:
+                if not is_duplicate(k, taken[c], o.min_conf, iou=0.3):
+                    hips = k[list(ROOT)]
+                    uv = (hips[:, :2].mean(0) if np.all(hips[:, 2] >= o.min_conf)
+                          else np.nanmean(_box(k, o.min_conf).reshape(2, 2), axis=0))
+                    v_frame.append(int(frames[f]))
+                    v_cam.append(c)
+                    v_uv.append(uv)
     #: the people's and the bystanders' places in 3D (the bench counts frames where a fitted
     #: person is nearer a bystander than the person found)
     roots = {"people_root": people_root,
              "bystander_frame": np.array(by_frame, np.int64),
              "bystander_root": np.array(by_root, float).reshape(-1, 3),
-             "bystander_views": np.array(by_views, np.int64)}
+             "bystander_views": np.array(by_views, np.int64),
+             "others_2d_frame": np.array(v_frame, np.int64),
+             "others_2d_camera": np.array(v_cam, np.int64),
+             "others_2d_uv": np.array(v_uv, float).reshape(-1, 2)}
     wall = time.perf_counter() - w0
     total_cpu = cpu + (time.process_time() - t0)
     facts = {
@@ -417,6 +470,8 @@ def detect_markerless(cams, source, frames: np.ndarray, factory, o: MarkerlessOp
         "bystanders": {"frames_with": int((sel.bystanders > 0).sum()),
                        "groups": int(sel.bystanders.sum()),
                        "far_from_volume": int(sel.far.sum()),
+                       "duplicates_of_people": int(sel.duplicates.sum()),
+                       "candidates_not_people": int(len(v_frame)),
                        "per_frame": sel.bystanders.tolist()},
         "views_per_person": [float(np.mean([len(groups[f][sel.slot[f][p]].members)
                                             for f in range(F) if sel.slot[f][p] is not None]))

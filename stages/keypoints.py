@@ -23,7 +23,9 @@ stages find it through ``stages.common.capture_cameras``), finds the people in t
 (:func:`detect.markerless.detect_markerless`: person detection per view, association across
 views by triangulation, bystanders rejected and counted in the report's ``bystanders``) and
 writes ``people.npz``: the people's triangulated roots per frame (``people_root (F, 2, 3)``)
-and every bystander's (``bystander_frame``, ``bystander_root``, ``bystander_views``).
+and every bystander's (``bystander_frame``, ``bystander_root``, ``bystander_views``; groups
+near a person fitted are its duplicates, not bystanders), and in 2D every view's candidate
+that is none of the people fitted (``others_2d_frame``, ``_camera``, ``_uv``: its hips).
 
 The videos of a sequence must have the same length and the recipe's frame rate
 (:func:`stages.common.check_videos`); ``stride`` keeps every n-th video frame (the detector

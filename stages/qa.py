@@ -358,7 +358,8 @@ def _write_scene(path: Path, model, m, flags, cams, videos, has_video, keypoints
     images = None
     readers = []
     if has_video and o.scene_images:
-        readers = [VideoReader(v) for v in videos]
+        readers = [VideoReader(v, size=(c.width, c.height))  # padded to the calibration's
+                   for v, c in zip(videos, cams, strict=True)]
         images = {c.name: (lambda f, r=r: r[int(f)]) for c, r in zip(cams, readers, strict=True)}
     try:
         res = write_scene(path, fps, frames, meshes, views, markers=marker_xyz,
