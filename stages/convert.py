@@ -6,7 +6,9 @@ stand-in (``body.smplx_standin``); its content is a raw input (part of the key).
 correspondence source <-> target is registered once per model pair and cached under
 ``assets/cache/correspondence/<key>.npz`` (key: both model files' sha256 and the registration
 code), then copied into the artifact; next to it ``<key>.rest.npz``, the target fitted on the
-source template at rest (``fitting.convert.cached_rest``), every subject's starting point.
+source template at rest (``fitting.convert.cached_rest``), every subject's starting point, and
+``<key>.subject-<hash>.npz``, the target at each subject's rest posture (its betas; once per
+subject, ``fitting.convert.cached_subject_rest``).
 Conversion: ``fitting.convert.convert_motion`` (batched LM on global joint rotations). Person 0 is the marker wearer (marker_fit), person 1 the
 partner (partner_fit) when the sequence has one; frames are marker_fit's frames that
 partner_fit also has. Frames flagged not valid in a source fit stay not valid (still
@@ -53,7 +55,7 @@ class Options:
     from its source joints' rotations; betas are fitted once per subject at its rest posture)."""
 
     target: str = ""
-    iters: int = 3
+    iters: int = 2
 
     def __post_init__(self):
         if self.iters < 1:
@@ -132,10 +134,12 @@ def run(ctx: StageContext) -> None:
         GlobalRig,
         cached_correspondence,
         cached_rest,
+        cached_subject_rest,
         convert_motion,
         file_sha256,
         smplx_arrays,
         subsample_vertices,
+        v2s_vertices,
     )
     from formats.errors import InputError
 
@@ -166,8 +170,9 @@ def run(ctx: StageContext) -> None:
                          "no frame of marker_fit is also in partner_fit: nothing to convert")
     t1 = time.process_time()
     rig = GlobalRig(target, subsample_vertices(target), NUM_BETAS)
+    eval_rig = GlobalRig(target, v2s_vertices(target), NUM_BETAS)
     adjacency = igl.triangle_triangle_adjacency(np.asarray(source.faces, np.int64))[0]
-    setup_cpu = time.process_time() - t1  # the rig and the source's facet adjacency
+    setup_cpu = time.process_time() - t1  # the rigs and the source's facet adjacency
     K = rig.K
     arrays = {"transl": np.zeros((P, F, 3)), "global_orient": np.zeros((P, F, 3, 3)),
               "betas": np.zeros((P, NUM_BETAS)), "expression": np.zeros((P, 10)),
@@ -177,9 +182,13 @@ def run(ctx: StageContext) -> None:
     poses = []
     per_person, warnings, cpu = [], [], setup_cpu
     for p, (fit, ix) in enumerate(zip(fits, idx, strict=True)):
+        t1 = time.process_time()
+        subj, _ = cached_subject_rest(source, corr, rig, fit.betas, rest, key, CACHE_DIR)
+        cpu += time.process_time() - t1  # the subject's betas at rest (cached per subject)
         res = convert_motion(source, target, corr, fit.betas, fit.body_pose[ix],
                              fit.global_orient[ix], fit.transl[ix], iters=o.iters,
-                             progress=ctx.progress, rig=rig, rest=rest, adjacency=adjacency)
+                             progress=ctx.progress, rig=rig, rest=rest, adjacency=adjacency,
+                             eval_rig=eval_rig, subject=subj)
         cpu += res.cpu_s
         arrays["transl"][p], arrays["global_orient"][p] = res.transl, res.global_orient
         arrays["betas"][p, :K] = res.betas
