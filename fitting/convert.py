@@ -823,12 +823,17 @@ class GlobalRig:
         nz = (self.SW > 0) | (self.Wq > 0)
         for k in range(self.K):
             nz |= np.abs(self._dc[k]).sum(-1) > 0
-        self.pn, self.pq = np.nonzero(nz)  # the (point, joint) pairs with a part
+        pn, pq = np.nonzero(nz)  # the (point, joint) pairs with a part, grouped by joint
+        order = np.lexsort((pn, pq))
+        self.pn, self.pq = pn[order], pq[order]
+        self._seg = np.searchsorted(self.pq, np.arange(Q + 1))
         self.pw = self.Wq[self.pn, self.pq]
         N = len(self.vertices)
         self.S = sp.csr_matrix((np.ones(len(self.pn)), (self.pn, np.arange(len(self.pn)))),
                                shape=(N, len(self.pn)))
-        self._dcp = self._dc[:, self.pn, self.pq]  # (K, nnz, 3)
+        self.Sq = sp.csr_matrix((np.ones(len(self.pn)), (self.pq, np.arange(len(self.pn)))),
+                                shape=(Q, len(self.pn)))  # sums the pairs of each joint
+        self._cols = 3 * self.pq[:, None] + np.arange(3)  # columns of a pair in (N, 3Q)
         self.set_betas(np.zeros(self.K))
 
     def _c(self, l, u):
@@ -862,11 +867,16 @@ class GlobalRig:
 
     def parts_sparse(self, G, d=None):
         """(F, nnz, 3) the nonzero parts p_q = G_q (c_q + W_q d) of the (point, joint) pairs."""
-        Gq = G[:, self.pq]  # (F, nnz, 3, 3)
-        c = np.broadcast_to(self.cp, (len(G),) + self.cp.shape)
-        if d is not None:
-            c = c + self.pw[None, :, None] * d[:, self.pn]
-        return (Gq[..., 0] * c[..., 0:1] + Gq[..., 1] * c[..., 1:2]) + Gq[..., 2] * c[..., 2:3]
+        out = np.empty((len(G), len(self.pn), 3))
+        Gt = np.swapaxes(G, -1, -2)
+        for q in range(self.Q):  # one small GEMM per joint
+            a, b = self._seg[q], self._seg[q + 1]
+            if b > a:
+                c = self.cp[a:b]
+                if d is not None:
+                    c = c + self.pw[a:b, None] * d[:, self.pn[a:b]]
+                out[:, a:b] = c @ Gt[:, q]
+        return out
 
     def parts(self, G, d=None):
         """(F, N, Q, 3) p_q = G_q c_q (+ W_q G_q d), zero where the pair has no part."""
@@ -883,10 +893,17 @@ class GlobalRig:
         return self.Wsum[None, :, None] * t0[:, None] + self.sum_parts(self.parts_sparse(G, d))
 
     # --- fits
+    def _seg_sum(self, S, x):
+        """(F, rows, 3) sparse S (rows, nnz) applied to pair values x (F, nnz, 3)."""
+        F = x.shape[0]
+        y = S @ x.transpose(1, 0, 2).reshape(x.shape[1], F * 3)
+        return y.reshape(-1, F, 3).transpose(1, 0, 2)
+
     def fit_pose(self, G, t0, targets, iters: int = 3, lam: float = 1e-3, shape_prior=None):
         """Batched LM on (G, t0) of every frame: ``sum_n |v_n - target_n|^2``; with
         ``shape_prior`` (one frame only) the betas too, with ridge ``shape_prior * N``.
-        Returns (G, t0, cost (F,))."""
+        One trial step per iteration: a frame whose cost does not drop keeps its unknowns and
+        raises its damping. Returns (G, t0, cost (F,))."""
         F, Q = G.shape[:2]
         G, t0 = G.copy(), t0.copy()
         N = targets.shape[1]
@@ -898,60 +915,55 @@ class GlobalRig:
         ws = self.Wsum
         lamf = np.full(F, lam)
         mu = 0.0 if not K else shape_prior * N
+        Sw = self.Sq @ sp.diags(ws[self.pn])  # sum over a joint's pairs, weighted by W_n
 
         def evaluate(G, t0, b):
             if K:
                 self.set_betas(b)
-            d = self.correctives(G)
-            ps = self.parts_sparse(G, d)
+            ps = self.parts_sparse(G, self.correctives(G))
             r = ws[None, :, None] * t0[:, None] + self.sum_parts(ps) - targets
-            p = np.zeros((len(G), N, Q, 3))
-            p[:, self.pn, self.pq] = ps
-            c = (r * r).sum((1, 2)) + mu * float(b @ b)
-            return p, r, c
+            return ps, r, (r * r).sum((1, 2)) + mu * float(b @ b)
 
         b = self.betas.copy()
-        p, r, cost = evaluate(G, t0, b)
+        ps, r, cost = evaluate(G, t0, b)
         for _ in range(iters):
-            P = p.reshape(F, N, n3).astype(np.float32)
+            P = np.zeros((F, N, n3), np.float32)
+            P[:, self.pn[:, None], self._cols] = ps
             M = np.matmul(np.swapaxes(P, 1, 2), P).astype(float).reshape(F, Q, 3, Q, 3)
             M = M.transpose(0, 1, 3, 2, 4)  # (F, a, b, 3, 3) = sum_n p_a p_b^T
             tr = np.trace(M, axis1=-2, axis2=-1)
             A = np.zeros((F, n, n))
             blk = tr[..., None, None] * np.eye(3) - np.swapaxes(M, -1, -2)
             A[:, :n3, :n3] = blk.transpose(0, 1, 3, 2, 4).reshape(F, n3, n3)
-            pf = p.reshape(F, N, n3)
-            s = (ws[None, None, :] @ pf)[:, 0].reshape(F, Q, 3)
+            s = self._seg_sum(Sw, ps)  # (F, Q, 3) sum_n W_n p_na
             A[:, n3:n3 + 3, :n3] = (-skew(s)).transpose(0, 2, 1, 3).reshape(F, 3, n3)
             A[:, :n3, n3:n3 + 3] = np.swapaxes(A[:, n3:n3 + 3, :n3], 1, 2)
             A[:, n3:n3 + 3, n3:n3 + 3] = np.eye(3) * float((ws ** 2).sum())
             g = np.empty((F, n))
-            g[:, :n3] = _grad_rot(pf, r, Q)
+            g[:, :n3] = self._seg_sum(self.Sq, np.cross(ps, r[:, self.pn])).reshape(F, n3)
             g[:, n3:n3 + 3] = np.einsum("fnx,n->fx", r, ws)
             if K:
+                p = np.zeros((N, Q, 3))
+                p[self.pn, self.pq] = ps[0]
                 B = np.einsum("qab,knqb->nak", G[0], self._dc)  # (N, 3, K) d v / d betas
                 A[0, n3 + 3:, n3 + 3:] = np.einsum("nak,nal->kl", B, B) + mu * np.eye(K)
-                Aab = np.cross(p[0][:, :, :, None], B[:, None, :, :], axis=2).sum(0)  # (Q,3,K)
+                Aab = np.cross(p[:, :, :, None], B[:, None, :, :], axis=2).sum(0)  # (Q, 3, K)
                 A[0, :n3, n3 + 3:] = Aab.reshape(n3, K)
                 A[0, n3:n3 + 3, n3 + 3:] = np.einsum("n,nak->ak", ws, B)
                 A[0, n3 + 3:, :n3 + 3] = A[0, :n3 + 3, n3 + 3:].T
                 g[0, n3 + 3:] = np.einsum("nak,na->k", B, r[0]) + mu * b
-            diag = np.einsum("fii->fi", A).copy()
-            while True:
-                Ad = A + (lamf[:, None] * diag + 1e-12)[..., None] * np.eye(n)
-                step = -np.linalg.solve(Ad, g[..., None])[..., 0]
-                Gn = rodrigues(step[:, :n3].reshape(F, Q, 3)) @ G
-                tn = t0 + step[:, n3:n3 + 3]
-                bn = b + step[0, n3 + 3:] if K else b
-                pn, rn, cn = evaluate(Gn, tn, bn)
-                ok = cn < cost
-                if ok.all() or (lamf[~ok] > 1e6).all():
-                    break
-                lamf = np.where(ok, lamf, lamf * 10)
-            G[ok], t0[ok], p[ok], r[ok], cost[ok] = Gn[ok], tn[ok], pn[ok], rn[ok], cn[ok]
+            diag = np.einsum("fii->fi", A)
+            A[:, np.arange(n), np.arange(n)] += lamf[:, None] * diag + 1e-12
+            step = -np.linalg.solve(A, g[..., None])[..., 0]
+            Gn = rodrigues(step[:, :n3].reshape(F, Q, 3)) @ G
+            tn = t0 + step[:, n3:n3 + 3]
+            bn = b + step[0, n3 + 3:] if K else b
+            psn, rn, cn = evaluate(Gn, tn, bn)
+            ok = cn < cost
+            G[ok], t0[ok], ps[ok], r[ok], cost[ok] = Gn[ok], tn[ok], psn[ok], rn[ok], cn[ok]
             if K and ok[0]:
                 b = bn
-            lamf = np.where(ok, np.maximum(lamf / 3, 1e-7), lamf)
+            lamf = np.where(ok, np.maximum(lamf / 3, 1e-7), lamf * 10)
         if K:
             self.set_betas(b)
         return G, t0, cost
