@@ -784,13 +784,14 @@ class GlobalRig:
         self.vertices = np.asarray(vertices, np.int64)
         W = model.weights[self.vertices]
         A = subtree(self.skel).astype(float)
-        self.children = np.zeros((Q, Q))
-        for q in range(1, Q):
-            self.children[self.skel.parents[q], q] = 1.0
+        self._children = sp.csr_matrix((np.ones(Q - 1), (self.skel.parents[1:], np.arange(1, Q))),
+                                       shape=(Q, Q))
 
         Wc = W.tocoo()
         rows, cols, vals = Wc.row, Wc.col, Wc.data
         own = self.skel.owner[cols]
+        gather = sp.csr_matrix((np.ones(len(rows)), (rows * Q + own, np.arange(len(rows)))),
+                               shape=(len(self.vertices) * Q, len(rows)))  # sums into H
 
         def coeffs(betas):  # fitting.skinned.vertex_coeffs, vectorised (no bind rotations)
             rest = rest_state(model, betas)
@@ -798,10 +799,8 @@ class GlobalRig:
             d = rest.vertices[0][self.vertices][rows] - rest.joints[0][cols]
             if rest.bind_rot is not None:
                 d = np.einsum("nab,nb->na", rest.bind_rot[0][cols], d)
-            H = np.zeros((len(self.vertices), Q, 4))
-            np.add.at(H, (rows, own), np.concatenate([vals[:, None] * (d + s[cols]),
-                                                      vals[:, None]], 1))
-            return u, H
+            vals4 = np.concatenate([vals[:, None] * (d + s[cols]), vals[:, None]], 1)
+            return u, (gather @ vals4).reshape(len(self.vertices), Q, 4)
 
         u0, H0 = coeffs(np.zeros(model.num_betas))
         self.Wq = H0[..., 3]  # (N, Q)
@@ -837,7 +836,9 @@ class GlobalRig:
         self.set_betas(np.zeros(self.K))
 
     def _c(self, l, u):
-        return l + self.children @ (self.SW[:, :, None] * u[None])
+        X = (self.SW * u[:, 0][None], self.SW * u[:, 1][None], self.SW * u[:, 2][None])
+        # child q's offset, carried by its parent: (Q, Q) sparse parent-of matrix times (N, Q)
+        return l + np.stack([(self._children @ x.T).T for x in X], -1)
 
     def set_betas(self, betas):
         self.betas = np.asarray(betas, float)[: self.K].copy()
@@ -1051,7 +1052,8 @@ def surface_distance(points, faces0, V, F, TT, steps: int = 6):
     """Distance (..., N) of each point (..., N, 3) to the surface (..., Vn, 3), F near its start
     facet ``faces0 (N,)``: from it walk to the neighbouring facet (``TT``,
     igl.triangle_triangle_adjacency) across the edge the point's projection lies beyond, until
-    it falls inside a facet; then the three facets around the last one too; the smallest exact
+    it falls inside a facet; then the facet across the last one's edge nearest to the
+    projection (a ridge between two facets); the smallest exact
     point-to-facet distance seen. An upper bound of the distance to the whole surface, equal to
     it unless another part of the body is closer (contact, a fold) or the walk is cut short
     (``steps``). Leading axes (frames) are batched."""
@@ -1070,10 +1072,12 @@ def surface_distance(points, faces0, V, F, TT, steps: int = 6):
         return VT[:, g[:, 0]], VT[:, g[:, 1]], VT[:, g[:, 2]]
 
     best = np.full(B * N, np.inf)
+    last = np.zeros((3, B * N))  # barycentric coordinates in the last facet
     active = np.arange(B * N)
     for _ in range(steps):
         d, inside, bary = _point_triangle(P[:, active], *tri(active, f[active]))
         best[active] = np.minimum(best[active], d)
+        last[:, active] = bary
         go = ~inside
         if not go.any():
             break
@@ -1083,11 +1087,9 @@ def surface_distance(points, faces0, V, F, TT, steps: int = 6):
         ok = nxt >= 0
         f[a[ok]] = nxt[ok]
         active = a[ok]
-    allp = np.arange(B * N)
-    for e in range(3):  # the last facet's neighbours (a ridge between two facets)
-        nb = TT[f, e]
-        nb = np.where(nb >= 0, nb, f)
-        best = np.minimum(best, _point_triangle(P, *tri(allp, nb))[0])
+    nb = TT[f, (np.argmin(last, 0) + 1) % 3]
+    nb = np.where(nb >= 0, nb, f)
+    best = np.minimum(best, _point_triangle(P, *tri(np.arange(B * N), nb))[0])
     return best.reshape(lead + (N,))
 
 
