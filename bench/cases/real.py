@@ -22,12 +22,14 @@ Keys, per capture ``<tag>`` (``pycgm_movement``, ``ktk_serve``, ``ktk2_derrick``
 - ``real.<tag>.loo_fps_per_cpu_s``: the capture's frames per CPU-second of its leave-one-out;
   ``marker_loo.fps_per_core``: the same over all six captures (frames / CPU-s summed).
 
-Leave-one-out runs on every ``LOO_STRIDE``-th frame here (``stages.marker_loo.stride``; the
-stage's default is 2): 10 to 25 scored frames per second of these 100-250 Hz captures, ~40
-markers each, so thousands of held-out marker-frames per capture. Measured on pycgm at this
-code: median 6.855 mm at stride 2 against 6.879 at stride 10, p90 30.9 against 29.5 (the
-p90 of a few hundred frames moves by ~1-2 mm with the sample); the case took 32 minutes at
-stride 2.
+Leave-one-out runs on every ``LOO_STRIDE``-th frame (``stages.marker_loo.stride``, the
+stage's default 2). A coarser stride is not adequate here: each refit tracks the capture
+across the stride's step, and on the fast serves it then converges worse, not just on fewer
+frames. Measured at stride 10 (``python -m bench real`` at 9bb59c8, 20.4 min wall on a
+loaded machine against 32 min at stride 2 before the leave-one-out speed-up): pycgm 6.88 /
+29.5 mm (stride 2: 6.855 / 30.9), cmu 7.69 / 27.1 (7.75 / 27.5), jogging 9.92 / 35.0 (9.83 /
+36.6), ktk 11.6 / 48.7 (11.7 / 44.6), Viktor 11.0 / 42.9 (11.2 / 42.7), but Derrick 20.1 /
+64.1 (18.5 / 46.4); marker_loo.fps_per_core 38 frames per CPU-s at stride 10.
 
 And the C3D format suite (the same capture by DEC, PC and SGI processors, int and real):
 ``real.c3d_suite_files_read`` (of 6) and ``real.c3d_suite_max_diff_mm`` (largest coordinate
@@ -45,14 +47,14 @@ RECIPE = REPO / "recipes" / "real.yaml"
 TAGS = {"pycgm/Movement 1": "pycgm_movement", "ktk/Tennis Serve 1": "ktk_serve",
         "ktk2/Derrick Serve 1": "ktk2_derrick", "ktk2/Viktor Serve 1": "ktk2_viktor",
         "cmu/Walk 05": "cmu_walk", "opensim/Jogging 1": "opensim_jogging"}
-LOO_STRIDE = 10  # leave-one-out on every 10th capture frame (see the docstring)
+LOO_STRIDE = 2  # leave-one-out on every 2nd capture frame, the stage's default (see the docstring)
 GOALS = {"marker_loo.fps_per_core": (">=", 50.0)}
 LIMITS = {"marker_loo.fps_per_core": (
     "each refit's first frame is searched from the initial pose (three robust-scale rounds of "
     "up to 60 LM iterations) and every later frame takes ~8 LM iterations (~4-5 ms); "
     "starting each refit from the stage's own fit would cut the search but changes the "
     "figures (pycgm's p90 30.9 -> 28.4 mm at stride 2: the refits from scratch have a start-up "
-    "transient): not done")}
+    "transient): not done; a coarser stride changes the serves' figures (docstring)")}
 for _t in TAGS.values():
     GOALS.update({f"real.{_t}.residual_median_mm": ("<=", 2.5),
                   f"real.{_t}.residual_p90_mm": ("<=", 6.0),
