@@ -39,12 +39,13 @@ GOALS = {
     "convert.fps_per_core": (">=", 100.0),
 }
 LIMITS = {
-    "convert.fps_per_core": "per frame: ~2.5 ms skinning the Anny source, ~15 ms of batched LM "
-                            "(613 target points, 3 iterations; the parts of each point are "
-                            "scattered into a dense (points, 3 x 53) matrix for the Gram "
-                            "product), ~10 ms the full target mesh and the v2s facet walk over "
-                            "all 10,604 vertices; plus ~0.2 s per person for the betas at rest "
-                            "(heavy on the bench's 20-frame sequences)",
+    "convert.fps_per_core": "per frame (demo store, loaded 2-core machine): ~2 ms skinning the "
+                            "Anny source, ~1 ms the start rotations, ~3 ms of batched LM (613 "
+                            "target points, 2 iterations: the dense (points, 3 x 53) float32 Gram "
+                            "product and a (162, 162) solve per frame), ~0.7 ms the 2,000 "
+                            "scored vertices, ~3-4 ms the v2s facet walk; per sequence ~0.3 s of "
+                            "rigs and ~0.2 s per new subject (betas at rest), heavy on the "
+                            "bench's 20-frame sequences; each stage run is a fresh process",
 }
 
 
