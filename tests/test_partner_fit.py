@@ -258,7 +258,8 @@ def _stage_ctx(files, out: Path, contact: dict, params=None):
     values = {"body_model.kind": "anny", "cameras": files.cams, "sequence.fps": FPS,
               "sequence.has_keypoints": True,  # precomputed: no second detection pass
               "ground_plane": {"normal": [0.0, 0.0, 1.0], "offset": -1.0},
-              "sequence.markers_on": "s1", "sequence.partner": "s2"}
+              "sequence.markers_on": "s1", "sequence.partner": "s2",
+              "sequence.markerless": False, "sequence.people": ["s1", "s2"]}
     view = RecipeView(build_view_tree({k: values[k] for k in stage.STAGE.reads}), "partner_fit")
     return SimpleNamespace(stage="partner_fit", unit="g/take", recipe=view,
                            params=params or stage.Options(use_hands=False), out=FakeWriter(out),
