@@ -728,7 +728,8 @@ def convert_motion(source: BodyModel, target: BodyModel, corr: Correspondence, b
     rig.set_betas(subject.betas)
     G_rest = subject.G[None]
     anchors = anchor_joints(source, target, rig)
-    ev = eval_rig if eval_rig is not None else GlobalRig(target, v2s_vertices(target), rig.K)
+    ev = (eval_rig if eval_rig is not None
+          else GlobalRig(target, v2s_vertices(target), rig.K, shape=False))
     ev.set_betas(rig.betas)
     ev_face = corr.tgt_vert_face[ev.vertices]
     Jt = target.num_joints
@@ -773,7 +774,10 @@ class GlobalRig:
     """Points of the target (rest vertices ``vertices``) as functions of the global rotations
     ``G (F, Q, 3, 3)`` of the fitted joints, the root position ``t0 (F, 3)`` and ``betas``."""
 
-    def __init__(self, model: BodyModel, vertices: np.ndarray, num_betas: int = 10):
+    def __init__(self, model: BodyModel, vertices: np.ndarray, num_betas: int = 10,
+                 shape: bool = True):
+        """``shape=False``: no beta directions (the betas cannot be fitted; set_betas
+        recomputes the coefficients), a cheaper rig for points that are only posed."""
         self.model = model
         J = model.num_joints
         fit = [j for j in range(J) if model.joint_names[j] not in EYE_JOINTS]
@@ -807,20 +811,21 @@ class GlobalRig:
         self.SW = self.Wq @ A.T  # (N, Q): weight of q's subtree
         self.Wsum = self.Wq.sum(1)  # (N,)
         self._c0, self._u0 = self._c(H0[..., :3], u0), u0
+        self._coeffs = coeffs
         dc, du = [], []
-        for k in range(self.K):
+        for k in range(self.K if shape else 0):
             e = np.zeros(model.num_betas)
             e[k] = 1.0
             u, H = coeffs(e)
             du.append(u - u0)
             dc.append(self._c(H[..., :3] - H0[..., :3], u - u0))
-        self._dc = np.stack(dc) if dc else np.zeros((0,) + self._c0.shape)  # (K, N, Q, 3)
+        self._dc = np.stack(dc) if shape else None  # (K, N, Q, 3)
         self._du = np.stack(du) if du else np.zeros((0, Q, 3))
         pd = model.posedirs
         self.posedirs = (None if pd is None else np.ascontiguousarray(
             pd.reshape(pd.shape[0], -1, 3)[:, self.vertices].reshape(pd.shape[0], -1)))
         nz = (self.SW > 0) | (self.Wq > 0)
-        for k in range(self.K):
+        for k in range(self.K if shape else 0):
             nz |= np.abs(self._dc[k]).sum(-1) > 0
         pn, pq = np.nonzero(nz)  # the (point, joint) pairs with a part, grouped by joint
         order = np.lexsort((pn, pq))
@@ -842,8 +847,14 @@ class GlobalRig:
 
     def set_betas(self, betas):
         self.betas = np.asarray(betas, float)[: self.K].copy()
-        self.c = self._c0 + np.einsum("k,knqx->nqx", self.betas, self._dc)
-        self.u = self._u0 + np.einsum("k,kqx->qx", self.betas, self._du)
+        if self._dc is None:
+            b = np.zeros(self.model.num_betas)
+            b[: self.K] = self.betas
+            self.u, H = self._coeffs(b)
+            self.c = self._c(H[..., :3], self.u)
+        else:
+            self.c = self._c0 + np.einsum("k,knqx->nqx", self.betas, self._dc)
+            self.u = self._u0 + np.einsum("k,kqx->qx", self.betas, self._du)
         if hasattr(self, "pn"):
             self.cp = self.c[self.pn, self.pq]  # (nnz, 3)
 
@@ -911,6 +922,8 @@ class GlobalRig:
         K = self.K if shape_prior is not None else 0
         if K and F != 1:
             raise ValueError("fit_pose: betas are fitted on one frame")
+        if K and self._dc is None:
+            raise ValueError("fit_pose: a rig built with shape=False cannot fit betas")
         n3 = 3 * Q
         n = n3 + 3 + K
         ws = self.Wsum

@@ -170,7 +170,7 @@ def run(ctx: StageContext) -> None:
                          "no frame of marker_fit is also in partner_fit: nothing to convert")
     t1 = time.process_time()
     rig = GlobalRig(target, subsample_vertices(target), NUM_BETAS)
-    eval_rig = GlobalRig(target, v2s_vertices(target), NUM_BETAS)
+    eval_rig = GlobalRig(target, v2s_vertices(target), NUM_BETAS, shape=False)
     adjacency = igl.triangle_triangle_adjacency(np.asarray(source.faces, np.int64))[0]
     setup_cpu = time.process_time() - t1  # the rigs and the source's facet adjacency
     K = rig.K
