@@ -129,6 +129,13 @@ def _keys(recipe_path: Path) -> dict:
     return {n.id: n.key for n in plan.nodes if n.stage.implemented}, plan
 
 
+def _markerless(seq: dict, people: list[str]) -> None:
+    """Make a sequence markerless (nobody's markers: no markers_on, partner, c3d, mocap)."""
+    for k in ("markers_on", "partner", "c3d", "mocap"):
+        seq.pop(k, None)
+    seq["people"] = people
+
+
 EDITS = {  # a recipe edit for each field name a stage may declare
     "cameras": lambda r: r.__setitem__("cameras", r["cameras"][::-1]),
     "body_model.kind": lambda r: r["body_model"].__setitem__("kind", "smplx"),
@@ -144,6 +151,8 @@ EDITS = {  # a recipe edit for each field name a stage may declare
     "sequence.keypoints_format": lambda r: r["sequences"]["g/X 1"].update(
         keypoints={c: "files/kp" for c in r["cameras"]}, keypoints_format="coco"),
     "sequence.text": lambda r: r["sequences"]["g/X 1"].__setitem__("text", "another sentence"),
+    "sequence.markerless": lambda r: _markerless(r["sequences"]["g/X 1"], ["sa", "sb"]),
+    "sequence.people": lambda r: _markerless(r["sequences"]["g/X 1"], ["sb", "sa"]),
     "sequence.calibration_format":
         lambda r: r["sequences"]["g/X 1"].__setitem__("calibration_format", "chi3d"),
     "wearer.markerset": lambda r: r["subjects"]["sa"].__setitem__("markerset", "files/ms.json"),
