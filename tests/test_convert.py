@@ -153,7 +153,7 @@ def test_peer_smplx_build_layer_reproduces_surface(converted, target, target_pat
 
 def test_recovers_known_smplx_pose(target, tmp_path):
     """The target posed with known parameters is the source (target -> target): the fit gives
-    back its surface and its pose."""
+    back its surface (0.26 mm mean vertex error), betas and pose (0.005 rad median)."""
     from body import forward
     from body.rotations import rodrigues
     from fitting.convert import convert_motion, register
@@ -169,17 +169,20 @@ def test_recovers_known_smplx_pose(target, tmp_path):
     go = rodrigues(np.array([[0.1, 0.5 + 0.1 * i, 0.0] for i in range(F)]))
     tr = np.array([[0.2, 0.1 * i, 1.0] for i in range(F)])
     corr = register(target, target)
-    res = convert_motion(target, target, corr, betas, pose, go, tr, iters=8)
-    assert np.median(res.v2s_mean_mm) < 1.0, res.v2s_mean_mm
+    res = convert_motion(target, target, corr, betas, pose, go, tr)
+    assert np.median(res.v2s_mean_mm) < 0.3, res.v2s_mean_mm
     truth = forward(target, betas, pose, go, tr).vertices
     b = np.zeros(target.num_betas)
     b[:10] = res.betas
     got = forward(target, b, res.body_pose, res.global_orient, res.transl).vertices
-    assert np.linalg.norm(got - truth, axis=-1).mean() < 2e-3
-    # body joints' rotations come back (the fingers' twists are only loosely seen)
-    Rt, Rg = rodrigues(pose[:, 1:22]), rodrigues(res.body_pose[:, 1:22])
-    ang = np.arccos(np.clip((np.einsum("fjab,fjab->fj", Rt, Rg) - 1) / 2, -1, 1))
-    assert np.median(ang) < 0.05, np.median(ang)
+    err = np.linalg.norm(got - truth, axis=-1)
+    assert err.mean() < 5e-4 and err.max() < 2e-3, (err.mean(), err.max())
+    assert np.abs(res.betas - betas[:10]).max() < 0.1
+    # the body's and the fingers' rotations come back
+    for sl in (slice(1, 22), slice(25, 55)):
+        Rt, Rg = rodrigues(pose[:, sl]), rodrigues(res.body_pose[:, sl])
+        ang = np.arccos(np.clip((np.einsum("fjab,fjab->fj", Rt, Rg) - 1) / 2, -1, 1))
+        assert np.median(ang) < 0.01 and ang.max() < 0.1, (np.median(ang), ang.max())
 
 
 def test_correspondence_cache_reused_and_keyed(anny, target, target_path, tmp_path):
