@@ -34,16 +34,7 @@ def raw_inputs(recipe, unit: str) -> dict[str, Path]:
     seq = recipe.sequence(unit)
     out = {"body_model": common.body_model_file(recipe), "c3d": Path(seq.c3d)}
     out.update(common.markerset_file(recipe.subjects[seq.markers_on]))
-    for cam in recipe.cameras:
-        if cam in seq.calibration:
-            p = Path(seq.calibration[cam])
-            out[f"calibration:{cam}"] = p
-            if seq.calibration_format == "easymocap" or (
-                    p.suffix.lower() in (".yml", ".yaml") and p.stem in ("intri", "extri")):
-                from calib.io import easymocap_pair  # the other file of the pair is read too
-
-                intri, extri = easymocap_pair(p)
-                out[f"calibration_pair:{cam}"] = extri if p == intri else intri
+    out.update(common.calibration_inputs(recipe, seq))
     return out
 
 

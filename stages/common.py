@@ -282,3 +282,21 @@ def fitted_people(ctx) -> list[tuple[object, str]]:
     if (folder / "fit.npz").is_file():
         out.append((pf, "partner_fit"))
     return out
+
+
+def calibration_inputs(recipe, seq) -> dict[str, Path]:
+    """The raw inputs ``calibration:<camera>`` of a sequence (and ``calibration_pair:<camera>``,
+    the other file of an EasyMocap intri/extri pair, which is read too): what ``capture`` and a
+    markerless ``keypoints`` read of the calibration."""
+    out: dict[str, Path] = {}
+    for cam in recipe.cameras:
+        if cam in seq.calibration:
+            p = Path(seq.calibration[cam])
+            out[f"calibration:{cam}"] = p
+            if seq.calibration_format == "easymocap" or (
+                    p.suffix.lower() in (".yml", ".yaml") and p.stem in ("intri", "extri")):
+                from calib.io import easymocap_pair
+
+                intri, extri = easymocap_pair(p)
+                out[f"calibration_pair:{cam}"] = extri if p == intri else intri
+    return out

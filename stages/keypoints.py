@@ -137,28 +137,12 @@ def raw_inputs(recipe, unit: str) -> dict[str, Path]:
     seq = recipe.sequence(unit)  # markers and cameras come from the ``capture`` stage
     out: dict[str, Path] = {}
     if seq.markerless:  # no capture stage: the calibration is read here
-        out.update(calibration_inputs(recipe, seq))
+        out.update(common.calibration_inputs(recipe, seq))
     for cam in recipe.cameras:
         out[f"video:{cam}"] = Path(seq.videos[cam])
         if seq.keypoints and cam in seq.keypoints:
             for i, p in enumerate(_precomputed_files(seq, cam)):
                 out[f"keypoints:{cam}:{i:06d}"] = p
-    return out
-
-
-def calibration_inputs(recipe, seq) -> dict[str, Path]:
-    """``calibration:<camera>`` (and an EasyMocap pair's other file) of a sequence."""
-    out: dict[str, Path] = {}
-    for cam in recipe.cameras:
-        if cam in seq.calibration:
-            p = Path(seq.calibration[cam])
-            out[f"calibration:{cam}"] = p
-            if seq.calibration_format == "easymocap" or (
-                    p.suffix.lower() in (".yml", ".yaml") and p.stem in ("intri", "extri")):
-                from calib.io import easymocap_pair
-
-                intri, extri = easymocap_pair(p)
-                out[f"calibration_pair:{cam}"] = extri if p == intri else intri
     return out
 
 

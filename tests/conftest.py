@@ -87,3 +87,21 @@ def anny():
         return load_model("anny")
     except InputError as e:
         pytest.skip(f"Anny not exported: {e}")
+
+
+@pytest.fixture(scope="session")
+def chromium_exe():
+    """The headless Chromium the browser tests drive (qa.report.chromium_path): skipped when it
+    is missing, failed instead when MOCAP_REQUIRE_BROWSER is set (``make test`` sets it)."""
+    import os
+
+    from qa.report import chromium_path
+
+    exe = chromium_path()
+    if exe is None:
+        msg = ("chromium is not installed (/usr/bin/chromium missing): install it with "
+               "`bash scripts/setup.sh --browser` (or `make browser`)")
+        if os.environ.get("MOCAP_REQUIRE_BROWSER"):
+            pytest.fail(msg + "; MOCAP_REQUIRE_BROWSER is set, so the browser tests must run")
+        pytest.skip(msg)
+    return exe

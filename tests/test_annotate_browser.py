@@ -29,19 +29,10 @@ ACTION = "Handshake 1"
 
 
 @pytest.fixture(scope="module")
-def chromium():
-    from qa.report import chromium_path
-
-    exe = chromium_path()
-    if exe is None:
-        msg = ("chromium is not installed (/usr/bin/chromium missing): install it with "
-               "`bash scripts/setup.sh --browser` (or `make browser`)")
-        if os.environ.get("MOCAP_REQUIRE_BROWSER"):
-            pytest.fail(msg + "; MOCAP_REQUIRE_BROWSER is set, so the browser tests must run")
-        pytest.skip(msg)
+def chromium(chromium_exe):
     from annotate.browser import Chromium
 
-    with Chromium(exe, width=1500, height=1000) as b:
+    with Chromium(chromium_exe, width=1500, height=1000) as b:
         yield b
 
 
