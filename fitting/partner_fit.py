@@ -73,6 +73,11 @@ DEFAULT_WEIGHTS = {"L_2d": 1.0, "L_theta": 0.02, "L_s": 0.2, "L_gp": 1e5, "L_ic"
                    "L_sc": 1e3, "L_D": 1e5, "L_N": 1e2}
 WIRED = ("L_2d", "L_theta", "L_s", "L_gp", "L_ic", "L_sc", "L_D", "L_N")  # terms evaluated
 CONTACT_SELECTIONS = ("annotated", "all", "uniform")  # psi_D modes (contact_selection)
+# L_theta's joint-limit hinge (fitting/priors.py limits), px^2 per rad^2 beyond a limit: at the
+# Gaussian's weight (0.02) a limit cost nothing against the 2D term, and on the realistic demo
+# the partner's clavicles reached 110-150 degrees (limit 35) in 18-42 % of frames, the spine
+# 55-70 (limit 40), while the true motion stays within every limit
+LIMIT_WEIGHT = 1e3
 # L_G pulls a region pair only when its closest matched facets are nearer than this: a gap of
 # tens of cm in an annotated contact frame means the annotation or the pose is off, and
 # dragging the body there would overrule the 2D evidence (the frame is reported instead)
@@ -114,7 +119,9 @@ class PartnerFitOptions:
     the fingers to the hand keypoints (52 fit joints; else the 22 body joints and the 23 body
     keypoints); ground_k : lowest vertices for L_gp; proxy_vertices : size of the proxy mesh
     of L_ic; max_frames : fit only the first N frames; check_views : mirror back a view's
-    detection read left/right mirrored, drop one that is the wearer (:func:`check_views`)."""
+    detection read left/right mirrored, drop one that is the wearer (:func:`check_views`);
+    limit_weight : weight of L_theta's joint-limit hinge (px^2 per rad^2 beyond a limit of
+    ``fitting.priors``; ``LIMIT_WEIGHT``, the reason beside it)."""
 
     weights: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_WEIGHTS))
     sigma_keypoint_px: float = 20.0
@@ -136,6 +143,7 @@ class PartnerFitOptions:
     contact_facets_n: int = CONTACT_FACETS_N
     contact_seed: int = 0
     contact_max_gap_m: float = CONTACT_MAX_GAP_M
+    limit_weight: float = LIMIT_WEIGHT
 
     def __post_init__(self):
         problems = []
@@ -147,6 +155,8 @@ class PartnerFitOptions:
             elif name not in WIRED and float(v) > 0:
                 problems.append(f"weights.{name}: not wired in this version of the partner fit "
                                 f"(wired: {', '.join(WIRED)}); set it to 0")
+        if not self.limit_weight >= 0:
+            problems.append(f"limit_weight: must be >= 0, got {self.limit_weight}")
         for name in ("sigma_keypoint_px", "max_reproj_px"):
             if not getattr(self, name) > 0:
                 problems.append(f"{name}: must be > 0, got {getattr(self, name)}")
@@ -582,7 +592,8 @@ class PartnerSolver:
         pose_idx = np.arange(6, n)
         g = prior.gaussian
         self.quad_prior = terms.quadratic_L_theta(n, pose_idx, g.mean, g.sqrt_precision, w["L_theta"])
-        self.box = terms.box_L_theta(pose_idx, prior.lo, prior.hi, prior.limit_idx, w["L_theta"])
+        self.box = terms.box_L_theta(pose_idx, prior.lo, prior.hi, prior.limit_idx,
+                                     opts.limit_weight)
         self.row_scale = np.full(2 * C * K, np.sqrt(w["L_2d"]))
         self.rows_k = np.arange(2 * C * K).reshape(C * K, 2)
 

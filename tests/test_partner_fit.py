@@ -396,3 +396,37 @@ def test_engine_on_the_small_session(small_session, tmp_path):
     fit0, _ = fit_partner(model, shape, kp0, cams, opts=PartnerFitOptions(use_hands=False))
     assert not fit0.valid[2] and INVALID_REASONS[fit0.invalid_reason[2]] == "too_few_keypoints"
     assert fit0.valid[[0, 1, 3]].all()
+
+
+def test_joint_limits_hold_against_keypoints_that_pull_past_them(scene):
+    """L_theta's joint-limit hinge (``limit_weight``): keypoints of a body whose right clavicle
+    is turned 100 degrees (its limit is 35) pull the fit past the limit when the hinge has
+    the Gaussian's weight (0.02, as before), and not at the default weight."""
+    from bench import fitting_synth as S
+    from body.joints import regressor
+    from calib import project
+    from fitting import priors
+    from fitting.partner_fit import LIMIT_WEIGHT
+
+    model, skel = scene.model, scene.skel
+    j = list(skel.names).index("clavicle.R")
+    X = scene.X.copy()
+    X[:, 6 + 3 * (j - 1) + 2] = np.deg2rad(100.0)
+    truth = S.posed(model, scene.betas, skel, X)
+    R = regressor(model, "kp65")
+    kp = np.zeros_like(scene.kp)
+    for c, cam in enumerate(scene.cams):
+        kp3 = np.stack([R @ np.concatenate([truth.vertices[f], truth.joints[f]])
+                        for f in range(len(X))])
+        kp[c, :, 1, :, :2] = project(cam, kp3)
+        kp[c, :, 1, :, 2] = 0.9
+    lim = np.deg2rad(priors.joint_limit_deg("clavicle.R"))
+    jid = model.joint_index("clavicle.R")
+    over = {}
+    for w in (0.02, LIMIT_WEIGHT):
+        fit, _ = _fit(scene, kp, opts={"limit_weight": w})
+        over[w] = float(np.abs(np.asarray(fit.body_pose)[:, jid]).max() - lim)
+    assert over[0.02] > np.deg2rad(20), over    # the old weight: the keypoints win
+    assert over[LIMIT_WEIGHT] < np.deg2rad(5), over  # the hinge holds the limit
+    with pytest.raises(ValueError, match="limit_weight"):
+        _fit(scene, kp, opts={"limit_weight": -1.0})
