@@ -242,43 +242,19 @@ def stage_figures(art) -> list[Path]:
 
 
 # ------------------------------------------------------------------ the fitted people
-class SubArtifact:
-    """A sub-folder of an upstream artifact read like an artifact (``dir``, ``arrays``,
-    ``json``): person 0 of a markerless sequence in ``partner_fit/person0/``."""
-
-    def __init__(self, folder: Path):
-        self.dir = Path(folder)
-
-    def arrays(self, name: str) -> dict:
-        import numpy as np
-
-        p = self.dir / f"{name}.npz"
-        if not p.is_file():
-            raise FileNotFoundError(f"no {p}")
-        with np.load(p, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
-
-    def json(self, name: str):
-        import json
-
-        p = self.dir / f"{name}.json"
-        if not p.is_file():
-            raise FileNotFoundError(f"no {p}")
-        return json.loads(p.read_text())
-
-
 def fitted_people(ctx) -> list[tuple[object, str]]:
     """``[(artifact, stage)]`` of the sequence's fitted people, person 0 first: the marker
     wearer's ``marker_fit`` and the partner's ``partner_fit``; on a markerless sequence (no
-    marker_fit) both from ``partner_fit``: person 0 in its ``person0/`` folder, person 1 (when
-    there is one) at its top."""
+    marker_fit) both from ``partner_fit``: person 0 in its ``person0/`` folder (given as that
+    folder's path: ``BodyFit.load`` and :func:`artifact_folder` take one), person 1 (when there
+    is one) at its top."""
     mf, pf = ctx.inputs.get("marker_fit"), ctx.inputs.get("partner_fit")
     if mf is not None:
         return [(mf, "marker_fit")] + ([(pf, "partner_fit")] if pf is not None else [])
     if pf is None:
         return []
     folder = artifact_folder(pf)
-    out: list[tuple[object, str]] = [(SubArtifact(folder / "person0"), "partner_fit")]
+    out: list[tuple[object, str]] = [(folder / "person0", "partner_fit")]
     if (folder / "fit.npz").is_file():
         out.append((pf, "partner_fit"))
     return out

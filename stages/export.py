@@ -280,10 +280,11 @@ def run(ctx: StageContext) -> None:
             frames = np.intersect1d(frames, f.frames)
         absent["smplx"] = "no convert artifact: no SMPL-X parameters"
     if not len(frames):
-        raise InputError(mf_art.dir, "frames", "no frame fitted by every person to export")
+        raise InputError(common.artifact_folder(mf_art), "frames",
+                         "no frame fitted by every person to export")
     F = len(frames)
-    idx = [frame_index(f.frames, frames, a.dir / "fit.npz", name) for f, a, name in
-           zip(fits, [mf_art, pf_art][:P], ["marker_fit", "partner_fit"][:P], strict=True)]
+    idx = [frame_index(f.frames, frames, common.artifact_folder(a) / "fit.npz", name)
+           for f, (a, name) in zip(fits, people, strict=True)]
     out_dir = Path(ctx.out.dir).resolve()
     written: list[str] = []
 
