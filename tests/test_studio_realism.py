@@ -232,9 +232,20 @@ def test_kind_look_renders_plain_frames_and_desync_renders_later(rig):
         late = StudioLook(list(rig), desync_cam=2, desync_frames=0.5)
         got = next(late.frames(r, verts, p0.faces, cols, [1]))
         want = r.render(people_at(verts, p0.faces, cols, 1.5))
-    assert all(np.array_equal(a, b) for a, b in zip(kind, plain, strict=True))
-    assert np.array_equal(got[2], want[2]) and not np.array_equal(got[2], plain[2])
-    assert np.array_equal(got[0], plain[0])
+    assert all(_same_image(a, b) for a, b in zip(kind, plain, strict=True))
+    assert _same_image(got[2], want[2]) and _differing_pixels(got[2], plain[2]) > 500
+    assert _same_image(got[0], plain[0])
+
+
+def _differing_pixels(a: np.ndarray, b: np.ndarray) -> int:
+    return int((np.abs(a.astype(int) - b).sum(-1) > 0).sum())
+
+
+def _same_image(a: np.ndarray, b: np.ndarray) -> bool:
+    """Equal but for a few edge pixels: Mesa's software rasteriser (llvmpipe, threaded) is not
+    bit-reproducible on pixels a triangle edge crosses (measured: 4 of 810,000 pixels of one
+    view differ between two renders of the same scene, in about a third of the runs)."""
+    return a.shape == b.shape and _differing_pixels(a, b) <= 50
 
 
 # ------------------------------------------------------------------------------ a tiny session
