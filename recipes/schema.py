@@ -157,7 +157,10 @@ class SequenceSpec(_Strict):
     cameras may be given for each, the camera is found by its id: ``calib.io.read_camera``);
     ``calibration_format`` names the files' format (null: from the suffix); ``contact`` is a CHI3D
     ``interaction_contact_signature.json`` (keyed by action); ``keypoints`` optionally points
-    at precomputed detections (OpenPose/COCO JSON folders keyed by camera).
+    at precomputed detections (OpenPose/COCO JSON folders keyed by camera); ``clean_plates``
+    optionally names, per camera, a video of the empty room (the clean plate labs record with
+    the cameras and lights as in the take; any subset of the cameras): the people's masks
+    are subtracted from it (stage ``silhouettes``; a camera without one: OpenCV's MOG2).
 
     A marker-only sequence has just ``markers_on`` and ``c3d``: no ``partner``, ``videos`` or
     ``calibration``; it is fitted at the C3D's own rate (or ``mocap.rate_hz``) over its whole
@@ -183,6 +186,7 @@ class SequenceSpec(_Strict):
     mocap: MocapSpec = MocapSpec()
     keypoints: dict[str, Path] | None = None
     keypoints_format: Literal["openpose", "coco"] | None = None
+    clean_plates: dict[str, Path] = Field(default_factory=dict)
 
     @property
     def has_video(self) -> bool:
@@ -354,6 +358,13 @@ def _ref_problems(s: Session, src: Path, tainted: dict[str, set[str]],
             if seq.keypoints_format is None:
                 problem(sid, {"keypoints", "keypoints_format"}, f"sequences.{sid}.keypoints_format: "
                         "required when keypoints are given (openpose or coco)")
+        extra = set(seq.clean_plates) - set(s.cameras)
+        if extra:
+            problem(sid, {"clean_plates", "cameras"},
+                    f"sequences.{sid}.clean_plates: unknown cameras {sorted(extra)}")
+        if seq.clean_plates and not seq.videos:
+            problem(sid, {"clean_plates", "videos"}, f"sequences.{sid}.clean_plates: clean "
+                    "plates need the videos of the cameras (videos)")
     return out, bad
 
 
@@ -518,6 +529,8 @@ def input_files(s: Session) -> list[tuple[str, Path]]:
             out.append((f"sequences.{q}.contact", seq.contact))
         for cam, p in (seq.keypoints or {}).items():
             out.append((f"sequences.{q}.keypoints.{cam}", p))
+        for cam, p in seq.clean_plates.items():
+            out.append((f"sequences.{q}.clean_plates.{cam}", p))
     return out
 
 

@@ -28,6 +28,7 @@ def recipe_files(raw: dict, base: Path) -> list[Path]:
         files.append(q["c3d"])
         files.extend((q.get("videos") or {}).values())
         files.extend((q.get("calibration") or {}).values())
+        files.extend((q.get("clean_plates") or {}).values())
         if q.get("contact"):
             files.append(q["contact"])
     return [(base / f).resolve() for f in files]

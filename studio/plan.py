@@ -395,6 +395,10 @@ def recipe_dict(plan: SessionPlan | MarkerSessionPlan, prefix: str = "") -> dict
     def p(x: Path) -> str:
         return prefix + x.as_posix()
 
+    def plates(seq: SequencePlan) -> dict:  # the lab's clean plates (a kind plan has none)
+        return {"clean_plates": {c: p(clean_plate_path(seq.group, c)) for c in plan.cameras}} \
+            if plan.lab else {}
+
     return {
         "session": plan.session,
         "cameras": list(plan.cameras),
@@ -411,6 +415,7 @@ def recipe_dict(plan: SessionPlan | MarkerSessionPlan, prefix: str = "") -> dict
                 "text": seq.text,
                 "fps": plan.fps,
                 "mocap": {"sync_offset_s": plan.sync_offset_s},
+                **plates(seq),
             }
             for seq in plan.sequences
         },
