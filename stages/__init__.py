@@ -34,8 +34,10 @@ PLANNED: tuple[tuple[str, Granularity, tuple[str, ...], str], ...] = (
      "pose of the subject wearing markers"),
     ("marker_loo", "sequence", ("capture", "shape_fit", "marker_fit"),
      "leave-one-out check of the marker fit"),
-    ("partner_fit", "sequence", ("capture", "shape_fit", "keypoints", "marker_fit"),
-     "pose of the unmarked partner (2D keypoints, contact, collisions)"),
+    ("silhouettes", "sequence", ("capture", "marker_fit"),
+     "people masks from the clean plates; the partner's with the wearer rendered out"),
+    ("partner_fit", "sequence", ("capture", "shape_fit", "keypoints", "marker_fit", "silhouettes"),
+     "pose of the unmarked partner (2D keypoints, contact, collisions, silhouettes)"),
     ("heldout", "sequence", ("keypoints", "partner_fit"),
      "a view left out of the fit: reprojection into it against its detections, and the "
      "triangulation baseline (markerless sequences)"),
@@ -140,6 +142,8 @@ def applies(recipe: Session, stage: str, unit: str) -> bool:
     seq = recipe.sequences[unit]
     if stage in MARKER_STAGES:
         return not seq.markerless
+    if stage == "silhouettes":  # the partner's outline (L_sil): a wearer and a partner on video
+        return seq.has_video and not seq.markerless and seq.partner is not None
     if stage not in VIDEO_STAGES:
         return True
     if stage == "heldout":  # the honest figure where no markers give one (marker_loo does)

@@ -6,7 +6,9 @@ the sequence's contact signature (``fitting.contact_signature.load_contact``: a 
 here, before anything is computed or written), the partner's own ``shape_fit``
 (``artifacts.ShapeFit``; the sequence reads the shape fits of ``[markers_on, partner]``), the
 ``keypoints`` artifact (person 1; its video frames are the frames fitted) and the wearer's
-``marker_fit`` (``artifacts.BodyFit``: the other body of ``L_ic``). After the first fit, the
+``marker_fit`` (``artifacts.BodyFit``: the other body of ``L_ic``), and the ``silhouettes``
+masks (``artifacts.silhouettes.Silhouettes``: ``L_sil``, when the stage ran and the weight is
+> 0). After the first fit, the
 second detection pass (``detect.refine``, option ``second_pass``) runs the detector again in
 tight crops around the fitted partner in the views that lacked it (the videos are raw inputs),
 and the partner is fitted again on the merged keypoints. Writes
@@ -124,8 +126,14 @@ def run(ctx: StageContext) -> None:
     wearer = BodyFit.load(ctx.inputs["marker_fit"]) if "marker_fit" in ctx.inputs else None
     ground = (np.asarray(rv.ground_plane.normal, float), float(rv.ground_plane.offset))
     log = lambda s: ctx.log(f"{ctx.unit}: {s}")  # noqa: E731
+    masks = None  # L_sil: the silhouettes stage's masks, when it ran and the weight is > 0
+    if "silhouettes" in ctx.inputs and o.weights.get("L_sil", 0) > 0:
+        from artifacts.silhouettes import Silhouettes
+
+        masks = Silhouettes.load(ctx.inputs["silhouettes"])
+    sil = {} if masks is None else {"silhouettes": masks}
     fit, report = fit_partner(model, shape, keypoints, cams, wearer, contact, ground, o,
-                              progress=ctx.progress, log=log)
+                              progress=ctx.progress, log=log, **sil)
     second = None
     if o.second_pass and not rv.sequence.has_keypoints:
         keypoints, second = _second_pass(ctx, model, cams, keypoints, fit, o)
@@ -133,7 +141,7 @@ def run(ctx: StageContext) -> None:
             second["first_fit_cpu_s"] = report["fit_cpu_s"]
             second["first_fit_frames_valid"] = report["frames_valid"]
             fit, report = fit_partner(model, shape, keypoints, cams, wearer, contact, ground, o,
-                                      progress=ctx.progress, log=log)
+                                      progress=ctx.progress, log=log, **sil)
         keypoints.save(ctx.out)  # the keypoints the fit used (person 1 refined)
     report["second_pass"] = second or {"run": False, "why_not": (
         "option second_pass is off" if not o.second_pass else "precomputed keypoints")}
@@ -345,6 +353,7 @@ def _reason(code) -> str:
 
 
 STAGE = Stage(name="partner_fit", func=run, per="sequence",  # markerless: no marker_fit upstream
-              upstream=("capture", "shape_fit", "keypoints", "marker_fit"), params=Options,
+              upstream=("capture", "shape_fit", "keypoints", "marker_fit", "silhouettes"),
+              params=Options,
               raw_inputs=raw_inputs, reads=READS, version="1",
-              doc="pose of the unmarked partner (2D keypoints, contact, collisions)")
+              doc="pose of the unmarked partner (2D keypoints, contact, collisions, silhouettes)")
