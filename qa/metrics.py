@@ -588,20 +588,50 @@ def _in_box(P, box):
 class _Surface:
     """Exact distances to one posed full mesh (libigl's AABB tree, what
     ``geometry.nearest_surface`` builds on every call), the tree built once on first use and
-    kept for the frame's other queries against the same mesh."""
+    kept for the frame's other queries against the same mesh.
 
-    def __init__(self, V, faces):
+    With ``anchors`` (points lying on the mesh, e.g. the proxy's) a query builds its tree
+    over only the faces that can hold a nearest point: a point's distance to the surface is at
+    most its distance ``b`` to the nearest anchor, so only faces whose bounding box meets the
+    query points' boxes grown by their ``b`` (``cap``: by at most ``cap``, for a distance
+    clipped there) can be nearer; the distances are the same as over the whole mesh (up to
+    ``cap``)."""
+
+    def __init__(self, V, faces, anchors=None):
         self.V = np.ascontiguousarray(V, dtype=np.float64)
         self.F = faces
         self.tree = None
+        self.anchors = anchors
+        self._kd = None
+        self._fbox = None
 
-    def distance(self, P: np.ndarray) -> np.ndarray:
+    def distance(self, P: np.ndarray, cap: float | None = None) -> np.ndarray:
         import igl
 
-        if self.tree is None:
-            self.tree = igl.AABB()
-            self.tree.init(self.V, self.F)
-        d2, _, _ = self.tree.squared_distance(self.V, self.F, np.ascontiguousarray(P, np.float64))
+        P = np.ascontiguousarray(P, np.float64)
+        if self.anchors is None or self.tree is not None:
+            if self.tree is None:
+                self.tree = igl.AABB()
+                self.tree.init(self.V, self.F)
+            d2, _, _ = self.tree.squared_distance(self.V, self.F, P)
+            return np.sqrt(np.maximum(np.asarray(d2), 0.0))
+        from scipy.spatial import cKDTree
+
+        if self._kd is None:
+            self._kd = cKDTree(self.anchors)
+            T = self.V[self.F]  # (T, 3, 3)
+            self._fbox = (T.min(1), T.max(1))
+        b = self._kd.query(P)[0] * (1 + 1e-9) + 1e-9
+        if cap is not None:
+            b = np.minimum(b, cap)
+        lo, hi = (P - b[:, None]).min(0), (P + b[:, None]).max(0)
+        near = np.all((self._fbox[0] <= hi) & (self._fbox[1] >= lo), axis=1)
+        if not near.any():
+            return np.full(len(P), np.inf)
+        sub = np.ascontiguousarray(self.F[near])
+        tree = igl.AABB()
+        tree.init(self.V, sub)
+        d2, _, _ = tree.squared_distance(self.V, sub, P)
         return np.sqrt(np.maximum(np.asarray(d2), 0.0))
 
 
@@ -621,7 +651,7 @@ def _pair_frame(VA, VB, faces, proxy, need_near: bool):
     PA, PB = proxy.points(VA), proxy.points(VB)
     pf = proxy.faces
     faces = np.ascontiguousarray(faces, dtype=np.int64)
-    SA, SB = _Surface(VA, faces), _Surface(VB, faces)  # each tree built at most once
+    SA, SB = _Surface(VA, faces, PA), _Surface(VB, faces, PB)
     pen, inside_pts = 0.0, []
     boxA, boxB = _bbox(VA), _bbox(VB)
     overlap = np.all(boxA[0] <= boxB[1]) and np.all(boxB[0] <= boxA[1])
@@ -662,7 +692,7 @@ def _pair_frame(VA, VB, faces, proxy, need_near: bool):
             for X, (W, box) in ((PA, (SB, boxB)), (PB, (SA, boxA))):
                 cand = _in_box(X, (box[0] - K.NEAR_M, box[1] + K.NEAR_M))
                 if cand.any():
-                    d = W.distance(X[cand])
+                    d = W.distance(X[cand], cap=K.NEAR_M)
                     near = min(near, float(d.min()))
     return pen, vol, near
 
@@ -903,3 +933,11 @@ def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, f
     thresholds = {n: _threshold(n, opts) for n in values
                   if threshold_name(n) is not None or n.endswith(".not_valid")}
     return QAMetrics(frames, values, units, thresholds, seq, verts, people)
+
+
+def body_proxy(model):
+    """The model's QA proxy (``fitting.collision.ProxyMesh`` of ``constants.PROXY_VERTICES``
+    vertices riding on the full mesh), the one the metrics use (built once per model object)."""
+    from fitting.collision import ProxyMesh
+
+    return _proxy(model, ProxyMesh)

@@ -23,15 +23,18 @@ span. Writes
   drawn (report, plot, overlays per frame, video, scene);
 - ``report.json``: the summary (frames, flagged frames and rate, spans, frames per reason,
   frames not valid per person, the sequence-level findings such as camera sync offsets),
-  the thresholds, what was rendered, and timings (``s_per_frame``: the metrics' wall time per
-  frame);
+  the thresholds, what was rendered, and timings (wall seconds of the metrics, the
+  drawing, the scene and the whole stage, its CPU seconds, and per frame);
 - ``qa.png``: the per-frame curves with thresholds and flagged spans shaded
   (``drawing.qa_plots.qa_plot``);
-- ``overlays/overlay_<frame>.png``: both meshes over the four views (``drawing.overlay``: the
-  renderer's camera model, distortion included) at every span's start, peak and end and at a
-  sample of the unflagged frames; ``overlay.mp4``: the four views tiled over the sequence;
+- ``overlays/overlay_<frame>.png``: both meshes over the four views (``drawing.overlay.
+  draw_overlays``: the QA proxy decimated to ``overlay_faces`` triangles, projected with the
+  cameras' lenses and filled with OpenCV at the picture's scale) at every span's start, peak
+  and end and at a sample of the unflagged frames; ``overlay.mp4`` (and ``overlay.webm``
+  beside it, which browsers play): the four views tiled over the sequence at ``video_scale``;
+  every video frame is decoded once for both;
 - ``scene.mcap``: the 3D scene in Foxglove's schemas (``formats.foxglove_scene``): both bodies
-  as decimated triangle meshes, the markers, the keypoints triangulated, the cameras as frame
+  as decimated triangle meshes (the QA proxy, decimated to ``scene_faces``), the markers, the keypoints triangulated, the cameras as frame
   transforms with their images, the metrics as plot topics;
 - ``figures/``: the upstream stages' pictures (marker residuals, partner-fit curves, keypoint
   overlays; ``stages.common.stage_figures``) copied so that the report is one folder;
@@ -42,6 +45,7 @@ wearer, the plot and the report; no overlays, video or images in the scene.
 """
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import time
 from dataclasses import asdict, dataclass, fields
@@ -66,7 +70,9 @@ class Options(QAOptions):
     images in all (spans first, by their peak excess); video : write ``overlay.mp4``;
     video_max_frames : at most this many frames in it (evenly spaced); scene : write
     ``scene.mcap``; scene_faces : triangles per body in the scene; scene_images : put the
-    camera images into the scene; image_scale : scale of overlay and scene images."""
+    camera images into the scene; image_scale : scale of overlay and scene images;
+    video_scale : scale of the views in ``overlay.mp4``; overlay_faces : triangles per body
+    in the overlays (the QA proxy decimated; ``drawing.overlay.raster_people`` fills them)."""
 
     overlay_sample: int = 4
     overlay_max: int = 24
@@ -76,14 +82,18 @@ class Options(QAOptions):
     scene_faces: int = 4000
     scene_images: bool = True
     image_scale: float = 0.5
+    video_scale: float = 0.25
+    overlay_faces: int = 1500
 
     def __post_init__(self):
         thresholds(self)  # QAOptions validates its own fields
-        for f in ("overlay_sample", "overlay_max", "video_max_frames", "scene_faces"):
+        for f in ("overlay_sample", "overlay_max", "video_max_frames", "scene_faces",
+                  "overlay_faces"):
             if getattr(self, f) < 0:
                 raise ValueError(f"{f}: must be >= 0, got {getattr(self, f)}")
-        if not 0 < self.image_scale <= 1:
-            raise ValueError(f"image_scale: must be in (0, 1], got {self.image_scale}")
+        for f in ("image_scale", "video_scale"):
+            if not 0 < getattr(self, f) <= 1:
+                raise ValueError(f"{f}: must be in (0, 1], got {getattr(self, f)}")
 
 
 def thresholds(o: Options) -> QAOptions:
@@ -143,6 +153,7 @@ def run(ctx: StageContext) -> None:
     from qa.metrics import capture_repairs, flag_frames, marker_track, sequence_metrics
     from qa.report import write_sequence_report
 
+    t_start, c_start = time.perf_counter(), _cpu_s()
     o: Options = ctx.params or Options()
     rv = ctx.recipe
     out = Path(ctx.out.path("report.html")).parent
@@ -210,26 +221,24 @@ def run(ctx: StageContext) -> None:
     rendered = {"overlays": 0, "video_frames": 0}
     index = {int(f): i for i, f in enumerate(m.frames)}
     if has_video and m.vertices:
-        from drawing.overlay import overlay_video, render_overlays
+        from drawing.overlay import draw_overlays
 
         titles = {f: f"{ctx.unit} frame {f}: " + (", ".join(per_frame.get(str(f), [])) or "not flagged")
                   for f in span_frames + sample_frames}
-        images = render_overlays(cams, videos, span_frames + sample_frames, m.vertices,
-                                 np.asarray(model.faces), index, out / "overlays", titles=titles,
-                                 scale=o.image_scale, progress=ctx.progress)
-        rendered["overlays"] = len(images)
+        pick = []
         if o.video and o.video_max_frames:
             pick = np.unique(np.linspace(0, F - 1, min(F, o.video_max_frames)).round().astype(int))
-            step = max(1, int(np.median(np.diff(m.frames))) if F > 1 else 1)
-            overlay_video(out / "overlay.mp4", cams, videos, [int(m.frames[i]) for i in pick],
-                          m.vertices, np.asarray(model.faces), index,
-                          fps / step * (len(pick) / F if F else 1), scale=o.image_scale,
-                          progress=ctx.progress)
-            rendered["video_frames"] = len(pick)
-            # Chromium plays VP8 WebM, not the MPEG-4 Part 2 that OpenCV writes: a copy beside it
-            from qa.report import webm_copy
-
-            webm_copy(out / "overlay.mp4")
+        step = max(1, int(np.median(np.diff(m.frames))) if F > 1 else 1)
+        faces, small = overlay_meshes(model, m.vertices, o.overlay_faces)
+        images, video = draw_overlays(
+            cams, videos, small, faces, index, png_frames=span_frames + sample_frames,
+            png_dir=out / "overlays", titles=titles, png_scale=o.image_scale,
+            video_path=out / "overlay.mp4", video_frames=[int(m.frames[i]) for i in pick],
+            video_fps=fps / step * (len(pick) / F if F else 1), video_scale=o.video_scale,
+            webm=True, progress=ctx.progress)
+        rendered["overlays"] = len(images)
+        rendered["video_frames"] = len(pick)
+        rendered["overlay_faces_per_body"] = int(len(faces))
     draw_s = time.perf_counter() - t1
 
     # the 3D scene
@@ -273,9 +282,7 @@ def run(ctx: StageContext) -> None:
               "thresholds": m.thresholds, "rendered": rendered,
               "overlay_frames": {"spans": span_frames, "sample": sample_frames},
               "scene": scene,
-              "timing": {"metrics_s": round(metrics_s, 3), "draw_s": round(draw_s, 3),
-                         "scene_s": round(scene_s, 3),
-                         "s_per_frame": round(metrics_s / max(F, 1), 4)}}
+              "timing": _timing(F, t_start, c_start, metrics_s, draw_s, scene_s)}
     stage_reports = {k: v for k, v in stage_reports.items() if v is not None}
     write_sequence_report(out, sequence=ctx.unit, title=f"QA: {ctx.unit}", summary=summ,
                           spans=spans_html, figures=figures,
@@ -306,6 +313,45 @@ def run(ctx: StageContext) -> None:
                       scene=scene["file"] if scene else None)).save(ctx.out)
 
 
+def _cpu_s() -> float:
+    """CPU seconds of this process and of its finished children (worker processes)."""
+    import resource
+
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
+def _timing(frames: int, t_start: float, c_start: float, metrics_s: float, draw_s: float,
+            scene_s: float) -> dict:
+    """The stage's timings: wall seconds of the metrics, the drawing (plot, overlays, video)
+    and the scene, the whole stage's wall and CPU seconds up to its report (the figures
+    copied, the pages written after it take milliseconds), and per frame."""
+    total = time.perf_counter() - t_start
+    cpu = _cpu_s() - c_start
+    n = max(frames, 1)
+    return {"metrics_s": round(metrics_s, 3), "draw_s": round(draw_s, 3),
+            "scene_s": round(scene_s, 3), "total_s": round(total, 3), "cpu_s": round(cpu, 3),
+            "s_per_frame": round(total / n, 4), "cpu_s_per_frame": round(cpu / n, 4),
+            "metrics_s_per_frame": round(metrics_s / n, 4)}
+
+
+def overlay_meshes(model, vertices, n_faces: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The bodies the overlays draw: the QA proxy (``qa.metrics.body_proxy``: points riding on
+    the full mesh) decimated to ``n_faces`` triangles (``formats.foxglove_scene.
+    decimate_for_scene``), posed on every QA frame. Returns ``(faces (T, 3), [(F, V', 3) per
+    person])``."""
+    from formats.foxglove_scene import decimate_for_scene
+    from qa.metrics import body_proxy
+
+    proxy = body_proxy(model)
+    ids, tri = decimate_for_scene(proxy.points(np.asarray(model.v_template, float)),
+                                  np.asarray(proxy.faces), max(int(n_faces), 4))
+    sub = dataclasses.replace(proxy, corners=proxy.corners[ids], face=proxy.face[ids],
+                              bary=proxy.bary[ids], face_region=None, vertex_region=None,
+                              region_adjacency=None)
+    return tri, [sub.points(V) for V in vertices]
+
+
 def wearer_markers(ctx, videos):
     """The wearer's capture from stage ``capture`` (``artifacts.capture.Markers``: what the
     cleaning repaired), the cleaned markers ``marker_fit`` fitted (``formats.c3d.Markers``)
@@ -328,14 +374,13 @@ def _write_scene(path: Path, model, m, flags, cams, videos, has_video, keypoints
     from calib.convert import convert_distortion
     from calib.geometry import triangulate
     from fitting.mocap import video_observations
-    from formats.foxglove_scene import CameraView, MeshTrack, decimate_for_scene, write_scene
+    from formats.foxglove_scene import CameraView, MeshTrack, write_scene
     from formats.video import VideoReader
 
-    ids, tri = decimate_for_scene(np.asarray(model.v_template, float), np.asarray(model.faces),
-                                  o.scene_faces)
+    tri, small = overlay_meshes(model, m.vertices, o.scene_faces)  # the QA proxy, decimated
     colors = {"wearer": (0.85, 0.25, 0.2, 0.9), "partner": (0.2, 0.45, 0.85, 0.9)}
-    meshes = [MeshTrack(p, np.asarray(V)[:, ids], tri, colors.get(p, (0.7, 0.7, 0.7, 0.9)))
-              for p, V in zip(m.people, m.vertices, strict=True)]
+    meshes = [MeshTrack(p, V, tri, colors.get(p, (0.7, 0.7, 0.7, 0.9)))
+              for p, V in zip(m.people, small, strict=True)]
     frames = np.asarray(m.frames)
     marker_xyz = None if markers is None else video_observations(markers, frames, clock)[0]
     points = {}

@@ -172,6 +172,112 @@ def test_overlay_covers_the_person_in_the_studio_video(small_session):
     assert iou(person[c], wrong[c]) < iou(person[c], right[c])
 
 
+# ------------------------------------------------------------------------------ fast path
+def test_raster_covers_the_renderers_pixels(small_session):
+    """The QA stage's fast overlays (``raster_people`` on the proxy decimated to the stage's
+    default 1,500 faces, ``stages.qa.overlay_meshes``) cover the pixels the EGL renderer gives
+    the full meshes, person by person: IoU >= 0.95 and outlines within ~1 px (median) at full
+    size, >= 0.93 at the overlays' half size (the border is a larger share); the person drawn in front where the two
+    overlap is the renderer's on >= 99 % of the pixels either draws. Drawn from the full
+    meshes moved 5 cm, the IoU drops below 0.85 (the test can fail)."""
+    from body import load_model
+    from drawing.overlay import RasterScene, raster_people, scaled_size
+    from drawing.render import Renderer
+    from stages.qa import Options, overlay_meshes
+
+    cams, _, V, faces = _session(small_session)
+    cols = ((255, 140, 0), (0, 200, 255))
+    full = [_mesh(V[k, FRAME], faces, cols[k]) for k in range(2)]
+    tri, small = overlay_meshes(load_model("anny"), [V[k, FRAME][None] for k in range(2)],
+                                Options().overlay_faces)
+    assert 1000 <= len(tri) <= 1500
+    fast = RasterScene([_mesh(small[k][0], tri, cols[k]) for k in range(2)])
+    moved = RasterScene([_mesh(V[k, FRAME] + [0.05, 0, 0], faces, cols[k]) for k in range(2)])
+    with Renderer(cams) as r:
+        ref = r.render_ids(full)
+    for c, cam in enumerate(cams):
+        for scale in (1.0, 0.5):
+            w, h = scaled_size(cam, scale)
+            # the renderer's ids sampled at the scaled pixel centres
+            ys = np.clip(np.rint((np.arange(h) + 0.5) / scale - 0.5).astype(int), 0, cam.height - 1)
+            xs = np.clip(np.rint((np.arange(w) + 0.5) / scale - 0.5).astype(int), 0, cam.width - 1)
+            want = ref[c][np.ix_(ys, xs)]
+            rgb, ids = raster_people(cam, fast, scale)
+            assert ids.shape == (h, w) and rgb.shape == (h, w, 3)
+            assert (rgb[ids < 0] == 0).all() and (rgb[ids >= 0].max(-1) > 0).all()
+            for k in range(2):
+                a, b = want == k, ids == k
+                assert a.sum() > 3000 * scale ** 2, (cam.name, k)
+                iou = (a & b).sum() / (a | b).sum()
+                assert iou >= (0.95 if scale == 1 else 0.93), (cam.name, scale, k, iou)
+                d = _outline_distances(a, b)
+                assert np.median(d) <= 1.0 and np.percentile(d, 90) <= 2.5 / scale ** 0.5, \
+                    (cam.name, scale, k, np.median(d), np.percentile(d, 90))
+            both = (want >= 0) & (ids >= 0)
+            assert (want[both] == ids[both]).mean() >= 0.99, cam.name
+            _, off = raster_people(cam, moved, scale)
+            assert ((off == 0) & (want == 0)).sum() / ((off == 0) | (want == 0)).sum() < 0.85
+
+
+def test_draw_overlays_decodes_each_frame_once(tmp_path, monkeypatch):
+    """``draw_overlays``: one pass over the videos (each requested video frame decoded once,
+    in increasing order), the PNGs at their scale with their titles' frames, the MP4 and the
+    WebM with one frame per video frame at the video's scale, each showing its frame's grey
+    and the box where the camera projects it; a person not fitted (NaN row) is left out."""
+    import cv2
+    import trimesh
+
+    from calib import look_at, project
+    from drawing import qa_constants as Q
+    from drawing.overlay import draw_overlays
+    from formats import video as FV
+
+    cams = [look_at(f"c{i}", [3 * np.cos(a), 3 * np.sin(a), 1.5], [0, 0, 1], (150, 150),
+                    (80, 60), 160, 120, k=(-0.2, 0.05, 0.0))
+            for i, a in enumerate(np.deg2rad([45, 135, 225, 315]))]
+    videos = [FV.write_mp4(tmp_path / f"v{c.name}.mp4",
+                           (np.full((120, 160, 3), 30 + 40 * j, np.uint8) for j in range(5)), 25.0)
+              for c in cams]
+    box = trimesh.creation.box((0.3, 0.3, 0.6))
+    verts = np.stack([box.vertices + [0.2 * i, 0, 1.0] for i in range(5)])
+    gone = np.full_like(verts, np.nan)  # a second person fitted nowhere
+    reads = []
+    get = FV.VideoReader.__getitem__
+    monkeypatch.setattr(FV.VideoReader, "__getitem__",
+                        lambda self, i: reads.append((self.path.name, int(i))) or get(self, i))
+    pngs, video = draw_overlays(cams, videos, [verts, gone], box.faces, {j: j for j in range(5)},
+                                png_frames=[3, 1], png_dir=tmp_path / "png",
+                                titles={1: "one"}, png_scale=1.0,
+                                video_path=tmp_path / "o" / "overlay.mp4",
+                                video_frames=[0, 1, 2, 4], video_fps=10.0, video_scale=0.5)
+    for v in videos:  # frames 0..4 once each, in order
+        assert [i for n, i in reads if n == v.name] == [0, 1, 2, 3, 4]
+    assert sorted(pngs) == [1, 3]
+    bar = Q.TILE_TITLE_PX
+    for f, p in pngs.items():
+        png = cv2.imread(str(p))[..., ::-1]
+        assert png.shape == (bar + 240, 320, 3)
+        for c, cam in enumerate(cams):
+            r, k = divmod(c, 2)
+            tile = png[bar + 120 * r: bar + 120 * (r + 1), 160 * k: 160 * (k + 1)]
+            assert abs(int(tile[115, 150, 0]) - (30 + 40 * f)) <= 6
+            u, w = np.rint(project(cam, verts[f].mean(0))).astype(int)
+            assert np.abs(tile[w, u].astype(int) - (30 + 40 * f)).max() > 40
+    for path in (video, video.with_suffix(".webm")):
+        info = FV.video_info(path)
+        assert info.n_frames == 4 and (info.width, info.height) == (160, bar + 120), path
+        with FV.VideoReader(path) as rd:
+            for i, f in enumerate([0, 1, 2, 4]):
+                img = rd[i]
+                cell = img[bar:bar + 60, :80]
+                assert abs(int(cell[57, 75, 0]) - (30 + 40 * f)) <= 8, (path.name, f)
+                u, w = np.rint((project(cams[0], verts[f].mean(0)) + 0.5) * 0.5 - 0.5).astype(int)
+                assert np.abs(cell[w, u].astype(int) - (30 + 40 * f)).max() > 40, (path.name, f)
+    with pytest.raises(ValueError, match="increasing"):
+        draw_overlays(cams, videos, [verts], box.faces, {j: j for j in range(5)},
+                      video_path=tmp_path / "x.mp4", video_frames=[2, 1])
+
+
 # ------------------------------------------------------------------------------ tiles
 def test_tile_views_grid_and_labels():
     from drawing import qa_constants as Q

@@ -40,3 +40,27 @@ def test_proxy_is_built_once_per_model(anny):
     QM._PROXIES[id(anny)] = (object(), "stale")
     b = QM._proxy(anny, Counting)
     assert b != "stale" and len(calls) == 2 and b.num_vertices == a.num_vertices
+
+
+def test_surface_tree_over_the_faces_near_the_queries_gives_the_same_distances(anny):
+    """With anchors on the mesh (the proxy's points), the tree is built over the faces that
+    can hold a nearest point only, and the distances are the whole mesh's: deep inside,
+    near the surface, and far points capped at ``cap`` (the others exact); a point whose
+    nearest face the subset misses would show up as a larger distance."""
+    from body import forward
+
+    rng = np.random.default_rng(5)
+    pose = rng.normal(0, 0.2, (1, anny.num_joints, 3))
+    V = forward(anny, np.zeros(1), pose, np.eye(3)[None], np.zeros((1, 3))).vertices[0]
+    faces = np.ascontiguousarray(anny.faces, np.int64)
+    proxy = QM.body_proxy(anny)
+    anchors = proxy.points(V)
+    for spread, n in ((0.01, 30), (0.05, 200), (0.3, 100)):
+        P = V[rng.integers(0, len(V), n)] + rng.normal(0, spread, (n, 3))
+        want = nearest_surface(P, V, faces).distance
+        got = QM._Surface(V, faces, anchors).distance(P)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+        capped = QM._Surface(V, faces, anchors).distance(P, cap=0.02)
+        near = want <= 0.02
+        np.testing.assert_allclose(capped[near], want[near], rtol=0, atol=1e-12)
+        assert (capped[~near] > 0.02 - 1e-12).all()
