@@ -57,6 +57,8 @@ from fitting.marker_graph import body_joints
 from fitting.reprojection import Reprojection
 from fitting.skinned import point_jacobian, subtree
 from formats.skeletons import KP65, KP65_FLIP
+from formats.skeletons import LEFT_HAND as S_LEFT_HAND
+from formats.skeletons import RIGHT_HAND as S_RIGHT_HAND
 from geometry import face_normals
 
 # constants
@@ -72,6 +74,11 @@ from geometry import face_normals
 DEFAULT_WEIGHTS = {"L_2d": 1.0, "L_theta": 0.02, "L_s": 0.2, "L_gp": 1e5, "L_ic": 1e4,
                    "L_sc": 1e3, "L_D": 1e5, "L_N": 1e2}
 WIRED = ("L_2d", "L_theta", "L_s", "L_gp", "L_ic", "L_sc", "L_D", "L_N")  # terms evaluated
+# --- L_sil (fitting/silhouette.py, issue #27): the partner's outline in the views; only when
+# the masks are given (extra_terms(silhouettes=...)); weight measured on the realistic demo
+DEFAULT_WEIGHTS["L_sil"] = 1.0
+WIRED = WIRED + ("L_sil",)
+# --- end L_sil
 CONTACT_SELECTIONS = ("annotated", "all", "uniform")  # psi_D modes (contact_selection)
 # L_theta's joint-limit hinge (fitting/priors.py limits), px^2 per rad^2 beyond a limit: at the
 # Gaussian's weight (0.02) a limit cost nothing against the 2D term, and on the realistic demo
@@ -88,6 +95,17 @@ EXTRA_TERMS = ("L_gp", "L_ic", "L_sc", "L_D", "L_N")
 N_BODY = 23  # KP65 body keypoints (COCO-WholeBody order) counted for "enough detections"
 FLIP_MIN_PX = 15.0  # check_views: a view this close to the estimate (median px) is kept as is
 FLIP_RATIO = 0.5  # ... else mirrored / dropped when that fits at least twice as well
+# A hand detection (21 keypoints) outweighs the body's one wrist keypoint, so one wrong hand
+# (another person's, a mirrored one) drags the whole arm: on the realistic demo's Push the
+# partner's right hand detected 46-50 px off in one of the two views that saw it held the
+# fitted arm 200-300 mm off the truth while the body keypoints of two views were 4-10 px from
+# it (Push partner MPJPE 69 mm over frames 70-99; body keypoints alone 28). A hand whose wrist
+# lies farther than this from the body-only solution's wrist is not that person's hand here.
+HAND_GATE_PX = 25.0
+# A body detection this far (median px) from the estimate while two other views agree with
+# the estimate is not the partner (a bystander, an operator): the realistic demo's third
+# person was taken for the partner 350 px away in one view for 25 frames
+BYSTANDER_PX = 80.0
 GROUND_BAND_M = 0.01  # L_gp slots: candidates below the plane or within this above it
 GROUND_K = 300  # L_gp candidates: the lowest vertices (both soles; 20 let a foot tilt under)
 # the reasons (artifacts.body_fit.INVALID_REASONS) a frame of the partner fit can be not valid for
@@ -121,7 +139,14 @@ class PartnerFitOptions:
     of L_ic; max_frames : fit only the first N frames; check_views : mirror back a view's
     detection read left/right mirrored, drop one that is the wearer (:func:`check_views`);
     limit_weight : weight of L_theta's joint-limit hinge (px^2 per rad^2 beyond a limit of
-    ``fitting.priors``; ``LIMIT_WEIGHT``, the reason beside it)."""
+    ``fitting.priors``; ``LIMIT_WEIGHT``, the reason beside it); hand_gate_px : each frame is
+    first solved from the body keypoints alone, and a view's hand detection whose wrist lies
+    farther than this from that body's wrist is not used (:func:`gate_hands`; 0: off, the
+    hands enter at once); bystander_px : a view whose body detection lies farther than this
+    (median) from the estimate while two other views agree with it is somebody else's and
+    dropped (:func:`check_views`; 0: off); temporal_passes : after the forward pass (each
+    frame warm-started from and tied by L_s to the previous one), sweeps backwards over the
+    sequence re-solving each frame tied to both its neighbours (0: none)."""
 
     weights: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_WEIGHTS))
     sigma_keypoint_px: float = 20.0
@@ -144,6 +169,9 @@ class PartnerFitOptions:
     contact_seed: int = 0
     contact_max_gap_m: float = CONTACT_MAX_GAP_M
     limit_weight: float = LIMIT_WEIGHT
+    hand_gate_px: float = HAND_GATE_PX
+    temporal_passes: int = 0
+    bystander_px: float = BYSTANDER_PX
 
     def __post_init__(self):
         problems = []
@@ -155,8 +183,9 @@ class PartnerFitOptions:
             elif name not in WIRED and float(v) > 0:
                 problems.append(f"weights.{name}: not wired in this version of the partner fit "
                                 f"(wired: {', '.join(WIRED)}); set it to 0")
-        if not self.limit_weight >= 0:
-            problems.append(f"limit_weight: must be >= 0, got {self.limit_weight}")
+        for name in ("limit_weight", "hand_gate_px", "bystander_px"):
+            if not getattr(self, name) >= 0:
+                problems.append(f"{name}: must be >= 0, got {getattr(self, name)}")
         for name in ("sigma_keypoint_px", "max_reproj_px"):
             if not getattr(self, name) > 0:
                 problems.append(f"{name}: must be > 0, got {getattr(self, name)}")
@@ -166,7 +195,8 @@ class PartnerFitOptions:
             problems.append(f"contact_max_gap_m: must be > 0, got {self.contact_max_gap_m}")
         for name, lo in (("min_keypoints", 1), ("min_views", 2), ("max_iters", 1),
                          ("first_iters", 1), ("outer_rounds", 1), ("reinit_after", 0),
-                         ("ground_k", 1), ("proxy_vertices", 100), ("contact_facets_n", 1)):
+                         ("ground_k", 1), ("proxy_vertices", 100), ("contact_facets_n", 1),
+                         ("temporal_passes", 0)):
             if getattr(self, name) < lo:
                 problems.append(f"{name}: must be >= {lo}, got {getattr(self, name)}")
         if self.max_frames is not None and self.max_frames < 1:
@@ -613,19 +643,24 @@ class PartnerSolver:
         self.body.hook_s += time.perf_counter() - t0
         return out
 
-    def solve(self, x0, uv, conf, frame: int, x_prev=None, first=False):
+    def solve(self, x0, uv, conf, frame: int, x_prev=None, first=False, s_scale=1.0,
+              extra=True):
         """One frame: uv (C, K, 2) pixels, conf (C, K) (0 = missing). Rounds of LM; before
         each the hooks choose the offending points, which LM then evaluates exactly
-        (:class:`Augmented`). Returns (LMResult, the blocks at the solution, rounds)."""
+        (:class:`Augmented`). ``L_s`` ties x to ``x_prev`` at ``s_scale`` times its weight (the
+        temporal pass: 2 x the neighbours' mean = the sum over both neighbours, up to a
+        constant); extra=False: L_2d and the priors alone, one round. Returns (LMResult, the
+        blocks at the solution, rounds)."""
         self.reproj.set_observations(uv, conf)
         quad = self.quad_prior
         if x_prev is not None and self.opts.weights["L_s"] > 0:
             quad = quad + terms.quadratic_L_s(len(x0), np.arange(len(x0)), x_prev,
-                                              self.opts.weights["L_s"])
+                                              s_scale * self.opts.weights["L_s"])
         x = np.asarray(x0, float)
         res, rounds = None, 0
-        blocks = self.blocks(x, frame) if (self.extra and not first) else []
-        for k in range(self.opts.outer_rounds if self.extra else 1):
+        extra = extra and bool(self.extra)
+        blocks = self.blocks(x, frame) if (extra and not first) else []
+        for k in range(self.opts.outer_rounds if extra else 1):
             if k > 0 and not blocks:
                 break
             fun, scale = self.reproj, self.row_scale
@@ -640,7 +675,7 @@ class PartnerSolver:
                                                  else self.opts.max_iters, ftol=self.opts.ftol))
                 x = res.x
             rounds += 1
-            if self.extra:
+            if extra:
                 blocks = self.blocks(x, frame)
         return res, blocks, rounds
 
@@ -661,7 +696,7 @@ def _partner_keypoints(keypoints: Keypoints2D, cams, frames, kidx, min_conf):
 
 def check_views(cams, pred: np.ndarray, uv: np.ndarray, conf: np.ndarray, flip: np.ndarray,
                 other: np.ndarray | None = None, min_px: float = FLIP_MIN_PX,
-                ratio: float = FLIP_RATIO) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                ratio: float = FLIP_RATIO, far_px: float = 0.0) -> ViewCheck:
     """Cross-view consistency of one frame's partner detections against a 3D body.
 
     pred : (K, 3) the partner's keypoints from the current estimate (the previous frame's
@@ -670,17 +705,20 @@ def check_views(cams, pred: np.ndarray, uv: np.ndarray, conf: np.ndarray, flip: 
     marker wearer's keypoints (from ``marker_fit``) or None. Per view, ``e`` is the median
     pixel distance of the detected body keypoints to ``pred``'s projection:
 
+    - a view whose detection lies farther than ``far_px`` (> 0) from ``pred`` while at least
+      two other views lie within it is somebody else (a bystander, an operator) and dropped
+      (conf 0; ``far``);
+    - a view whose detection lies nearer the wearer's projected keypoints than the partner's
+      (``e_other < ratio * e``, ``e > min_px``; an identity swap) is dropped (conf 0);
     - a view whose detection read mirrored fits ``pred`` better (``e_flip < ratio * e`` and
       ``e > min_px``) is mirrored back (a person seen from behind read as seen from the
-      front: the fit must not follow it);
-    - a view whose detection lies nearer the wearer's projected keypoints than the partner's
-      (``e_other < ratio * e``, ``e > min_px``; an identity swap) is dropped (conf 0).
+      front: the fit must not follow it).
 
-    Returns ``(uv, conf, flipped (C,), dropped (C,))`` (copies)."""
+    Returns a :class:`ViewCheck` (copies)."""
     uv, conf = np.array(uv, float), np.array(conf, float)
     C, K = conf.shape
     body = np.arange(min(K, N_BODY))
-    flipped, dropped = np.zeros(C, bool), np.zeros(C, bool)
+    flipped, dropped, far = np.zeros(C, bool), np.zeros(C, bool), np.zeros(C, bool)
 
     def med(c, target, perm):
         ok = conf[c, perm][body] > 0
@@ -690,20 +728,78 @@ def check_views(cams, pred: np.ndarray, uv: np.ndarray, conf: np.ndarray, flip: 
         return float(np.median(d))
 
     ident = np.arange(K)
+    e = np.array([med(c, pred, ident) for c in range(C)])
+    if far_px > 0:
+        near = e <= far_px
+        for c in np.flatnonzero(e > far_px):
+            if np.count_nonzero(np.delete(near, c)) >= 2:
+                conf[c] = 0.0
+                far[c] = True
     for c in range(C):
-        e = med(c, pred, ident)
-        if not e > min_px:
+        if far[c] or not e[c] > min_px:
             continue
         if other is not None:
             e_other = min(med(c, other, ident), med(c, other, flip))
-            if e_other < ratio * e:
+            if e_other < ratio * e[c]:
                 conf[c] = 0.0
                 dropped[c] = True
                 continue
-        if med(c, pred, flip) < ratio * e:
+        if med(c, pred, flip) < ratio * e[c]:
             uv[c], conf[c] = uv[c, flip], conf[c, flip]
             flipped[c] = True
-    return uv, conf, flipped, dropped
+    return ViewCheck(uv, conf, flipped, dropped, far)
+
+
+@dataclass(frozen=True)
+class ViewCheck:
+    """What :func:`check_views` made of one frame's detections: ``uv (C, K, 2)``, ``conf (C,
+    K)`` after it, and per view ``flipped``, ``dropped`` (the wearer), ``far`` (somebody
+    else), (C,) bool each."""
+
+    uv: np.ndarray
+    conf: np.ndarray
+    flipped: np.ndarray
+    dropped: np.ndarray
+    far: np.ndarray
+
+    @property
+    def changed(self) -> bool:
+        return bool(self.flipped.any() or self.dropped.any() or self.far.any())
+
+
+#: KP65 rows of each hand's wrist (the hand detector's) and the body's wrist, left and right
+HAND_WRISTS = ((KP65.index("l_hand_wrist"), KP65.index("l_wrist"), S_LEFT_HAND),
+               (KP65.index("r_hand_wrist"), KP65.index("r_wrist"), S_RIGHT_HAND))
+
+
+def gate_hands(cams, pred: np.ndarray, uv: np.ndarray, conf: np.ndarray,
+               gate_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Drop the hand detections that are not the estimate's hands.
+
+    pred : (65, 3) keypoints of a solution fitted from the body keypoints alone; uv (C, 65,
+    2), conf (C, 65) the detections. A view's hand (21 keypoints) whose wrist keypoint lies
+    farther than ``gate_px`` from ``pred``'s body wrist (projected) is dropped (conf 0); a
+    hand whose wrist was not detected is judged by the median of its keypoints against
+    ``pred``'s hand keypoints, at twice the gate (the fingers of a body-only solution are
+    the prior's). Returns ``(conf (C, 65) copy, gated (C, 2) bool)`` (left, right)."""
+    conf = np.array(conf, float)
+    C = conf.shape[0]
+    gated = np.zeros((C, 2), bool)
+    for c in range(C):
+        for side, (hw, bw, sl) in enumerate(HAND_WRISTS):
+            seen = conf[c, sl] > 0
+            if not seen.any():
+                continue
+            if conf[c, hw] > 0:
+                d = np.linalg.norm(uv[c, hw] - project(cams[c], pred[bw][None])[0])
+                bad = d > gate_px
+            else:
+                P = project(cams[c], pred[sl][seen])
+                bad = np.median(np.linalg.norm(uv[c, sl][seen] - P, axis=-1)) > 2 * gate_px
+            if bad:
+                conf[c, sl] = 0.0
+                gated[c, side] = True
+    return conf, gated
 
 
 def wearer_posed(model: BodyModel, wearer: BodyFit, frames: np.ndarray, chunk: int = 64):
@@ -765,7 +861,8 @@ def _too_far(extra, frames) -> dict:
 
 
 def extra_terms(model: BodyModel, frames: np.ndarray, wearer_V, contact=None, ground=None,
-                opts: PartnerFitOptions = PartnerFitOptions(), rmap=None) -> tuple[list, dict]:
+                opts: PartnerFitOptions = PartnerFitOptions(), rmap=None,
+                silhouettes=None) -> tuple[list, dict]:
     """The extra terms of a sequence whose weight is > 0, in the order ``L_gp``, ``L_ic``,
     ``L_sc``, ``L_D``, ``L_N``, and the report's ``contact_terms`` entry.
 
@@ -815,13 +912,23 @@ def extra_terms(model: BodyModel, frames: np.ndarray, wearer_V, contact=None, gr
                     pairs=[{"regions": list(map(str, contact.region_names[k])),
                             "selection": modes[k], "facets": [int(len(a)), int(len(b))]}
                            for k, (a, b) in enumerate(sel)])
+    if silhouettes is not None and w["L_sil"] > 0:  # L_sil: a fitting.silhouette.SilhouetteInput
+        from fitting.silhouette import silhouette_term
+
+        extra.append(silhouette_term(model, frames, silhouettes, opts.proxy_vertices))
     return extra, info
+
+
+def _silhouette_input(masks, cams):  # L_sil: the masks (artifacts.silhouettes) and the cameras
+    from fitting.silhouette import SilhouetteInput
+
+    return SilhouetteInput(masks, list(cams))
 
 
 def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
                 wearer: BodyFit | None = None, contact=None, ground=None,
                 opts: PartnerFitOptions = PartnerFitOptions(), progress=None,
-                log=None) -> tuple[BodyFit, dict]:
+                log=None, silhouettes=None) -> tuple[BodyFit, dict]:
     """The partner's motion over the keypoints' video frames.
 
     model : BodyModel; shape : the partner's own :class:`artifacts.ShapeFit` (betas held
@@ -856,7 +963,8 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
 
     posed = None if wearer is None else wearer_posed(model, wearer, frames)
     WV = None if posed is None else posed[0]
-    extra, contact_info = extra_terms(model, frames, WV, contact, ground, opts)
+    extra, contact_info = extra_terms(model, frames, WV, contact, ground, opts, silhouettes=(
+        None if silhouettes is None else _silhouette_input(silhouettes, cams)))  # L_sil
     t0 = time.perf_counter()
     reproj = Reprojection(skel, body.u, Hk, cams, body.sub)
     t_build = time.perf_counter() - t0
@@ -871,6 +979,36 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
     err_px = np.full((F, C), np.nan)
     flipped = np.zeros((F, C), bool)
     dropped = np.zeros((F, C), bool)
+    far = np.zeros((F, C), bool)
+    gated = np.zeros((F, C, 2), bool)
+    gate = opts.use_hands and opts.hand_gate_px > 0
+
+    def slots(x):
+        return skinned.slot_positions_np(skel, body.u, Hk, x)
+
+    def record(f, x, blocks, x_ref, s_scale=1):
+        """Frame f's solution x and the terms at it (L_s against x_ref, None: none)."""
+        X[f] = x
+        cost[f], active[f], npts[f] = 0.0, False, 0
+        e = reprojection_px(cams, slots(x), uv[f], conf[f])
+        with np.errstate(all="ignore"):
+            err_px[f] = [np.nanmedian(r) if np.isfinite(r).any() else np.nan for r in e]
+        reason[f] = 0 if np.nanmedian(e) <= opts.max_reproj_px else REASON_CODE["poor_reprojection"]
+        s2 = solver.row_scale[0] ** 2
+        r2 = np.sum(((np.nan_to_num(e) ** 2) * conf[f]) / max(int((conf[f] > 0).sum()), 1))
+        cost[f, 0] = s2 * r2
+        g = prior.gaussian
+        cost[f, 1] = opts.weights["L_theta"] * float(np.sum((g.sqrt_precision @ (x[6:] - g.mean)) ** 2))
+        if x_ref is not None:
+            cost[f, 2] = s_scale * opts.weights["L_s"] * float(np.sum((x - x_ref) ** 2))
+        active[f, :3] = True, True, x_ref is not None
+        for b in blocks:
+            j = names.index(b.name)
+            r, _ = b.evaluate(skel, body.u, x, body.sub)
+            cost[f, j] += opts.weights[b.name] * float(r @ r)
+            active[f, j] = True
+            npts[f, j] += b.points
+
     cost = np.zeros((F, len(names)))
     active = np.zeros((F, len(names)), bool)
     npts = np.zeros((F, len(names)), np.int64)
@@ -887,7 +1025,10 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
             start = x_prev is None or miss > opts.reinit_after
             x0 = x_prev
             if enough[f] and start:
-                init = init_pose(model, betas, cams, kp_raw[:, f], skel, InitOptions())
+                kpi = kp_raw[:, f].copy()
+                if gate:  # from the body alone (a wrong hand triangulated drags the arm)
+                    kpi[:, N_BODY:, 2] = 0.0
+                init = init_pose(model, betas, cams, kpi, skel, InitOptions())
                 x0 = init.x if init.ok else None
                 if not init.ok:
                     log(f"frame {int(frames[f])}: no initialisation ({init.reason})")
@@ -902,49 +1043,48 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
                 miss += 1
                 continue
             uvf, cf = uv[f], conf[f]
+            other = None if WK is None else WK[f]
             if opts.check_views and not start:  # against the previous frame's solution
-                uvf, cf, fl, dr = check_views(cams, skinned.slot_positions_np(skel, body.u, Hk, x0),
-                                              uvf, cf, flipK, None if WK is None else WK[f])
-                flipped[f] |= fl
-                dropped[f] |= dr
-            res, blocks, _ = solver.solve(x0, uvf, cf, f, None if start else x_prev, first=start)
+                vc = check_views(cams, slots(x0), uvf, cf, flipK, other, far_px=opts.bystander_px)
+                uvf, cf = vc.uv, vc.conf
+                flipped[f] |= vc.flipped
+                dropped[f] |= vc.dropped
+                far[f] |= vc.far
+            first = start
+            if gate:  # the body alone first; the hands that are not its hands left out
+                hands = cf.copy()
+                cf = cf.copy()
+                cf[:, N_BODY:] = 0.0
+                res, _, _ = solver.solve(x0, uvf, cf, f, None if start else x_prev, first=first,
+                                         extra=False)
+                cf, gated[f] = gate_hands(cams, slots(res.x), uvf, hands, opts.hand_gate_px)
+                x0, first = res.x, False
+            res, blocks, _ = solver.solve(x0, uvf, cf, f, None if start else x_prev, first=first)
             if opts.check_views:  # and against this frame's own solution
-                uv2, cf2, fl, dr = check_views(cams, skinned.slot_positions_np(skel, body.u, Hk, res.x),
-                                               uvf, cf, flipK, None if WK is None else WK[f])
-                if fl.any() or dr.any():
-                    flipped[f] |= fl
-                    dropped[f] |= dr
-                    uvf, cf = uv2, cf2
+                vc = check_views(cams, slots(res.x), uvf, cf, flipK, other, far_px=opts.bystander_px)
+                if vc.changed:
+                    flipped[f] |= vc.flipped
+                    dropped[f] |= vc.dropped
+                    far[f] |= vc.far
+                    uvf, cf = vc.uv, vc.conf
                     res, blocks, _ = solver.solve(res.x, uvf, cf, f, None if start else x_prev)
             uv[f], conf[f] = uvf, cf
             x = rewrap(res.x)
-            X[f] = x
             iters.append(res.iterations)
             miss = 0
             first_fit = f if first_fit is None else first_fit
-            pts = skinned.slot_positions_np(skel, body.u, Hk, x)
-            e = reprojection_px(cams, pts, uv[f], conf[f])
-            with np.errstate(all="ignore"):
-                err_px[f] = [np.nanmedian(r) if np.isfinite(r).any() else np.nan for r in e]
-            if not np.nanmedian(e) <= opts.max_reproj_px:
-                reason[f] = REASON_CODE["poor_reprojection"]
-            # the terms at the solution
-            s2 = solver.row_scale[0] ** 2
-            r2 = np.sum(((np.nan_to_num(e) ** 2) * conf[f]) / max(int((conf[f] > 0).sum()), 1))
-            cost[f, 0] = s2 * r2
-            th = x[6:]
-            g = prior.gaussian
-            cost[f, 1] = opts.weights["L_theta"] * float(np.sum((g.sqrt_precision @ (th - g.mean)) ** 2))
-            cost[f, 2] = 0.0 if start else opts.weights["L_s"] * float(np.sum((x - x_prev) ** 2))
-            active[f, :2] = True
-            active[f, 2] = not start
-            for b in blocks:
-                j = names.index(b.name)
-                r, _ = b.evaluate(skel, body.u, x, body.sub)
-                cost[f, j] += opts.weights[b.name] * float(r @ r)
-                active[f, j] = True
-                npts[f, j] += b.points
+            record(f, x, blocks, None if start else x_prev)
             x_prev = x
+        if opts.temporal_passes and F >= 3:  # both directions: each frame against both neighbours
+            for _ in range(opts.temporal_passes):
+                for f in reversed(range(F)):
+                    nb = [X[g] for g in (f - 1, f + 1) if 0 <= g < F and active[g, 0]]
+                    if not active[f, 0] or not nb:
+                        continue
+                    ref = np.mean(nb, axis=0)
+                    res, blocks, _ = solver.solve(X[f], uv[f], conf[f], f, ref, s_scale=len(nb))
+                    iters.append(res.iterations)
+                    record(f, rewrap(res.x), blocks, ref, len(nb))
     t_fit, c_fit = time.perf_counter() - t0, time.thread_time() - c0
     if first_fit is not None:
         X[:first_fit] = X[first_fit]
@@ -973,7 +1113,10 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
         "contact_terms": {**contact_info, **_too_far(extra, frames)},
         "frames_with": {n: int(active[:, i].sum()) for i, n in enumerate(names)},
         "views_mirrored_back": int(flipped.sum()), "views_dropped_as_wearer": int(dropped.sum()),
+        "views_dropped_as_bystander": int(far.sum()),
+        "hands_gated": {"views": int(gated.sum()), "gate_px": opts.hand_gate_px if gate else None},
         "per_frame": {"reproj_px": err_px, "views_flipped": flipped, "views_dropped": dropped,
+                      "views_bystander": far, "hands_gated": gated,
                       "detections": det, "term_cost": cost,
                       "term_active": active, "term_points": npts, "frames": frames},
     }

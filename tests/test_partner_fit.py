@@ -81,7 +81,7 @@ def scene(anny):
 def _fit(scene, kp, **kw):
     from fitting.partner_fit import PartnerFitOptions, fit_partner
 
-    opts = PartnerFitOptions(use_hands=False, **kw.pop("opts", {}))
+    opts = PartnerFitOptions(**{"use_hands": False, **kw.pop("opts", {})})
     return fit_partner(scene.model, scene.shape, _keypoints(kp, scene.frames, scene.cams),
                        scene.cams, opts=opts, **kw)
 
@@ -430,3 +430,55 @@ def test_joint_limits_hold_against_keypoints_that_pull_past_them(scene):
     assert over[LIMIT_WEIGHT] < np.deg2rad(5), over  # the hinge holds the limit
     with pytest.raises(ValueError, match="limit_weight"):
         _fit(scene, kp, opts={"limit_weight": -1.0})
+
+
+def _shifted_kp(scene, shift_m) -> np.ndarray:
+    """(F, 65, 3) world keypoints of the truth moved by ``shift_m`` (3,)."""
+    return scene.kp3 + np.asarray(shift_m, float)
+
+
+def test_a_hand_that_is_not_the_partners_is_gated_out(scene):
+    """Only two views see the right hand and one of them found another hand 25 cm away (21
+    keypoints against the body's one wrist): with the gate off it drags the fitted arm; the
+    default fit solves the body first, leaves that hand out, and the wrist stays on the truth."""
+    from calib import project
+    from formats.skeletons import KP65, RIGHT_HAND
+
+    kp = scene.kp.copy()
+    kp[2:, :, 1, RIGHT_HAND, 2] = 0.0  # views 2 and 3 do not see the right hand
+    wrong = _shifted_kp(scene, (0.215, 0.125, 0.0))[:, RIGHT_HAND]  # across view 1's line of sight
+    kp[1, :, 1, RIGHT_HAND, :2] = project(scene.cams[1], wrong)
+    wrist = KP65.index("r_wrist")
+
+    def wrist_err_mm(fit):
+        from fitting.heldout import fitted_keypoints
+
+        X = fitted_keypoints(scene.model, fit)
+        return np.linalg.norm(X[:, wrist] - scene.kp3[:, wrist], axis=-1) * 1000
+
+    off, rep_off = _fit(scene, kp, opts={"use_hands": True, "hand_gate_px": 0.0})
+    on, rep_on = _fit(scene, kp, opts={"use_hands": True})
+    assert rep_off["hands_gated"]["views"] == 0
+    assert rep_on["hands_gated"]["views"] >= F_SYN  # view 1's right hand, every frame
+    gated = rep_on["per_frame"]["hands_gated"]
+    assert gated[:, 1, 1].all() and not gated[:, 0].any()  # only that hand, not the good one
+    assert np.median(wrist_err_mm(off)) > 40.0, wrist_err_mm(off)
+    assert np.median(wrist_err_mm(on)) < 20.0, wrist_err_mm(on)
+
+
+def test_a_bystander_is_never_taken_for_the_partner(scene):
+    """One view's detection is somebody 2 m to the side (an operator behind the subjects, as
+    in real labs): the view is dropped as a bystander in every frame and the fit stays where
+    the other three views put the partner."""
+    from calib import project
+
+    kp = scene.kp.copy()
+    kp[2, :, 1, :, :2] = project(scene.cams[2], _shifted_kp(scene, (1.4, -1.4, 0.0)))
+    fit, rep = _fit(scene, kp)
+    assert rep["views_dropped_as_bystander"] == F_SYN
+    assert rep["per_frame"]["views_bystander"][:, 2].all()
+    assert not rep["per_frame"]["views_bystander"][:, [0, 1, 3]].any()
+    err, _ = _joint_err_mm(scene, fit)
+    clean, _ = _joint_err_mm(scene, _fit(scene, scene.kp)[0])
+    assert err.max() < clean.max() + 10.0, (err, clean)
+    assert fit.valid.all()
