@@ -110,15 +110,17 @@ def test_L_sil_block_jacobian_matches_finite_differences(anny, arm):
 @pytest.mark.slow
 def test_masks_from_a_clean_plate_recover_rendered_people(anny, arm):
     """A lab room (textured, furniture) seen through each camera's look (gain, vignetting,
-    noise, JPEG): the people mask from the clean plate matches the renderer's ids (IoU >
-    0.9 per view) and the partner's mask, with the wearer rendered out from its mesh, matches
-    the partner's ids."""
-    from detect.silhouette import SilhouetteOptions, silhouettes
+    noise, JPEG): the people mask from the clean plate matches the renderer's ids (IoU > 0.92
+    per view; measured 0.94-0.95, the outline half a mask pixel wide; the gap between the two
+    people stays open), and the partner's mask, with the wearer rendered out from its mesh,
+    matches the partner's ids; the rasterised mesh (``body_mask``) matches the renderer's."""
+    from detect.silhouette import SilhouetteOptions, body_mask, silhouettes
     from drawing.render import PersonMesh, Renderer
     from studio.lab import Developer, camera_looks, lab_room
     from studio.rig import make_rig
 
     _, _, V = arm
+    V = V - [0.0, 0.0, V[:, 2].min()]  # standing on the floor
     rig = make_rig(np.random.default_rng([3, 1]))
     room = lab_room(np.random.default_rng(7), rig)
     looks = camera_looks(np.random.default_rng(0), len(rig))
@@ -133,6 +135,7 @@ def test_masks_from_a_clean_plate_recover_rendered_people(anny, arm):
         plate = r.render_room()
         rgb = r.render(people)
         ids = r.render_ids(people)
+        ids_p = r.render_ids(people[:1])
     plates = {c: [dev(plate[c], c) for _ in range(3)] for c in range(len(rig))}
     frame = [dev(rgb[c], c) for c in range(len(rig))]
     opts = SilhouetteOptions()
@@ -142,16 +145,18 @@ def test_masks_from_a_clean_plate_recover_rendered_people(anny, arm):
 
     h, w = s.shape
     for c in range(len(rig)):
-        def small(m):
-            return cv2.resize(m.astype(np.uint8), (w, h), interpolation=cv2.INTER_AREA) > 0
+        def small(m):  # pixels at least half covered
+            return cv2.resize(m.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) > 0.5
+
+        def iou(a, b):
+            return (a & b).sum() / (a | b).sum()
 
         truth_all, truth_p = small(ids[c] >= 0), small(ids[c] == 0)
         m, q = s.mask(0, c, "people"), s.mask(0, c, "partner")
-        iou = (m & truth_all).sum() / (m | truth_all).sum()
-        assert iou > 0.9, (c, iou)
+        assert iou(m, truth_all) > 0.92, (c, iou(m, truth_all))
         # the partner's visible pixels: what the wearer's dilated mask leaves of them
-        iou_p = (q & truth_p).sum() / (q | truth_p).sum()
-        assert iou_p > 0.75, (c, iou_p)
+        assert iou(q, truth_p) > 0.8, (c, iou(q, truth_p))
+        assert iou(body_mask(rig[c], partner, faces, (h, w), 0.5), small(ids_p[c] == 0)) > 0.9
         assert (q & small(ids[c] == 1)).sum() < 0.05 * q.sum()  # little of the wearer is left
 
 
