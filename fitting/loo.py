@@ -11,12 +11,15 @@ fit never saw is off by: placement error + pose error + soft tissue.
 The refits run with the marker fit's own options (``opts``: the recipe's
 ``stages.marker_fit`` section), so leave-one-out scores the fit the stage made.
 
-``stride`` fits every k-th video frame only, each warm-started from the previous fitted frame
-(``fit_sequence``'s warm start across a k-frame step). Measured on a synthetic 39-marker
-capture of 1,000 video frames at 50 Hz (bench/fitting_synth.py, compiled graph, a shared
-2-core machine): all 39 refits at stride 4 took 50 CPU-s (~5 ms per marker-frame), so stride
-1 would be ~200 CPU-s, over the ~3 CPU-minute budget; ``DEFAULT_STRIDE`` = 2 is ~100 CPU-s
-and scores 500 frames per marker.
+``stride`` fits every k-th video frame only (default ``DEFAULT_STRIDE`` = 2).
+
+How the refits run (:class:`_Refits`): frame after frame, the full fit (every marker) by
+``fit_markers``' own path, then every held marker's refit of that frame together, each
+started from its own previous frame moved by the full fit's motion and solved by the same
+Levenberg-Marquardt steps as ``fitting.lm.solve``, vectorised over the held markers. Measured
+on the real pyCGM capture (323 frames, 39 markers, stride 2, a shared and loaded 2-core
+machine): 39 -> ~9 CPU-s (8 -> ~36 frames per CPU-second), median 6.855 -> 6.851 mm, p90
+30.91 -> 31.00 mm; ~1 CPU-s of it is building the compiled graph (once per call).
 """
 from __future__ import annotations
 
@@ -60,15 +63,43 @@ def predicted_markers(model, fit, pl: Placement, fitted_joints) -> np.ndarray:
     return np.stack([H.positions(skel, u, x) for x in X])
 
 
+LAMBDA_INIT = 1e-6  # LM damping of a refit's first step (it starts close to its minimum)
+REFIT_FTOL = 1e-6  # a refit frame has converged below this relative cost decrease (lm.solve: 1e-8)
+
+
 class _Refits:
-    """The leave-one-out refits of one sequence with what does not depend on the held marker
-    built once: the subject's rest state, the skeleton, the placement's coefficients, the
+    """The leave-one-out refits of one sequence, all held markers of a frame solved together.
+
+    Built once: the subject's rest state, the skeleton, the placement's coefficients, the
     compiled graph, the prior and the frame solver, exactly as ``fit_markers`` builds them for
-    a markers-only fit (no keypoints). Each refit then is ``fit_markers``' own path with the
-    marker hidden: ``fit_sequence`` from the first frame with ``MIN_MARKERS`` visible (searched
-    from the initial pose), every later frame warm-started from the previous one; frames before
-    it and frames with fewer markers are not valid. Same numbers as calling ``fit_markers``
-    per marker (tested), without its ~0.1 s of set-up and report per refit."""
+    a markers-only fit (no keypoints). Then frame after frame:
+
+    1. the full fit (every marker) by ``fit_markers``' own path: from the first frame with
+       ``MIN_MARKERS`` visible (searched from the initial pose), each later frame warm-started
+       from the previous one;
+    2. each held marker ``k``'s refit minimises the frame objective ``fit_markers`` would
+       minimise without ``k`` (L_3d of the other markers under the same robust-scale rule,
+       L_theta, and L_s toward the refit's *own* previous frame) by the steps of
+       ``fitting.lm.solve``, vectorised over the held markers (:func:`_batched_lm`). It starts
+       from its own previous frame moved by the full fit's motion between the two frames
+       (``x_k,t-1 + x_t - x_t-1``), its first frame at the full fit.
+
+    What differs from refitting the whole sequence once per held marker (``reference=True``,
+    ``fit_markers``' path): the start of each frame (the reference starts from the refit's
+    previous frame as it is, and its first frame from the initial pose with the graduated
+    robust scale), a first damping ``LAMBDA_INIT`` of 1e-6 (lm.solve: 1e-3) and the stopping
+    rule ``REFIT_FTOL`` of 1e-6 (lm.solve's frames: 1e-8). Each refit keeps its own minimum
+    (it is not started at the full fit, which saw the held marker: started there, pyCGM's
+    LANK refit stayed in a higher-cost minimum near the full fit in 104 of 162 frames and its
+    error halved, 39 -> 19 mm, an optimistic figure), and a refit is solved to convergence
+    (stopped after 1 LM iteration the demo's median fell 3.31 -> 2.49 mm, for the same
+    reason). Measured against the reference: pyCGM (stride 2) median 6.855 -> 6.851, p90
+    30.91 -> 31.00 mm, per marker-frame the same to 0.005 mm at p90 but up to 33 mm where a
+    refit's first frame lands in another minimum (LANK); the demo's Push 1 median 3.33 ->
+    3.31, p90 14.38 -> 12.43 mm: the reference's RWRA refit, started from the initial pose,
+    stayed in a minimum of 2.6x the cost of the one found here in all its 50 frames (94 mm
+    off, against 9.5). Frames before a refit's first frame with ``MIN_MARKERS`` visible are
+    held (not valid), as ``fit_markers`` holds them."""
 
     def __init__(self, model, shape: ShapeFit, template: Placement, obs, vis, opts, source):
         from fitting import compiled, priors
@@ -91,26 +122,252 @@ class _Refits:
                                   priors.default_prior(self.skel.names[1:]), opts)
         self.obs, self.vis, self.source = obs, np.asarray(vis, bool), source
 
-    def held_out(self, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """Refit without marker ``k``: its predicted position (F, 3) and the frames where the
-        refit is valid."""
-        from fitting.marker_fit import MIN_MARKERS, fit_sequence
+    def run(self, held: list[int], progress=None) -> tuple[np.ndarray, np.ndarray]:
+        """Refit without each marker of ``held`` (indices): each held marker's predicted
+        position (F, len(held), 3) and the frames where its refit is valid (F, len(held)).
+        progress : optional iterable wrapper over the frames."""
+        from threadpoolctl import threadpool_limits
 
-        vis = self.vis.copy()
-        vis[:, k] = False
-        n_vis = vis.sum(1)
-        if not np.any(n_vis >= MIN_MARKERS):
+        from fitting.marker_fit import MIN_MARKERS
+
+        n_full = self.vis.sum(1)
+        if not np.any(n_full >= MIN_MARKERS):
             raise InputError(self.source, "markers",
                              f"no video frame has {MIN_MARKERS} or more markers")
-        first = int(np.argmax(n_vis >= MIN_MARKERS))
-        obs = self.obs.copy()
-        obs[:, k] = 0.0  # as video_observations gives a marker never seen
-        fit = fit_sequence(self.solver, obs[first:], vis[first:].astype(float))
-        X = np.concatenate([np.repeat(fit.x[:1], first, axis=0), fit.x])
-        pred = np.stack([self.Hm.positions(self.skel, self.u, x)[k] for x in X])
-        valid = n_vis >= MIN_MARKERS
-        valid[:first] = False
+        with threadpool_limits(limits=1):  # tiny dense algebra: BLAS threads only add overhead
+            X = self._solve_frames(np.asarray(held, int), progress)
+        F, K = len(self.obs), len(held)
+        pred = np.zeros((F, K, 3))
+        valid = np.zeros((F, K), bool)
+        for j, k in enumerate(held):
+            n_vis = n_full - self.vis[:, k]
+            ok = n_vis >= MIN_MARKERS
+            first = int(np.argmax(ok))
+            if not ok[first]:
+                continue  # never enough markers without k: nothing valid, nothing predicted
+            Xk = X[:, j].copy()
+            Xk[:first] = Xk[first]
+            pred[:, j] = _positions(self.skel, self.u, self.Hm, k, Xk)
+            valid[:, j] = ok
+            valid[:first, j] = False
         return pred, valid
+
+    def _solve_frames(self, held: np.ndarray, progress) -> np.ndarray:
+        from fitting.marker_fit import MIN_MARKERS, initial_pose, rewrap
+
+        S = self.solver
+        F, K, n = len(self.obs), len(held), self.skel.n
+        X = np.zeros((F, K, n))
+        x_full = x_full_prev = None
+        x_prev = np.zeros((K, n))
+        started = np.zeros(K, bool)  # the refit has a previous frame (L_s applies)
+        frames = range(F) if progress is None else progress(range(F), total=F,
+                                                            desc="leave-one-out")
+        for f in frames:
+            v = self.vis[f].astype(float)
+            # 1. the full fit, fit_markers' path (it starts at its first frame with enough markers)
+            if x_full is None:
+                if np.count_nonzero(v) < MIN_MARKERS:
+                    continue
+                x0 = initial_pose(self.skel, self.u, self.Hm, self.obs[f], v)
+                x_full = x_full_prev = rewrap(S.solve(x0, self.obs[f], v, first=True).x)
+            else:
+                x_full_prev = x_full
+                x_full = rewrap(S.solve(x_full, self.obs[f], v, x_prev=x_full).x)
+            # 2. the held markers' refits: a started one from its own previous frame moved by
+            # the full fit's motion, a new one at the full fit
+            vk = np.repeat(v[None], K, axis=0)
+            vk[np.arange(K), held] = 0.0
+            go = started | (vk.sum(1) >= MIN_MARKERS)
+            if not go.any():
+                continue
+            x0 = np.repeat(x_full[None], K, axis=0)
+            x0[started] = x_prev[started] + (x_full - x_full_prev)
+            x = _batched_lm(S, x_full, x0[go], self.obs[f], v, vk[go], x_prev[go], started[go])
+            x = np.stack([rewrap(xi) for xi in x])
+            X[f, go] = x
+            x_prev[go] = x
+            started |= go
+        return X
+
+
+def _positions(skel, u, Hm, k: int, X: np.ndarray) -> np.ndarray:
+    """(F, 3) world position of marker ``k`` of ``Hm`` at unknowns ``X (F, n)``: the numpy FK
+    of ``fitting.skinned`` (``SkinnedPoints.positions``) vectorised over frames."""
+    from body.rotations import rodrigues
+
+    F, Q = len(X), len(skel.joints)
+    rv = np.concatenate([X[:, :3], X[:, 6:]], axis=1).reshape(F, Q, 3)
+    D = rodrigues(rv)  # (F, Q, 3, 3)
+    G = np.zeros((F, Q, 3, 3))
+    t = np.zeros((F, Q, 3))
+    G[:, 0] = D[:, 0]
+    t[:, 0] = u[0] + X[:, 3:6]
+    for i in range(1, Q):
+        p = skel.parents[i]
+        G[:, i] = G[:, p] @ D[:, i]
+        t[:, i] = t[:, p] + G[:, p] @ u[i]
+    H = Hm.corners[k]  # (3, Q, 4)
+    corners = (np.einsum("fqab,cqb->fca", G, H[..., :3])
+               + np.einsum("fqa,cq->fca", t, H[..., 3]))  # (F, 3 corners, 3)
+    return skinned.points_on_corners(corners[:, None], Hm.bary[[k]], Hm.offset[[k]])[:, 0]
+
+
+def _batched_lm(S, x_full: np.ndarray, x0: np.ndarray, obs: np.ndarray, vis_all: np.ndarray,
+                vis: np.ndarray, x_prev: np.ndarray, has_prev: np.ndarray) -> np.ndarray:
+    """``FrameSolver.solve`` (a later frame: no graduated scale) for B problems of one frame
+    at once. obs (M, 3), vis_all (M,): the frame's markers; problem b sees the markers
+    ``vis[b]`` (a subset of ``vis_all``), starts at ``x0[b]`` and, where ``has_prev[b]``, has
+    L_s toward ``x_prev[b]``; x_full (n,): the full fit of the frame (problems starting there
+    share one evaluation). The steps of ``fitting.lm.solve`` per problem (Marquardt damping
+    from ``LAMBDA_INIT``, its up/down schedule, gtol / xtol, ``REFIT_FTOL``, ``opts.max_iters``
+    iterations, ``first_iters`` for a problem without a previous frame), with the normal
+    equations and the linear solves vectorised. Returns x (B, n)."""
+    from fitting.lm import DIAG_FLOOR, LAMBDA_MAX, LMOptions
+
+    o = S.opts
+    lmo = LMOptions(ftol=REFIT_FTOL, lambda_init=LAMBDA_INIT)
+    graph, fun = S.graph, S.graph.fun
+    B, n = x0.shape
+    m = fun.n_r
+    w = o.weights
+    # per problem: parameters (its visibility), robust scale, quadratic terms
+    P = np.repeat(S.p[None], B, axis=0)
+    for b in range(B):
+        graph.set_observations(P[b], obs, vis[b])
+    kv = np.maximum(np.count_nonzero(vis > 0, axis=1), 1)
+    sigma = o.sigma_marker_m * np.sqrt(w["L_3d"] / kv)  # FrameSolver.groups, factor 1
+    rows = S.rows_m  # (M, 3): one group per marker, every row of r (no keypoints)
+    q = S.quad_prior
+    sprev = has_prev * max(w["L_s"], 0.0)  # (B,) L_s weight per problem
+    Hq = q.H[None] + sprev[:, None, None] * np.eye(n)[None]
+    gq = q.g[None] + sprev[:, None] * x_prev
+    cq = q.c + sprev * np.sum(x_prev * x_prev, axis=1)
+    box = S.box
+    scale = S.row_scale
+    flat = fun._flat
+    jrows = fun.rows  # the Jacobian is kept as its nonzeros (B, nnz), row-scaled
+    scale_nz = scale[jrows]
+
+    def evaluate(idx, xs):
+        r = np.empty((len(idx), m))
+        jnz = np.empty((len(idx), len(flat)))
+        for i, b in enumerate(idx):
+            r[i], jnz[i] = fun(xs[i], P[b])
+        return finish(idx, xs, r * scale, jnz * scale_nz)
+
+    def finish(idx, xs, r, J):
+        s = np.sum(r[:, rows] ** 2, axis=2)  # (b, M) squared norms
+        sg = sigma[idx][:, None]
+        s2 = sg * sg
+        c = np.sum(s2 * s / (s2 + s), axis=1)  # fitting.robust.rho, geman_mcclure
+        wm = (s2 / (s2 + s)) ** 2  # fitting.robust.weight
+        wr = np.ones((len(idx), m))
+        wr[:, rows] = wm[:, :, None]
+        c += ((xs[:, None, :] @ Hq[idx] @ xs[:, :, None])[:, 0, 0]
+              - 2.0 * np.sum(gq[idx] * xs, axis=1) + cq[idx])  # lm.Quadratic.cost
+        if box is not None:
+            rb = _box_residual(box, xs)
+            c += np.sum(rb * rb, axis=1)
+        return r, J, c, wr
+
+    x = np.array(x0, float)
+    r = np.zeros((B, m))
+    J = np.zeros((B, len(flat)))
+    cost = np.zeros(B)
+    wr = np.ones((B, m))
+    shared = np.all(x == x_full[None], axis=1)
+    if shared.any():
+        # problems starting at the full fit: one evaluation with every marker of the frame,
+        # then per problem its held marker's rows zeroed and L_3d's 1/K rescaled
+        # (terms.L_3d: sqrt(vis_i / K_vis))
+        sh = np.flatnonzero(shared)
+        p_all = S.p.copy()
+        graph.set_observations(p_all, obs, vis_all)
+        r0, jnz0 = fun(x_full, p_all)
+        k_all = max(int(np.count_nonzero(vis_all > 0)), 1)
+        fac = np.sqrt(k_all / kv[sh])[:, None] * np.repeat(vis[sh] > 0, 3, axis=1)  # (b, 3M)
+        r[sh], J[sh], cost[sh], wr[sh] = finish(sh, x[sh], (r0 * scale)[None] * fac,
+                                                (jnz0 * scale_nz)[None] * fac[:, jrows])
+    own = np.flatnonzero(~shared)
+    if len(own):
+        r[own], J[own], cost[own], wr[own] = evaluate(own, x[own])
+    lam = np.full(B, lmo.lambda_init)
+    it = np.zeros(B, int)
+    max_it = np.where(has_prev, o.max_iters, o.first_iters)
+    active = np.ones(B, bool)
+    need = np.ones(B, bool)  # normal equations to (re)build at x
+    H = np.zeros((B, n, n))
+    g = np.zeros((B, n))
+    d = np.zeros((B, n))
+    while active.any():
+        # a new iteration for each problem whose last step was accepted
+        nb = np.flatnonzero(active & need)
+        if len(nb):
+            out = it[nb] >= max_it[nb]
+            active[nb[out]] = False
+            nb = nb[~out]
+            it[nb] += 1
+            sw = np.sqrt(wr[nb])
+            Jw = np.zeros((len(nb), m * n))
+            Jw[:, flat] = J[nb] * sw[:, jrows]
+            Jw = Jw.reshape(len(nb), m, n)
+            JwT = Jw.transpose(0, 2, 1)
+            Hn = JwT @ Jw + Hq[nb]
+            gn = (JwT @ (r[nb] * sw)[:, :, None])[:, :, 0]
+            gn += (Hq[nb] @ x[nb][:, :, None])[:, :, 0] - gq[nb]
+            if box is not None:
+                rb = _box_residual(box, x[nb])
+                for j in range(len(nb)):
+                    a = rb[j] != 0
+                    ii = box.idx[a]
+                    Hn[j, ii, ii] += box.weight
+                    gn[j, ii] += np.sqrt(box.weight) * rb[j, a]
+            H[nb], g[nb] = Hn, gn
+            active[nb[np.max(np.abs(gn), axis=1) < lmo.gtol]] = False
+            d[nb] = np.maximum(np.diagonal(Hn, axis1=1, axis2=2), DIAG_FLOOR)
+            need[nb] = False
+        tb = np.flatnonzero(active)
+        if not len(tb):
+            break
+        Hd = H[tb].copy()
+        Hd[:, np.arange(n), np.arange(n)] += lam[tb, None] * d[tb]
+        ok = np.ones(len(tb), bool)
+        try:
+            step = -np.linalg.solve(Hd, g[tb][..., None])[..., 0]
+        except np.linalg.LinAlgError:  # one by one, as lm.solve (a singular one damps more)
+            step = np.zeros((len(tb), n))
+            for j in range(len(tb)):
+                try:
+                    step[j] = -np.linalg.solve(Hd[j], g[tb[j]])
+                except np.linalg.LinAlgError:
+                    ok[j] = False
+        better = np.zeros(len(tb), bool)
+        ev = tb[ok]
+        if len(ev):
+            x_new = x[ev] + step[ok]
+            r_new, J_new, c_new, w_new = evaluate(ev, x_new)
+            imp = np.isfinite(c_new) & (c_new < cost[ev])
+            acc = ev[imp]
+            rel = (cost[acc] - c_new[imp]) / np.maximum(cost[acc], 1e-300)
+            small = (np.linalg.norm(step[ok][imp], axis=1)
+                     < lmo.xtol * (np.linalg.norm(x[acc], axis=1) + lmo.xtol))
+            x[acc], r[acc], J[acc], cost[acc], wr[acc] = (x_new[imp], r_new[imp], J_new[imp],
+                                                           c_new[imp], w_new[imp])
+            lam[acc] = np.maximum(lam[acc] * lmo.lambda_down, 1e-12)
+            need[acc] = True
+            active[acc[(rel < lmo.ftol) | small]] = False
+            better[np.flatnonzero(ok)[imp]] = True
+        rej = tb[~better]  # no descent at this damping (or a singular system): damp more
+        lam[rej] *= lmo.lambda_up
+        active[rej[lam[rej] >= LAMBDA_MAX]] = False  # no descent at any damping: a minimum
+    return x
+
+
+def _box_residual(box, X: np.ndarray) -> np.ndarray:
+    """``fitting.lm.Box.residual`` of each row of X (B, n): (B, k)."""
+    v = X[:, box.idx]
+    return np.sqrt(box.weight) * (np.maximum(0.0, v - box.hi) + np.minimum(0.0, v - box.lo))
 
 
 def leave_one_out(model, shape: ShapeFit, template: Placement, markers: Markers,
@@ -156,13 +413,16 @@ def leave_one_out(model, shape: ShapeFit, template: Placement, markers: Markers,
     c0 = time.process_time()
     per, pooled = {}, []
     err = np.full((len(frames), len(held)), np.nan)
-    it = held if progress is None else progress(held, total=len(held), desc="leave-one-out")
+    it = held if progress is None or not reference else progress(held, total=len(held),
+                                                                 desc="leave-one-out")
     refit = None if reference else _Refits(model, shape, template, obs, vis, opts, source)
     graphs: dict = {}  # one graph for every refit: hiding a marker does not change its spec
+    if refit is not None:
+        preds, valids = refit.run([pl.names.index(name) for name in held], progress)
     for name in it:
         k = pl.names.index(name)
         if refit is not None:
-            pred, valid = refit.held_out(k)
+            pred, valid = preds[:, held.index(name)], valids[:, held.index(name)]
         else:
             xyz = markers.xyz.copy()
             xyz[:, k] = np.nan

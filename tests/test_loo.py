@@ -111,18 +111,68 @@ def test_refits_run_with_the_given_marker_fit_options(anny, capture):
     assert stiff["median_mm"] > 3 * r["median_mm"], (stiff["median_mm"], r["median_mm"])
 
 
-def test_refits_set_up_once_match_fit_markers_per_marker(anny, capture):
-    """The default path (graph, solver and subject set up once for every held marker) gives
-    the numbers of calling ``fit_markers`` once per held marker (``reference=True``), frame by
-    frame, a misplaced marker (a large held-out error) included."""
+def test_fast_refits_match_refitting_the_sequence_per_marker(anny, capture):
+    """The default path (every held marker of a frame solved together, each started from its
+    own previous frame moved by the full fit's motion) gives the per-marker errors of calling
+    ``fit_markers`` once per held marker (``reference=True``) once the reference has settled,
+    a misplaced marker (a large held-out error) included: the same frames scored and, from
+    the 10th fitted frame on, every error within 0.01 mm (measured: 0.005 mm at most). Before,
+    the reference is still in its start-up transient (its refit's first frame is searched from
+    the initial pose: LTHI 35-37 mm worse in the first two frames, settling over ~8 frames),
+    and the default path is not worse there."""
     betas, tpl, m = capture
-    wrong, _ = _moved(anny, tpl, WRONG, 0.03)
-    sf = to_shape_fit(betas, wrong, "given", "given")
     clock = mocap.VideoClock(FPS)
-    ref = leave_one_out(anny, sf, tpl, m, clock, np.arange(F), held=HELD, stride=2,
-                        reference=True)
-    new = leave_one_out(anny, sf, tpl, m, clock, np.arange(F), held=HELD, stride=2)
-    assert np.array_equal(np.isnan(ref["error_mm"]), np.isnan(new["error_mm"]))
-    assert np.nanmax(np.abs(ref["error_mm"] - new["error_mm"])) < 1e-6
-    assert ref["per_marker"][WRONG]["median_mm"] > 20
-    assert new["fps_per_cpu_s"] == pytest.approx(F / new["cpu_s"])
+    for pl in (_moved(anny, tpl, WRONG, 0.03)[0], tpl):
+        sf = to_shape_fit(betas, pl, "given", "given")
+        ref = leave_one_out(anny, sf, tpl, m, clock, np.arange(F), held=HELD, stride=2,
+                            reference=True)
+        new = leave_one_out(anny, sf, tpl, m, clock, np.arange(F), held=HELD, stride=2)
+        a, b = ref["error_mm"], new["error_mm"]
+        assert np.array_equal(np.isnan(a), np.isnan(b)) and a.shape == (F // 2, len(HELD))
+        assert np.nanmax(np.abs(a[10:] - b[10:])) < 0.01, np.abs(a - b)
+        assert np.nanmean(b[:10]) <= np.nanmean(a[:10])
+        assert new["fps_per_cpu_s"] == pytest.approx(F / new["cpu_s"])
+    wrong = _moved(anny, tpl, WRONG, 0.03)[0]
+    r = leave_one_out(anny, to_shape_fit(betas, wrong, "given", "given"), tpl, m, clock,
+                      np.arange(F), held=[WRONG], stride=2)
+    assert r["per_marker"][WRONG]["median_mm"] > 20
+
+
+def test_batched_refits_take_the_steps_of_lm_solve(anny, capture):
+    """``_batched_lm`` solves each held marker's frame problem as ``fitting.lm.solve`` does
+    with the same start, options and terms (robust L_3d without the marker, L_theta, L_s
+    toward its own previous pose): the same solution to 1e-9, for refits with and without a
+    previous frame and with starts of their own or at the full fit."""
+    from fitting import lm, terms
+    from fitting.loo import LAMBDA_INIT, REFIT_FTOL, _batched_lm, _Refits
+    from fitting.marker_fit import DEFAULT_WEIGHTS, MarkerFitOptions
+
+    betas, tpl, m = capture
+    sf = to_shape_fit(betas, tpl, "given", "given")
+    obs, vis = mocap.video_observations(m, np.arange(F), mocap.VideoClock(FPS))
+    R = _Refits(anny, sf, tpl, obs, vis, MarkerFitOptions(), "synth")
+    S = R.solver
+    f, held = 10, np.array([tpl.names.index(n) for n in HELD])
+    v = vis[f].astype(float)
+    x_full = S.solve(np.zeros(R.skel.n), obs[f], v, first=True).x
+    rng = np.random.default_rng(3)
+    K = len(held)
+    vk = np.repeat(v[None], K, axis=0)
+    vk[np.arange(K), held] = 0.0
+    x_prev = x_full + 0.02 * rng.standard_normal((K, len(x_full)))
+    has_prev = np.arange(K) % 2 == 0
+    x0 = np.repeat(x_full[None], K, axis=0)
+    x0[1::2] += 0.03 * rng.standard_normal((len(x0[1::2]), len(x_full)))  # own starts
+    got = _batched_lm(S, x_full, x0, obs[f], v, vk, x_prev, has_prev)
+    for b in range(K):
+        quad = S.quad_prior
+        if has_prev[b]:
+            quad = quad + terms.quadratic_L_s(len(x_full), np.arange(len(x_full)), x_prev[b],
+                                              DEFAULT_WEIGHTS["L_s"])
+        S.graph.set_observations(S.p, obs[f], vk[b])
+        want = lm.solve(S.graph.fun, S.p, x0[b], row_scale=S.row_scale,
+                        groups=S.groups(vk[b], None), quad=quad, box=S.box,
+                        opts=lm.LMOptions(max_iters=10 if has_prev[b] else 60,
+                                          ftol=REFIT_FTOL, lambda_init=LAMBDA_INIT))
+        assert np.max(np.abs(got[b] - want.x)) < 1e-9, (b, np.max(np.abs(got[b] - want.x)))
+        assert np.max(np.abs(got[b] - x_full)) > 1e-6  # each problem moved: not a no-op
