@@ -729,8 +729,7 @@ def _foot_vertices(model) -> list[np.ndarray]:
     return out
 
 
-def _person_metrics(person, fit, rows, V, P3, frames, fps, ground, proxy, feet, progress,
-                    values, units):
+def _person_metrics(person, fit, rows, V, P3, frames, fps, ground, feet, values, units):
     F = len(rows)
     step = np.diff(frames).astype(float)
     # not valid
@@ -776,17 +775,62 @@ def _person_metrics(person, fit, rows, V, P3, frames, fps, ground, proxy, feet, 
         jk[i] = float(np.linalg.norm(d3, axis=1).max()) / dt ** 3
     values[f"{person}.jerk_m_s3"] = jk
     units[f"{person}.jerk_m_s3"] = "m/s3"
-    # self-penetration on the proxy
+    # self-penetration on the proxy: filled by the frames' geometry pass (_geometry)
+    values[f"{person}.self_penetration_mm"] = np.zeros(F)
+    units[f"{person}.self_penetration_mm"] = "mm"
+
+
+# ---------------------------------------------------------------------------- per-frame geometry
+
+_GEOM: dict | None = None  # what the geometry pass reads (set before worker processes fork)
+
+
+def _geometry_frames(rows) -> list[tuple]:
+    """Per frame row of ``_GEOM``: (row, self-penetration m per person, deepest
+    interpenetration m, volume m^3, closest distance m, contact gap m; NaN = not measured)."""
     from fitting.collision import self_collisions
 
-    sp = np.zeros(F)
-    it = range(F)
-    if progress is not None:
-        it = progress(it, total=F, desc=f"qa {person} self-penetration")
-    for i in it:
-        sp[i] = self_collisions(proxy, proxy.points(V[i].astype(float))).deepest * 1000.0
-    values[f"{person}.self_penetration_mm"] = sp
-    units[f"{person}.self_penetration_mm"] = "mm"
+    g = _GEOM
+    out = []
+    for i in rows:
+        sp = [self_collisions(g["proxy"], g["proxy"].points(V[i].astype(float))).deepest
+              for V in g["verts"]]
+        pen = vol = near = gap = np.nan
+        if len(g["verts"]) == 2:
+            f = int(g["frames"][i])
+            a, b = (V[i].astype(float) for V in g["verts"])
+            contact, lo, hi = g["contact"], g["lo"], g["hi"]
+            outside = contact is not None and not (contact.has_contact and lo <= f <= hi)
+            pen, vol, near = _pair_frame(a, b, g["faces"], g["proxy"], outside)
+            if g["sel"] and contact.active(f):
+                gap = _contact_gap(a, b, g["faces"], g["sel"])
+        out.append((int(i), sp, pen, vol, near, gap))
+    return out
+
+
+def _geometry(geom: dict, F: int, workers: int, progress) -> list[tuple]:
+    """:func:`_geometry_frames` over the ``F`` frames, in ``workers`` forked processes when
+    more than one (frames interleaved over chunks; each frame's numbers are the same either
+    way), in frame order."""
+    global _GEOM
+    chunks = [np.arange(F)[k::max(1, 4 * workers)] for k in range(min(F, max(1, 4 * workers)))]
+    _GEOM = geom
+    try:
+        if workers > 1 and F > 1:
+            import multiprocessing as mp
+
+            with mp.get_context("fork").Pool(workers) as pool:
+                it = pool.imap_unordered(_geometry_frames, chunks)
+                if progress is not None:
+                    it = progress(it, total=len(chunks), desc="qa geometry (chunks)")
+                res = [r for part in it for r in part]
+        else:
+            it = chunks if progress is None else progress(chunks, total=len(chunks),
+                                                          desc="qa geometry (chunks)")
+            res = [r for c in it for r in _geometry_frames(c)]
+    finally:
+        _GEOM = None
+    return sorted(res, key=lambda r: r[0])
 
 
 # ---------------------------------------------------------------------------- the sequence
@@ -832,7 +876,8 @@ def marker_track(markers, clock):
 
 def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, fps: float,
                      opts: QAOptions = QAOptions(), progress=None,
-                     repaired: np.ndarray | None = None, marker_track=None) -> QAMetrics:
+                     repaired: np.ndarray | None = None, marker_track=None,
+                     workers: int = 1) -> QAMetrics:
     """Every per-frame metric of a sequence (module doc), with the thresholds they are flagged
     against.
 
@@ -844,8 +889,10 @@ def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, f
     repaired : (F_w,) on the wearer's fit frames, markers repaired per frame
     (:func:`capture_repairs`), giving ``wearer.markers_repaired``; marker_track :
     ``marker_track(video frames float (n,)) -> (n, M, 3)`` the wearer's cleaned capture on the
-    video clock (NaN = gap), which the sync check follows between fit frames. QA frames: the partner's frames that the wearer's fit also has (all of them without a
-    wearer), else the wearer's frames."""
+    video clock (NaN = gap), which the sync check follows between fit frames; workers : the
+    per-frame geometry (self-penetration, interpenetration, contact) in this many forked
+    processes (1: in this one; the numbers are the same). QA frames: the partner's frames that
+    the wearer's fit also has (all of them without a wearer), else the wearer's frames."""
     from fitting.collision import ProxyMesh
 
     if wearer is None and partner is None:
@@ -881,8 +928,8 @@ def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, f
         if keypoints is not None:
             _reprojection(person, PEOPLE.index(person), P3, frames, keypoints, cams, opts,
                           values, units)
-        _person_metrics(person, fit, rows, V, P3, frames, float(fps), ground, proxy,
-                        feet, progress, values, units)
+        _person_metrics(person, fit, rows, V, P3, frames, float(fps), ground, feet, values,
+                        units)
         seq["people"].append({"role": person, "frames": int(F),
                               "not_valid": int((~np.asarray(fit.valid, bool)[rows]).sum())})
     # sync: the wearer (the marker fit does not depend on the videos)
@@ -892,40 +939,34 @@ def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, f
         for cam, s in offs.items():
             values[f"sync_offset_frames.{cam}"] = np.full(F, float(s))
             units[f"sync_offset_frames.{cam}"] = "frames"
-    # between the two
+    # per frame geometry: self-penetration of each, and between the two
     pen = np.full(F, np.nan)
     vol = np.full(F, np.nan)
     gap = np.full(F, np.nan)
     unexp = np.full(F, np.nan)
+    geom = {"verts": verts, "proxy": proxy, "faces": np.asarray(model.faces), "frames": frames,
+            "contact": contact, "sel": [], "lo": None, "hi": None}
     if len(verts) == 2:
-        faces = np.asarray(model.faces)
-        VA, VB = verts
-        sel = []
         if contact is not None and contact.has_contact:
             from body.regions import region_map
 
             rm = region_map(model)
-            sel = [(rm.faces_of(int(a)), rm.faces_of(int(b))) for a, b in contact.region_pairs]
-        lo = hi = None
+            geom["sel"] = [(rm.faces_of(int(a)), rm.faces_of(int(b))) for a, b in contact.region_pairs]
         if contact is not None:
-            lo = contact.interval[0] - opts.contact_margin_frames
-            hi = contact.interval[1] + opts.contact_margin_frames
+            geom["lo"] = contact.interval[0] - opts.contact_margin_frames
+            geom["hi"] = contact.interval[1] + opts.contact_margin_frames
             seq["contact"] = {"interval": [int(x) for x in contact.interval],
                               "has_contact": bool(contact.has_contact),
                               "margin_frames": int(opts.contact_margin_frames)}
-        it = range(F)
-        if progress is not None:
-            it = progress(it, total=F, desc="qa interpenetration")
-        for i in it:
-            f = int(frames[i])
-            a, b = VA[i].astype(float), VB[i].astype(float)
-            outside = contact is not None and not (contact.has_contact and lo <= f <= hi)
-            p, v, near = _pair_frame(a, b, faces, proxy, outside)
+    for i, sp, p, v, near, g in _geometry(geom, F, max(1, int(workers)), progress):
+        for person, d in zip(people, sp, strict=True):
+            values[f"{person}.self_penetration_mm"][i] = d * 1000.0
+        if len(verts) == 2:
             pen[i], vol[i] = p * 1000.0, v * 1e6
-            if outside:
+            if np.isfinite(near):
                 unexp[i] = near * 1000.0
-            if sel and contact.active(f):
-                gap[i] = _contact_gap(a, b, faces, sel) * 1000.0
+            if np.isfinite(g):
+                gap[i] = g * 1000.0
     for n, v, u in (("penetration_mm", pen, "mm"), ("penetration_volume_cm3", vol, "cm3"),
                     ("contact_gap_mm", gap, "mm"), ("unexpected_contact_mm", unexp, "mm")):
         values[n] = v

@@ -193,7 +193,8 @@ def run(ctx: StageContext) -> None:
     m = sequence_metrics(model, wearer, partner, keypoints, cams if has_video else [], contact,
                          ground, fps, qo, progress=ctx.progress, repaired=repaired,
                          marker_track=marker_track(markers, clock)
-                         if has_video and markers is not None else None)
+                         if has_video and markers is not None else None,
+                         workers=geometry_workers(ctx.cores))
     flags = flag_frames(m, qo)
     metrics_s = time.perf_counter() - t0
     F = len(m.frames)
@@ -311,6 +312,19 @@ def run(ctx: StageContext) -> None:
                       span_frames=tuple(span_frames), sample_frames=tuple(sample_frames),
                       video="overlay.mp4" if (out / "overlay.mp4").exists() else None,
                       scene=scene["file"] if scene else None)).save(ctx.out)
+
+
+def geometry_workers(cores: int) -> int:
+    """Processes for the metrics' per-frame geometry: the cores the executor granted (0: the
+    machine's), one when the stage runs outside the main thread (a Dask worker's task thread:
+    no fork there)."""
+    import os
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return 1
+    n = os.cpu_count() or 1
+    return max(1, min(n, int(cores) if cores else n))
 
 
 def _cpu_s() -> float:
