@@ -703,18 +703,33 @@ def _contact_gap(VA, VB, faces, sel):
     return max(float(facet_distances(VA, faces, a, VB, faces, b).a_to_b.min()) for a, b in sel)
 
 
-_PROXIES: dict = {}  # id(model) -> (model, its proxy): one decimation per model and process
+_PROXIES: dict = {}  # model content digest -> its proxy: one decimation per model and process
+
+
+def _model_digest(model) -> str:
+    """What a model's proxy is made of: its name, template and faces (every
+    stage loads the model anew: a new object, the same content)."""
+    import hashlib
+
+    h = hashlib.sha1(str(getattr(model, "name", "")).encode())
+    for a in (model.v_template, model.faces):
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype}{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
 
 
 def _proxy(model, ProxyMesh):
     """The model's ``ProxyMesh`` of ``K.PROXY_VERTICES`` (``igl.qslim``: ~0.7 s), built once
-    per model object in this process (the qa stage runs once per sequence)."""
-    hit = _PROXIES.get(id(model))
-    if hit is None or hit[0] is not model:
-        hit = (model, ProxyMesh.from_model(model, K.PROXY_VERTICES))
-        _PROXIES.clear()  # keep one: a model object is the session's
-        _PROXIES[id(model)] = hit
-    return hit[1]
+    per model content in this process (the engine runs the qa stage of every sequence in one
+    process, each with the model loaded anew)."""
+    key = (_model_digest(model), ProxyMesh)
+    hit = _PROXIES.get(key)
+    if hit is None:
+        hit = ProxyMesh.from_model(model, K.PROXY_VERTICES)
+        _PROXIES.clear()  # keep one: the session's model
+        _PROXIES[key] = hit
+    return hit
 
 
 def _foot_vertices(model) -> list[np.ndarray]:

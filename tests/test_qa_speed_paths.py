@@ -23,6 +23,11 @@ def test_surface_tree_distances_are_nearest_surface_distances(anny):
 
 
 def test_proxy_is_built_once_per_model(anny):
+    """Once per model content: the same model loaded again (a new object, as every stage run
+    loads it) reuses the proxy; a model with another template gets its own."""
+    import dataclasses
+
+    from body import load_model
     from fitting.collision import ProxyMesh
 
     calls = []
@@ -36,10 +41,11 @@ def test_proxy_is_built_once_per_model(anny):
     QM._PROXIES.clear()
     a = QM._proxy(anny, Counting)
     assert QM._proxy(anny, Counting) is a and len(calls) == 1
-    # an entry under the model's id but made for another object (ids are reused) is no hit
-    QM._PROXIES[id(anny)] = (object(), "stale")
-    b = QM._proxy(anny, Counting)
-    assert b != "stale" and len(calls) == 2 and b.num_vertices == a.num_vertices
+    again = load_model("anny")
+    assert again is not anny and QM._proxy(again, Counting) is a and len(calls) == 1
+    taller = dataclasses.replace(anny, v_template=np.asarray(anny.v_template) * 1.1)
+    b = QM._proxy(taller, Counting)
+    assert b is not a and len(calls) == 2 and b.num_vertices == a.num_vertices
 
 
 def test_surface_tree_over_the_faces_near_the_queries_gives_the_same_distances(anny):
