@@ -482,3 +482,27 @@ def test_a_bystander_is_never_taken_for_the_partner(scene):
     clean, _ = _joint_err_mm(scene, _fit(scene, scene.kp)[0])
     assert err.max() < clean.max() + 10.0, (err, clean)
     assert fit.valid.all()
+
+
+def test_occlusion_option_leaves_out_what_the_wearer_hides(scene):
+    """``occlusion``: with the wearer standing 1.2 m in front of the partner towards camera 0,
+    the partner keypoints it hides are not used in that view, and in no other view."""
+    from artifacts import BodyFit
+
+    F = F_SYN
+    c0 = scene.cams[0].T
+    shift = np.array([c0[0], c0[1], 0.0]) / np.linalg.norm(c0[:2]) * 1.2
+    pose = np.zeros((F, scene.model.num_joints, 3))
+    pose[:, scene.skel.joints[1:]] = scene.X[:, 6:].reshape(F, -1, 3)
+    from body.rotations import rodrigues
+
+    wearer = BodyFit(body_pose=pose, global_orient=rodrigues(scene.X[:, :3]),
+                     transl=scene.X[:, 3:6] + shift, betas=scene.betas, frames=scene.frames,
+                     valid=np.ones(F, bool), invalid_reason=np.zeros(F, np.int8))
+    _, off = _fit(scene, scene.kp, wearer=wearer, opts={"weights": {"L_ic": 0.0}})
+    fit, on = _fit(scene, scene.kp, wearer=wearer, opts={"occlusion": True, "weights": {"L_ic": 0.0}})
+    assert off["keypoints_hidden_by_wearer"] is None
+    hid = on["per_frame"]["keypoints_hidden"]  # (F, C)
+    assert hid[:, 0].min() >= 5 and not hid[:, 1:].any(), hid
+    err, _ = _joint_err_mm(scene, fit)
+    assert err.max() < 35.0, err  # three views and the unhidden rest of view 0 suffice
