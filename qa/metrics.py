@@ -349,8 +349,15 @@ def _pose(model, fit, rows: np.ndarray, chunk: int = 64):
     return V, P
 
 
+_POSED: dict = {}  # id(fit) -> (fit, rows, kp65 (F, 65, 3)): what sequence_metrics posed
+
+
 def _kp65_all(model, fit, chunk: int = 64) -> np.ndarray:
-    """(F, 65, 3) KP65 keypoints of ``fit`` on all its frames (the sync's wearer)."""
+    """(F, 65, 3) KP65 keypoints of ``fit`` on all its frames (the sync's wearer); the ones
+    :func:`sequence_metrics` posed when it posed every frame (the same numbers)."""
+    hit = _POSED.get(id(fit))
+    if hit is not None and hit[0] is fit and np.array_equal(hit[1], np.arange(fit.num_frames)):
+        return hit[2]
     return _pose(model, fit, np.arange(fit.num_frames), chunk)[1]
 
 
@@ -926,6 +933,7 @@ def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, f
     units: dict[str, str] = {}
     seq: dict = {"frames": int(F), "fps": float(fps)}
     fits = [(n, f) for n, f in zip(PEOPLE, (wearer, partner), strict=True) if f is not None]
+    _POSED.clear()
     proxy = _proxy(model, ProxyMesh)
     feet = _foot_vertices(model) if ground is not None else []
     verts, people = [], []
@@ -933,6 +941,7 @@ def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, f
     for person, fit in fits:
         rows = _rows(np.asarray(fit.frames), frames)
         V, P3 = _pose(model, fit, rows)
+        _POSED[id(fit)] = (fit, rows, P3)
         verts.append(V)
         people.append(person)
         if person == "wearer" and fit.has_markers:
@@ -954,6 +963,7 @@ def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, f
         for cam, s in offs.items():
             values[f"sync_offset_frames.{cam}"] = np.full(F, float(s))
             units[f"sync_offset_frames.{cam}"] = "frames"
+    _POSED.clear()
     # per frame geometry: self-penetration of each, and between the two
     pen = np.full(F, np.nan)
     vol = np.full(F, np.nan)
