@@ -5,7 +5,10 @@ partner's (the people less the wearer's fitted body), for the partner fit's ``L_
 Thin adapter around ``detect.silhouette.silhouettes``: reads the videos and the recipe's
 clean plates (``sequences.<id>.clean_plates``, per camera; a camera without one uses OpenCV's
 MOG2 over the sequence), the cameras (``capture``'s rig) and the wearer's fit (``marker_fit``:
-posed with ``body.forward`` and rasterised out of the people mask). Writes
+posed with ``body.forward`` and rasterised out of the people mask).
+
+The frames are the wearer's fitted frames (the keypoints' video frames, which the partner fit
+fits too: every ``stride``-th one when the keypoints stage strides). Writes
 
 - ``masks.npz``: an ``artifacts.silhouettes.Silhouettes`` (bit-packed masks at
   ``scale``, mask shares of the image, ``usable`` per frame and view);
@@ -75,9 +78,12 @@ def run(ctx: StageContext) -> None:
         ctx.log(f"{ctx.unit}: {w}")
     frames = np.arange(n)
     wearer_V, faces = None, None
-    if "marker_fit" in ctx.inputs:
+    if "marker_fit" in ctx.inputs:  # the frames fitted (the keypoints' video frames: a stride)
         model = common.load_body(ctx)
-        wearer_V = posed_vertices(model, BodyFit.load(ctx.inputs["marker_fit"]), frames)
+        wearer = BodyFit.load(ctx.inputs["marker_fit"])
+        frames = np.asarray(wearer.frames, np.int64)
+        frames = frames[(frames >= 0) & (frames < n)]
+        wearer_V = posed_vertices(model, wearer, frames)
         faces = np.asarray(model.faces)
     readers = [VideoReader(p, (c.width, c.height)) for p, c in zip(videos, cams, strict=True)]
     try:
