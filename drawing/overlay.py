@@ -397,6 +397,7 @@ def draw_overlays(cams: list[Camera], videos: list[Path], vertices: list[np.ndar
                   png_frames=(), png_dir: Path | None = None, titles: dict[int, str] | None = None,
                   png_scale: float = 0.5, video_path: Path | None = None, video_frames=(),
                   video_fps: float = 25.0, video_scale: float = 0.25, webm: bool = True,
+                  video_mesh: tuple[list[np.ndarray], np.ndarray] | None = None,
                   colors=None, progress=None) -> tuple[dict[int, Path], Path | None]:
     """The QA overlays in one sequential pass over the videos, drawn by :func:`raster_people`:
     a PNG per frame of ``png_frames`` (``png_dir/overlay_<frame:06d>.png``, views at
@@ -405,8 +406,9 @@ def draw_overlays(cams: list[Camera], videos: list[Path], vertices: list[np.ndar
     views at ``video_scale``, title ``frame <n>  <t> s``, played at ``video_fps``. Each video
     frame is decoded once, each view drawn once per scale. vertices: per person (F, V', 3) of
     the mesh ``faces`` (e.g. a decimated one) on the QA frame axis, ``frame_index`` video
-    frame -> row; a person whose row is not finite is left out. Returns ``({frame: png},
-    video path or None)``."""
+    frame -> row; a person whose row is not finite is left out; video_mesh : ``(vertices,
+    faces)`` of a coarser mesh for the video's smaller views (default the same). Returns
+    ``({frame: png}, video path or None)``."""
     png_frames = sorted({int(f) for f in png_frames})
     video_frames = [int(f) for f in video_frames]
     if png_frames and png_dir is None:
@@ -422,6 +424,12 @@ def draw_overlays(cams: list[Camera], videos: list[Path], vertices: list[np.ndar
             raise ValueError(f"{name}: expected > 0, got {s}")
     frames = sorted(set(png_frames) | set(video_frames))
     faces, verts, rows = _check_inputs(cams, videos, vertices, faces, frame_index, frames)
+    vfaces, vverts = faces, verts
+    if video_mesh is not None:
+        vfaces, vverts, _ = _check_inputs(cams, videos, video_mesh[0], video_mesh[1],
+                                          frame_index, video_frames)
+        if len(vverts) != len(verts):
+            raise ValueError(f"video_mesh: {len(vverts)} people for {len(verts)}")
     cols = person_colors(len(verts), colors)
     labels = [c.name for c in cams]
     want_png, want_video = set(png_frames), set(video_frames)
@@ -435,25 +443,28 @@ def draw_overlays(cams: list[Camera], videos: list[Path], vertices: list[np.ndar
         it = frames if progress is None else progress(frames, total=len(frames), desc="overlays")
         for f in it:
             images = [rd[f] for rd in readers]
-            people, outl = _people_at(verts, faces, rows[f], cols)
-            scales = ([png_scale] if f in want_png else []) + \
-                     ([video_scale] if f in want_video else [])
+            jobs = ([("png", png_scale, verts, faces)] if f in want_png else []) + \
+                   ([("video", video_scale, vverts, vfaces)] if f in want_video else [])
             drawn = {}
-            scene = RasterScene(people)
-            for s in dict.fromkeys(scales):
+            for what, s, vv, ff in jobs:
+                if what == "video" and "png" in drawn and s == png_scale and vv is verts:
+                    drawn[what] = drawn["png"]
+                    continue
+                people, outl = _people_at(vv, ff, rows[f], cols)
+                scene = RasterScene(people)
                 views = []
                 for cam, img in zip(cams, images, strict=True):
                     size = scaled_size(cam, s)
                     small = img if size == (img.shape[1], img.shape[0]) else _resize(img, size)
                     rgb, ids = raster_people(cam, scene, s)
                     views.append(blend_people(small, rgb, ids, len(people), outl))
-                drawn[s] = views
+                drawn[what] = views
             if f in want_png:
                 title = (titles or {}).get(f, f"frame {f}")
                 pngs[f] = write_png(Path(png_dir) / f"overlay_{f:06d}.png",
-                                    tile_views(drawn[png_scale], labels, title, 1.0))
+                                    tile_views(drawn["png"], labels, title, 1.0))
             if f in want_video:
-                out.write(tile_views(drawn[video_scale], labels, f"frame {f}  {f / vfps:.2f} s",
+                out.write(tile_views(drawn["video"], labels, f"frame {f}  {f / vfps:.2f} s",
                                      1.0))
     finally:
         for rd in readers:

@@ -71,8 +71,9 @@ class Options(QAOptions):
     video_max_frames : at most this many frames in it (evenly spaced); scene : write
     ``scene.mcap``; scene_faces : triangles per body in the scene; scene_images : put the
     camera images into the scene; image_scale : scale of overlay and scene images;
-    video_scale : scale of the views in ``overlay.mp4``; overlay_faces : triangles per body
-    in the overlays (the QA proxy decimated; ``drawing.overlay.raster_people`` fills them)."""
+    video_scale : scale of the views in ``overlay.mp4``; overlay_faces, video_faces :
+    triangles per body in the overlay pictures and in the video's smaller views (the QA proxy
+    decimated; ``drawing.overlay.raster_people`` fills them)."""
 
     overlay_sample: int = 4
     overlay_max: int = 24
@@ -84,11 +85,12 @@ class Options(QAOptions):
     image_scale: float = 0.5
     video_scale: float = 0.25
     overlay_faces: int = 1500
+    video_faces: int = 800
 
     def __post_init__(self):
         thresholds(self)  # QAOptions validates its own fields
         for f in ("overlay_sample", "overlay_max", "video_max_frames", "scene_faces",
-                  "overlay_faces"):
+                  "overlay_faces", "video_faces"):
             if getattr(self, f) < 0:
                 raise ValueError(f"{f}: must be >= 0, got {getattr(self, f)}")
         for f in ("image_scale", "video_scale"):
@@ -231,15 +233,17 @@ def run(ctx: StageContext) -> None:
             pick = np.unique(np.linspace(0, F - 1, min(F, o.video_max_frames)).round().astype(int))
         step = max(1, int(np.median(np.diff(m.frames))) if F > 1 else 1)
         faces, small = overlay_meshes(model, m.vertices, o.overlay_faces)
+        coarse = overlay_meshes(model, m.vertices, o.video_faces)
         images, video = draw_overlays(
             cams, videos, small, faces, index, png_frames=span_frames + sample_frames,
             png_dir=out / "overlays", titles=titles, png_scale=o.image_scale,
             video_path=out / "overlay.mp4", video_frames=[int(m.frames[i]) for i in pick],
             video_fps=fps / step * (len(pick) / F if F else 1), video_scale=o.video_scale,
-            webm=True, progress=ctx.progress)
+            webm=True, video_mesh=(coarse[1], coarse[0]), progress=ctx.progress)
         rendered["overlays"] = len(images)
         rendered["video_frames"] = len(pick)
         rendered["overlay_faces_per_body"] = int(len(faces))
+        rendered["video_faces_per_body"] = int(len(coarse[0]))
     draw_s = time.perf_counter() - t1
 
     # the 3D scene

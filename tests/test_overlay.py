@@ -223,7 +223,8 @@ def test_draw_overlays_decodes_each_frame_once(tmp_path, monkeypatch):
     """``draw_overlays``: one pass over the videos (each requested video frame decoded once,
     in increasing order), the PNGs at their scale with their titles' frames, the MP4 and the
     WebM with one frame per video frame at the video's scale, each showing its frame's grey
-    and the box where the camera projects it; a person not fitted (NaN row) is left out."""
+    and the box where the camera projects it; a person not fitted (NaN row) is left out; a
+    separate mesh for the video is drawn in the video only."""
     import cv2
     import trimesh
 
@@ -276,6 +277,22 @@ def test_draw_overlays_decodes_each_frame_once(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="increasing"):
         draw_overlays(cams, videos, [verts], box.faces, {j: j for j in range(5)},
                       video_path=tmp_path / "x.mp4", video_frames=[2, 1])
+    # a coarser mesh for the video (here: a small box far off): the video shows it, the PNG
+    # of the same frame the full one
+    far = trimesh.creation.box((0.05, 0.05, 0.05))
+    fverts = np.stack([far.vertices + [0.2 * i, 0, 2.5] for i in range(5)])
+    pngs, video = draw_overlays(cams, videos, [verts], box.faces, {j: j for j in range(5)},
+                                png_frames=[2], png_dir=tmp_path / "png2", png_scale=0.5,
+                                video_path=tmp_path / "v2" / "overlay.mp4", video_frames=[2],
+                                video_fps=10.0, video_scale=0.5, webm=False,
+                                video_mesh=([fverts], far.faces))
+    assert not video.with_suffix(".webm").exists()
+    u, w = np.rint((project(cams[0], verts[2].mean(0)) + 0.5) * 0.5 - 0.5).astype(int)
+    png = cv2.imread(str(pngs[2]))[..., ::-1][bar:bar + 60, :80]
+    with FV.VideoReader(video) as rd:
+        cell = rd[0][bar:bar + 60, :80]
+    assert np.abs(png[w, u].astype(int) - 110).max() > 40  # the box in the picture
+    assert np.abs(cell[w, u].astype(int) - 110).max() <= 8  # not in the video: grey
 
 
 # ------------------------------------------------------------------------------ tiles
