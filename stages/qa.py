@@ -212,47 +212,55 @@ def run(ctx: StageContext) -> None:
             + (": " + ", ".join(sorted({r for s in flags.spans for r in s.reasons}))
                if flags.spans else ""))
 
-    # the plot
+    # the plot and the 3D scene: in a forked process beside the overlays when there is a
+    # second core (each writes its own files; the timings are measured where they run)
+    def plot_and_scene():
+        t = time.perf_counter()
+        qa_plot(out / "qa.png", np.asarray(m.frames), fps, m.values, m.units, m.thresholds,
+                [(s.start, s.end, ", ".join(s.reasons)) for s in flags.spans],
+                f"{ctx.unit}: {int(flags.any.sum())}/{F} frames flagged")
+        t_scene = time.perf_counter()
+        scene = None
+        if o.scene and m.vertices:
+            scene = _write_scene(out / "scene.mcap", model, m, flags, cams, videos, has_video,
+                                 keypoints, markers, clock, fps, o)
+        return scene, t_scene - t, time.perf_counter() - t_scene
+
+    side = _Beside(plot_and_scene, geometry_workers(ctx.cores) > 1)
     t1 = time.perf_counter()
-    qa_plot(out / "qa.png", np.asarray(m.frames), fps, m.values, m.units, m.thresholds,
-            [(s.start, s.end, ", ".join(s.reasons)) for s in flags.spans],
-            f"{ctx.unit}: {int(flags.any.sum())}/{F} frames flagged")
 
-    # overlays and the tiled video
-    span_frames, sample_frames = overlay_frames(m.frames, flags, o.overlay_sample, o.overlay_max)
-    images: dict[int, Path] = {}
-    rendered = {"overlays": 0, "video_frames": 0}
-    index = {int(f): i for i, f in enumerate(m.frames)}
-    if has_video and m.vertices:
-        from drawing.overlay import draw_overlays
+    try:
+        # overlays and the tiled video
+        span_frames, sample_frames = overlay_frames(m.frames, flags, o.overlay_sample, o.overlay_max)
+        images: dict[int, Path] = {}
+        rendered = {"overlays": 0, "video_frames": 0}
+        index = {int(f): i for i, f in enumerate(m.frames)}
+        if has_video and m.vertices:
+            from drawing.overlay import draw_overlays
 
-        titles = {f: f"{ctx.unit} frame {f}: " + (", ".join(per_frame.get(str(f), [])) or "not flagged")
-                  for f in span_frames + sample_frames}
-        pick = []
-        if o.video and o.video_max_frames:
-            pick = np.unique(np.linspace(0, F - 1, min(F, o.video_max_frames)).round().astype(int))
-        step = max(1, int(np.median(np.diff(m.frames))) if F > 1 else 1)
-        faces, small = overlay_meshes(model, m.vertices, o.overlay_faces)
-        coarse = overlay_meshes(model, m.vertices, o.video_faces)
-        images, video = draw_overlays(
-            cams, videos, small, faces, index, png_frames=span_frames + sample_frames,
-            png_dir=out / "overlays", titles=titles, png_scale=o.image_scale,
-            video_path=out / "overlay.mp4", video_frames=[int(m.frames[i]) for i in pick],
-            video_fps=fps / step * (len(pick) / F if F else 1), video_scale=o.video_scale,
-            webm=True, video_mesh=(coarse[1], coarse[0]), progress=ctx.progress)
-        rendered["overlays"] = len(images)
-        rendered["video_frames"] = len(pick)
-        rendered["overlay_faces_per_body"] = int(len(faces))
-        rendered["video_faces_per_body"] = int(len(coarse[0]))
-    draw_s = time.perf_counter() - t1
+            titles = {f: f"{ctx.unit} frame {f}: " + (", ".join(per_frame.get(str(f), [])) or "not flagged")
+                      for f in span_frames + sample_frames}
+            pick = []
+            if o.video and o.video_max_frames:
+                pick = np.unique(np.linspace(0, F - 1, min(F, o.video_max_frames)).round().astype(int))
+            step = max(1, int(np.median(np.diff(m.frames))) if F > 1 else 1)
+            faces, small = overlay_meshes(model, m.vertices, o.overlay_faces)
+            coarse = overlay_meshes(model, m.vertices, o.video_faces)
+            images, video = draw_overlays(
+                cams, videos, small, faces, index, png_frames=span_frames + sample_frames,
+                png_dir=out / "overlays", titles=titles, png_scale=o.image_scale,
+                video_path=out / "overlay.mp4", video_frames=[int(m.frames[i]) for i in pick],
+                video_fps=fps / step * (len(pick) / F if F else 1), video_scale=o.video_scale,
+                webm=True, video_mesh=(coarse[1], coarse[0]), progress=ctx.progress)
+            rendered["overlays"] = len(images)
+            rendered["video_frames"] = len(pick)
+            rendered["overlay_faces_per_body"] = int(len(faces))
+            rendered["video_faces_per_body"] = int(len(coarse[0]))
+        draw_s = time.perf_counter() - t1
 
-    # the 3D scene
-    t2 = time.perf_counter()
-    scene = None
-    if o.scene and m.vertices:
-        scene = _write_scene(out / "scene.mcap", model, m, flags, cams, videos, has_video,
-                             keypoints, markers, clock, fps, o)
-    scene_s = time.perf_counter() - t2
+        scene, plot_s, scene_s = side.result()
+    finally:
+        side.close()
 
     # upstream pictures, the report
     figures = [("QA metrics per frame, flagged spans shaded", "qa.png")]
@@ -287,7 +295,7 @@ def run(ctx: StageContext) -> None:
               "thresholds": m.thresholds, "rendered": rendered,
               "overlay_frames": {"spans": span_frames, "sample": sample_frames},
               "scene": scene,
-              "timing": _timing(F, t_start, c_start, metrics_s, draw_s, scene_s)}
+              "timing": _timing(F, t_start, c_start, metrics_s, plot_s, draw_s, scene_s)}
     stage_reports = {k: v for k, v in stage_reports.items() if v is not None}
     write_sequence_report(out, sequence=ctx.unit, title=f"QA: {ctx.unit}", summary=summ,
                           spans=spans_html, figures=figures,
@@ -318,6 +326,51 @@ def run(ctx: StageContext) -> None:
                       scene=scene["file"] if scene else None)).save(ctx.out)
 
 
+_BESIDE = None  # the work a forked _Beside process runs (set before it forks)
+
+
+def _run_beside():
+    return _BESIDE()
+
+
+class _Beside:
+    """``func()`` run in a forked process while the caller goes on (``parallel``), else in
+    this process when the result is asked for. A failure in the process (or a result that
+    does not come back) runs ``func`` again here, so that its error is raised as usual."""
+
+    def __init__(self, func, parallel: bool):
+        global _BESIDE
+        self.func, self.pool, self.job = func, None, None
+        if parallel:
+            import multiprocessing as mp
+
+            _BESIDE = func
+            try:
+                self.pool = mp.get_context("fork").Pool(1)
+                self.job = self.pool.apply_async(_run_beside)
+            finally:
+                _BESIDE = None
+
+    def result(self):
+        if self.pool is None:
+            return self.func()
+        try:
+            return self.job.get()
+        except Exception:  # noqa: BLE001 - redone here: its error then comes out as usual
+            return self.func()
+        finally:
+            self.pool.close()
+            self.pool.join()
+            self.pool = None
+
+    def close(self) -> None:
+        """Stop the process if it is still running (the caller failed first)."""
+        if self.pool is not None:
+            self.pool.terminate()
+            self.pool.join()
+            self.pool = None
+
+
 def geometry_workers(cores: int) -> int:
     """Processes for the metrics' per-frame geometry: the cores the executor granted (0: the
     machine's), one when the stage runs outside the main thread (a Dask worker's task thread:
@@ -339,15 +392,18 @@ def _cpu_s() -> float:
     return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
 
 
-def _timing(frames: int, t_start: float, c_start: float, metrics_s: float, draw_s: float,
-            scene_s: float) -> dict:
-    """The stage's timings: wall seconds of the metrics, the drawing (plot, overlays, video)
-    and the scene, the whole stage's wall and CPU seconds up to its report (the figures
-    copied, the pages written after it take milliseconds), and per frame."""
+def _timing(frames: int, t_start: float, c_start: float, metrics_s: float, plot_s: float,
+            draw_s: float, scene_s: float) -> dict:
+    """The stage's timings: wall seconds of the metrics, the plot, the overlays and video
+    (``draw_s``) and the scene (plot and scene run beside the overlays when there is a second
+    core: the parts then add up to more than the whole), the whole stage's wall and CPU
+    seconds up to its report (the figures copied, the pages written after it take
+    milliseconds), and per frame."""
     total = time.perf_counter() - t_start
     cpu = _cpu_s() - c_start
     n = max(frames, 1)
-    return {"metrics_s": round(metrics_s, 3), "draw_s": round(draw_s, 3),
+    return {"metrics_s": round(metrics_s, 3), "plot_s": round(plot_s, 3),
+            "draw_s": round(draw_s, 3),
             "scene_s": round(scene_s, 3), "total_s": round(total, 3), "cpu_s": round(cpu, 3),
             "s_per_frame": round(total / n, 4), "cpu_s_per_frame": round(cpu / n, 4),
             "metrics_s_per_frame": round(metrics_s / n, 4)}

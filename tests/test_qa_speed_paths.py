@@ -110,3 +110,28 @@ def test_geometry_in_worker_processes_gives_the_same_metrics(anny):
     assert (a.values["penetration_mm"][[0, 1, 5]] == 0).all()
     assert np.isfinite(a.values["unexpected_contact_mm"]).all()
     assert a.values["partner.self_penetration_mm"][4] > 50 + a.values["partner.self_penetration_mm"][0]
+
+
+def test_work_beside_runs_in_another_process_and_fails_here():
+    """stages.qa._Beside: the plot and scene run in a forked process while the overlays are
+    drawn (another pid, the result handed back), in this process when not parallel; work that
+    fails in the process is run again here, so its own error comes out."""
+    import os
+
+    import pytest
+
+    from stages.qa import _Beside
+
+    assert _Beside(os.getpid, True).result() != os.getpid()
+    assert _Beside(os.getpid, False).result() == os.getpid()
+    calls = []
+
+    def fails():
+        calls.append(os.getpid())
+        raise KeyError("no such camera")
+
+    side = _Beside(fails, True)
+    with pytest.raises(KeyError, match="no such camera"):
+        side.result()
+    assert calls == [os.getpid()]  # the child's call is not in this process's list
+    side.close()  # closing after the result is a no-op
