@@ -18,8 +18,8 @@ How the refits run (:class:`_Refits`): frame after frame, the full fit (every ma
 started from its own previous frame moved by the full fit's motion and solved by the same
 Levenberg-Marquardt steps as ``fitting.lm.solve``, vectorised over the held markers. Measured
 on the real pyCGM capture (323 frames, 39 markers, stride 2, a shared and loaded 2-core
-machine): 39 -> ~9 CPU-s (8 -> ~36 frames per CPU-second), median 6.855 -> 6.851 mm, p90
-30.91 -> 31.00 mm; ~1 CPU-s of it is building the compiled graph (once per call).
+machine): 42 -> 9-11 CPU-s (8 -> 30-37 frames per CPU-second), median 6.855 -> 6.851 mm,
+p90 30.91 -> 30.98 mm; ~1 CPU-s of it is building the compiled graph (once per call).
 """
 from __future__ import annotations
 
@@ -82,7 +82,7 @@ class _Refits:
        L_theta, and L_s toward the refit's *own* previous frame) by the steps of
        ``fitting.lm.solve``, vectorised over the held markers (:func:`_batched_lm`). It starts
        from its own previous frame moved by the full fit's motion between the two frames
-       (``x_k,t-1 + x_t - x_t-1``), its first frame at the full fit.
+       (:func:`_moved_by`), its first frame at the full fit.
 
     What differs from refitting the whole sequence once per held marker (``reference=True``,
     ``fit_markers``' path): the start of each frame (the reference starts from the refit's
@@ -94,8 +94,9 @@ class _Refits:
     error halved, 39 -> 19 mm, an optimistic figure), and a refit is solved to convergence
     (stopped after 1 LM iteration the demo's median fell 3.31 -> 2.49 mm, for the same
     reason). Measured against the reference: pyCGM (stride 2) median 6.855 -> 6.851, p90
-    30.91 -> 31.00 mm, per marker-frame the same to 0.005 mm at p90 but up to 33 mm where a
-    refit's first frame lands in another minimum (LANK); the demo's Push 1 median 3.33 ->
+    30.91 -> 30.98 mm, per marker-frame within 0.03 mm at p90, but 102 of 6,318 marker-frames
+    differ by more than 1 mm (up to 33 mm: LANK 60, LTOE 29, where the two refits follow
+    different minima for a stretch of ~40 frames); the demo's Push 1 median 3.33 ->
     3.31, p90 14.38 -> 12.43 mm: the reference's RWRA refit, started from the initial pose,
     stayed in a minimum of 2.6x the cost of the one found here in all its 50 frames (94 mm
     off, against 9.5). Frames before a refit's first frame with ``MIN_MARKERS`` visible are
@@ -182,13 +183,39 @@ class _Refits:
             if not go.any():
                 continue
             x0 = np.repeat(x_full[None], K, axis=0)
-            x0[started] = x_prev[started] + (x_full - x_full_prev)
+            if started.any():
+                x0[started] = _moved_by(x_prev[started], x_full_prev, x_full)
             x = _batched_lm(S, x_full, x0[go], self.obs[f], v, vk[go], x_prev[go], started[go])
             x = np.stack([rewrap(xi) for xi in x])
             X[f, go] = x
             x_prev[go] = x
             started |= go
         return X
+
+
+def _moved_by(X: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Poses X (B, n) moved as the pose ``a`` (n,) moved to ``b``: the root turned by
+    ``R_b R_a^T`` (world) and shifted by ``T_b - T_a``, each joint turned by ``D_a^T D_b``
+    (its own frame). Rotations are composed, not rotation vectors added (a vector re-wrapped
+    near pi between a and b would make the sum a wrong start)."""
+    from body.rotations import rodrigues
+
+    B, Q = len(X), (X.shape[1] - 3) // 3
+
+    def turns(x):  # (..., n) -> (..., Q, 3, 3): the root's and each joint's rotation
+        r = np.concatenate([x[..., :3], x[..., 6:]], axis=-1)
+        return rodrigues(r.reshape(*x.shape[:-1], Q, 3))
+
+    Dx, Da, Db = turns(X), turns(a), turns(b)
+    out = np.empty_like(X)
+    root = Db[0] @ Da[0].T @ Dx[:, 0]
+    joints = Dx[:, 1:] @ (Da[1:].transpose(0, 2, 1) @ Db[1:])[None]
+    turned = rotmat_to_rotvec(np.concatenate([root[:, None], joints], axis=1).reshape(-1, 3, 3))
+    turned = turned.reshape(B, Q, 3)
+    out[:, :3] = turned[:, 0]
+    out[:, 3:6] = X[:, 3:6] + (b[3:6] - a[3:6])
+    out[:, 6:] = turned[:, 1:].reshape(B, -1)
+    return out
 
 
 def _positions(skel, u, Hm, k: int, X: np.ndarray) -> np.ndarray:

@@ -176,3 +176,24 @@ def test_batched_refits_take_the_steps_of_lm_solve(anny, capture):
                                           ftol=REFIT_FTOL, lambda_init=LAMBDA_INIT))
         assert np.max(np.abs(got[b] - want.x)) < 1e-9, (b, np.max(np.abs(got[b] - want.x)))
         assert np.max(np.abs(got[b] - x_full)) > 1e-6  # each problem moved: not a no-op
+
+
+def test_a_refit_start_moves_with_the_full_fit_across_a_rewrapped_rotation():
+    """A refit's start is its previous pose moved as the full fit moved: the full fit's own
+    previous pose goes to its new one exactly, and a root turning from 3.13 rad about z to
+    3.15 rad (re-wrapped to -3.13) moves a nearby pose by 0.02 rad, not by the 2 pi a sum of
+    rotation vectors would add."""
+    from body.rotations import rodrigues
+    from fitting.loo import _moved_by
+
+    rng = np.random.default_rng(0)
+    n = 3 * 22 + 3
+    a = 0.5 * rng.standard_normal(n)
+    b = a + 0.05 * rng.standard_normal(n)
+    assert np.allclose(_moved_by(a[None], a, b)[0], b, atol=1e-12)
+    a[:3], b[:3] = [0, 0, 3.13], [0, 0, 3.15 - 2 * np.pi]
+    x = a + 0.01 * rng.standard_normal(n)
+    y = _moved_by(x[None], a, b)[0]
+    turn = rodrigues(y[:3]) @ rodrigues(x[:3]).T  # the root's turn, world frame
+    assert np.allclose(turn, rodrigues(np.array([0, 0, 0.02])), atol=1e-9)
+    assert np.allclose(y[3:6], x[3:6] + b[3:6] - a[3:6])
