@@ -186,11 +186,23 @@ class _Refits:
             if started.any():
                 x0[started] = _moved_by(x_prev[started], x_full_prev, x_full)
             x = _batched_lm(S, x_full, x0[go], self.obs[f], v, vk[go], x_prev[go], started[go])
-            x = np.stack([rewrap(xi) for xi in x])
+            x = _rewrap_rows(x)
             X[f, go] = x
             x_prev[go] = x
             started |= go
         return X
+
+
+def _rewrap_rows(X: np.ndarray) -> np.ndarray:
+    """``fitting.marker_fit.rewrap`` of each row of X (B, n)."""
+    Y = np.array(X, dtype=float)
+    rv = np.concatenate([Y[:, :3], Y[:, 6:]], axis=1).reshape(len(Y), -1, 3)
+    ang = np.linalg.norm(rv, axis=2)
+    big = ang > np.pi
+    rv[big] *= (1.0 - 2.0 * np.pi / ang[big])[:, None]
+    Y[:, :3] = rv[:, 0]
+    Y[:, 6:] = rv[:, 1:].reshape(len(Y), -1)
+    return Y
 
 
 def _moved_by(X: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -259,9 +271,10 @@ def _batched_lm(S, x_full: np.ndarray, x0: np.ndarray, obs: np.ndarray, vis_all:
     m = fun.n_r
     w = o.weights
     # per problem: parameters (its visibility), robust scale, quadratic terms
-    P = np.repeat(S.p[None], B, axis=0)
-    for b in range(B):
-        graph.set_observations(P[b], obs, vis[b])
+    P = np.repeat(S.p[None], B, axis=0)  # MarkerGraph.set_observations, for all B at once
+    P[:, graph.slices["obs"]] = np.where(vis[:, :, None] > 0, np.nan_to_num(obs)[None],
+                                         0.0).reshape(B, -1)
+    P[:, graph.slices["vis"]] = vis
     kv = np.maximum(np.count_nonzero(vis > 0, axis=1), 1)
     sigma = o.sigma_marker_m * np.sqrt(w["L_3d"] / kv)  # FrameSolver.groups, factor 1
     rows = S.rows_m  # (M, 3): one group per marker, every row of r (no keypoints)

@@ -197,3 +197,15 @@ def test_a_refit_start_moves_with_the_full_fit_across_a_rewrapped_rotation():
     turn = rodrigues(y[:3]) @ rodrigues(x[:3]).T  # the root's turn, world frame
     assert np.allclose(turn, rodrigues(np.array([0, 0, 0.02])), atol=1e-9)
     assert np.allclose(y[3:6], x[3:6] + b[3:6] - a[3:6])
+
+
+def test_refit_rows_rewrap_as_the_marker_fit_does():
+    """The refits' poses are re-wrapped row by row exactly as ``fitting.marker_fit.rewrap``
+    re-wraps one pose (every rotation vector to an angle <= pi)."""
+    from fitting.loo import _rewrap_rows
+    from fitting.marker_fit import rewrap
+
+    X = 3.0 * np.random.default_rng(1).standard_normal((20, 3 * 22 + 3))
+    Y = _rewrap_rows(X)
+    assert np.array_equal(Y, np.stack([rewrap(x) for x in X]))
+    assert not np.array_equal(Y, X)  # some rotations were past pi
