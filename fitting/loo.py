@@ -422,10 +422,12 @@ def leave_one_out(model, shape: ShapeFit, template: Placement, markers: Markers,
     compile mode), so the figure scores the fit the stage made (no keypoints are passed:
     ``use_hands`` has no effect here); ``opts.max_frames`` applies after the stride; held : marker
     names to hold out (default every marker of the shape's placement); stride : fit every
-    k-th frame (>= 1); progress : optional iterable wrapper over the held markers; source :
-    the capture's file, named in input errors; reference : refit by calling
-    ``fit_markers`` once per held marker (slower; the graph is still built once), the path
-    the default (:class:`_Refits`, the same numbers) is tested against.
+    k-th frame (>= 1); progress : optional iterable wrapper (over the frames; over the held
+    markers with ``reference``); source : the capture's file, named in input errors;
+    reference : refit by calling ``fit_markers`` once per held marker (~4x slower; the graph
+    is still built once), the path the default (:class:`_Refits`: the same numbers once the
+    reference's start-up transient has passed, except where the two reach different minima)
+    is tested against.
 
     Returns ``{"per_marker": {name: {"median_mm", "p90_mm", "frames"}}, "median_mm",
     "p90_mm"`` (over every held-out marker-frame), ``"cpu_s"`` (process CPU seconds),
