@@ -359,37 +359,78 @@ def blend_people(image: np.ndarray, rgb: np.ndarray, ids: np.ndarray, n_people: 
 
 class _VideoOut:
     """The overlay video as MP4 (``mp4v``) and, with ``webm``, VP8 WebM beside it (same stem:
-    what Chromium plays), written frame by frame from one stream of pictures."""
+    what Chromium plays), written frame by frame from one stream of pictures. The encoders run
+    in a thread (OpenCV releases the GIL while encoding: the VP8 encoder, the costly one, works
+    beside the drawing); an encoder's error comes out of the next ``write`` or ``close``."""
 
     def __init__(self, path: Path, fps: float, webm: bool):
         self.path, self.fps, self.webm = Path(path), float(fps), webm
         self.writers: list = []
         self.size = None
+        self._queue = None
+        self._thread = None
+        self._error: BaseException | None = None
+
+    def _open(self, size) -> None:
+        import cv2
+
+        self.size = size
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        outs = [(self.path, "mp4v")] + ([(self.path.with_suffix(".webm"), "VP80")]
+                                        if self.webm else [])
+        for p, cc in outs:
+            wr = cv2.VideoWriter(str(p), cv2.VideoWriter_fourcc(*cc), self.fps, self.size)
+            if not wr.isOpened():
+                self._release()
+                raise OSError(f"{p}: cannot open a {cc} writer")
+            self.writers.append(wr)
+
+    def _encode(self) -> None:
+        while True:
+            img = self._queue.get()
+            if img is None:
+                return
+            if self._error is not None:
+                continue  # drain after a failure
+            try:
+                for wr in self.writers:
+                    wr.write(img)
+            except BaseException as e:  # noqa: BLE001 - handed to the drawing thread
+                self._error = e
 
     def write(self, rgb: np.ndarray) -> None:
+        import queue
+        import threading
+
         import cv2
 
         img = cv2.cvtColor(np.ascontiguousarray(_even(rgb)), cv2.COLOR_RGB2BGR)
-        if not self.writers:
-            self.size = (img.shape[1], img.shape[0])
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            outs = [(self.path, "mp4v")] + ([(self.path.with_suffix(".webm"), "VP80")]
-                                            if self.webm else [])
-            for p, cc in outs:
-                wr = cv2.VideoWriter(str(p), cv2.VideoWriter_fourcc(*cc), self.fps, self.size)
-                if not wr.isOpened():
-                    self.close()
-                    raise OSError(f"{p}: cannot open a {cc} writer")
-                self.writers.append(wr)
+        if self._error is not None:
+            raise self._error
+        if self._thread is None:
+            self._open((img.shape[1], img.shape[0]))
+            self._queue = queue.Queue(maxsize=8)
+            self._thread = threading.Thread(target=self._encode, name="overlay-video",
+                                            daemon=True)
+            self._thread.start()
         elif (img.shape[1], img.shape[0]) != self.size:
             raise ValueError(f"{self.path}: frame size {img.shape[1]}x{img.shape[0]} != "
                              f"{self.size[0]}x{self.size[1]}")
-        for wr in self.writers:
-            wr.write(img)
+        self._queue.put(img)
 
-    def close(self) -> None:
+    def _release(self) -> None:
         for wr in self.writers:
             wr.release()
+        self.writers = []
+
+    def close(self) -> None:
+        if self._thread is not None:
+            self._queue.put(None)
+            self._thread.join()
+            self._thread = None
+        self._release()
+        if self._error is not None:
+            raise self._error
 
 
 def draw_overlays(cams: list[Camera], videos: list[Path], vertices: list[np.ndarray],

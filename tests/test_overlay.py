@@ -295,6 +295,35 @@ def test_draw_overlays_decodes_each_frame_once(tmp_path, monkeypatch):
     assert np.abs(cell[w, u].astype(int) - 110).max() <= 8  # not in the video: grey
 
 
+def test_video_encoder_error_comes_out_of_close(tmp_path):
+    """The overlay video is encoded in a thread: frames come out in order, and an encoder
+    that fails makes ``close`` raise its error (not a silently short video)."""
+    from drawing.overlay import _VideoOut
+    from formats.video import VideoReader, video_info
+
+    out = _VideoOut(tmp_path / "v.mp4", 10.0, webm=False)
+    for j in range(5):
+        out.write(np.full((32, 48, 3), 40 * j, np.uint8))
+    out.close()
+    assert video_info(tmp_path / "v.mp4").n_frames == 5
+    with VideoReader(tmp_path / "v.mp4") as rd:
+        assert [int(round(rd[j].mean() / 40)) for j in range(5)] == [0, 1, 2, 3, 4]
+
+    class Broken:
+        def write(self, img):
+            raise RuntimeError("disk full")
+
+        def release(self):
+            pass
+
+    out = _VideoOut(tmp_path / "w.mp4", 10.0, webm=False)
+    out.write(np.zeros((32, 48, 3), np.uint8))
+    out.writers.append(Broken())
+    out.write(np.zeros((32, 48, 3), np.uint8))
+    with pytest.raises(RuntimeError, match="disk full"):
+        out.close()
+
+
 # ------------------------------------------------------------------------------ tiles
 def test_tile_views_grid_and_labels():
     from drawing import qa_constants as Q
