@@ -89,7 +89,7 @@ def run(ctx: StageContext) -> None:
     try:
         masks, report = silhouettes(lambda c, f: readers[c][f], cams, frames, plates, wearer_V,
                                     faces, o, progress=ctx.progress)
-        mid = n // 2
+        mid = len(frames) // 2  # an index into frames (a stride of the video)
         img = overlay([r[int(frames[mid])] for r in readers], masks, mid)
     finally:
         for r in readers:
