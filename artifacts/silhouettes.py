@@ -29,8 +29,9 @@ class Silhouettes(TypedArtifact):
     ``(height, width)``; people : (F, C, B) uint8 ``np.packbits`` of the (height, width) bool
     people mask (row-major); partner : (F, C, B) the same for the partner (people less the
     wearer's rendered body); people_fraction / partner_fraction : (F, C) float share of the
-    image each covers; usable : (F, C) bool the view's mask is plausible (not empty, not most
-    of the image: the term uses only these); source : (C,) int8 index into :data:`SOURCES`."""
+    image each covers; wearer_cover : (F, C) share of the wearer's rendered body inside the
+    people mask (NaN: no wearer in the view); usable : (F, C) bool the view's mask is
+    plausible (not empty, not most of the image, holding the wearer: the term uses only these); source : (C,) int8 index into :data:`SOURCES`."""
 
     KIND: ClassVar[str] = "silhouettes"
     VERSION: ClassVar[int] = 1
@@ -44,6 +45,7 @@ class Silhouettes(TypedArtifact):
         FieldSpec("partner", "u", "F C B"),
         FieldSpec("people_fraction", "f", "F C", finite=True),
         FieldSpec("partner_fraction", "f", "F C", finite=True),
+        FieldSpec("wearer_cover", "f", "F C"),
         FieldSpec("usable", "b", "F C"),
         FieldSpec("source", "iu", "C"),
     )
@@ -56,6 +58,7 @@ class Silhouettes(TypedArtifact):
     partner: np.ndarray
     people_fraction: np.ndarray
     partner_fraction: np.ndarray
+    wearer_cover: np.ndarray
     usable: np.ndarray
     source: np.ndarray
 

@@ -7,16 +7,18 @@
   the room) and components smaller than ``min_area_px`` dropped. The clean plate has the same
   camera look (gain, vignetting, white balance) as the camera's videos, so a plain colour
   distance is enough; the plate is the median of its frames (noise-free). Without a clean
-  plate: OpenCV's ``createBackgroundSubtractorMOG2`` over the sequence (a person standing
-  still for long fades into its background: worse, but something).
+  plate: OpenCV's ``createBackgroundSubtractorMOG2`` trained on the whole sequence, then
+  applied to each frame without learning (a person standing still for long is part of its
+  background: far worse than a clean plate, but something).
 - the wearer's mask: its fitted body (``marker_fit``'s BodyFit posed with ``body.forward``)
   projected (lens distortion included) and rasterised face by face with ``cv2.fillPoly`` at
   the mask's resolution, dilated by ``wearer_dilate_px`` (its fit is a few mm off);
 - the partner's mask: people less the wearer.
 
 A view whose people mask covers less than ``min_fraction`` or more than ``max_fraction`` of the
-image is implausible (nobody found, or the background subtraction failed: lights changed, the
-camera moved) and is flagged not usable.
+image, or holds less than ``min_wearer_cover`` of the wearer's rendered body, is implausible
+(nobody found, or the background subtraction failed: lights changed, the camera moved, MOG2
+took people standing still for the room) and is flagged not usable.
 
 Pure functions (frames come in as arrays): :func:`silhouettes`; the stage
 ``stages/silhouettes.py`` reads the videos and saves the :class:`artifacts.silhouettes
@@ -49,6 +51,10 @@ WEARER_DILATE_PX = 2  # the wearer's rendered mask grows by this (mask pixels)
 MIN_FRACTION = 0.002  # a usable view's people mask covers at least this share of the image ...
 MAX_FRACTION = 0.5  # ... and at most this
 MOG2_VAR_THRESHOLD = 16.0
+MIN_WEARER_COVER = 0.7  # a usable view's people mask holds this share of the wearer's body: the
+#                         wearer's fitted body is known, and somebody (MOG2 without a clean plate
+#                         on the demo: people standing still fade into the background it learns,
+#                         masks of 0-5 % of them) who is missing from the mask makes it useless
 FRONT_AREA_PX2 = 0.5  # body_mask: faces of signed image area up to this (mask px^2) face the camera
 
 
@@ -59,7 +65,8 @@ class SilhouetteOptions:
     min_area_px : smallest component kept (mask pixels); max_hole_px : enclosed background
     smaller than this is filled (mask pixels); wearer_dilate_px : the wearer's
     rendered mask grows by this; min_fraction / max_fraction : a view's people mask covering
-    less / more of the image is not usable; mog2_var_threshold : MOG2's ``varThreshold``
+    less / more of the image is not usable; min_wearer_cover : a view whose people mask holds
+    less of the wearer's rendered body is not usable; mog2_var_threshold : MOG2's ``varThreshold``
     (views without a clean plate)."""
 
     scale: float = SCALE
@@ -72,6 +79,7 @@ class SilhouetteOptions:
     min_fraction: float = MIN_FRACTION
     max_fraction: float = MAX_FRACTION
     mog2_var_threshold: float = MOG2_VAR_THRESHOLD
+    min_wearer_cover: float = MIN_WEARER_COVER
 
     def __post_init__(self):
         problems = []
@@ -85,6 +93,8 @@ class SilhouetteOptions:
         if not 0 <= self.min_fraction < self.max_fraction <= 1:
             problems.append(f"min_fraction, max_fraction: need 0 <= min < max <= 1, got "
                             f"{self.min_fraction}, {self.max_fraction}")
+        if not 0 <= self.min_wearer_cover <= 1:
+            problems.append(f"min_wearer_cover: must be in [0, 1], got {self.min_wearer_cover}")
         if not self.mog2_var_threshold > 0:
             problems.append(f"mog2_var_threshold: must be > 0, got {self.mog2_var_threshold}")
         if problems:
@@ -221,11 +231,15 @@ def silhouettes(read: Callable[[int, int], np.ndarray], cams, frames: np.ndarray
     mog = {c: cv2.createBackgroundSubtractorMOG2(history=max(F, 2), detectShadows=True,
                                                  varThreshold=opts.mog2_var_threshold)
            for c in range(C) if c not in plate}
+    for c in mog:  # MOG2 learns the whole sequence first, then judges each frame against it
+        for f in frames:  # (learning as it goes took people standing from frame 0 for the room)
+            mog[c].apply(reduce(read(c, int(f)), (h, w)).astype(np.uint8))
     B = (h * w + 7) // 8
     people = np.zeros((F, C, B), np.uint8)
     partner = np.zeros((F, C, B), np.uint8)
     frac_p = np.zeros((F, C))
     frac_q = np.zeros((F, C))
+    cover = np.full((F, C), np.nan)
     grow = _disc(opts.wearer_dilate_px) if opts.wearer_dilate_px else None
     it = range(F) if progress is None else progress(range(F), total=F, desc="silhouettes")
     for i in it:
@@ -238,46 +252,56 @@ def silhouettes(read: Callable[[int, int], np.ndarray], cams, frames: np.ndarray
             if c in plate:
                 m = people_mask(small, plate[c], opts)
             else:
-                fg = mog[c].apply(np.clip(small, 0, 255).astype(np.uint8))
+                fg = mog[c].apply(small.astype(np.uint8), learningRate=0)
                 m = clean_mask(fg == 255, opts)  # 127: MOG2's shadows
             q = m
             V = None if wearer_vertices is None else wearer_vertices[i]
             if V is not None:
                 wm = body_mask(cam, V, faces, (h, w), opts.scale).astype(np.uint8)
+                if wm.any():  # the wearer is somebody: the people mask must hold it
+                    cover[i, c] = float((m & wm.astype(bool)).sum() / wm.sum())
                 if grow is not None:
                     wm = cv2.dilate(wm, grow)
                 q = m & ~wm.astype(bool)
             people[i, c], partner[i, c] = pack(m), pack(q)
             frac_p[i, c], frac_q[i, c] = m.mean(), q.mean()
     usable = (frac_p >= opts.min_fraction) & (frac_p <= opts.max_fraction)
+    usable &= ~(cover < opts.min_wearer_cover)  # NaN (no wearer in the view): not judged
     source = np.array([0 if c in plate else 1 for c in range(C)], np.int8)
     out = Silhouettes(frames=frames, cameras=np.array([c.name for c in cams]),
                       scale=np.float64(opts.scale), size=np.array([h, w], np.int64),
                       people=people, partner=partner, people_fraction=frac_p,
-                      partner_fraction=frac_q, usable=usable, source=source)
+                      partner_fraction=frac_q, wearer_cover=cover, usable=usable,
+                      source=source)
     return out, silhouette_report(out, opts)
 
 
 def silhouette_report(s: Silhouettes, opts: SilhouetteOptions) -> dict:
-    """Per camera: source, median / max people and partner mask shares, the frames whose
-    mask is implausible (empty or most of the image) and so not usable."""
+    """Per camera: source, median / max people and partner mask shares, the median share of
+    the wearer's body the people mask holds, the frames whose mask is implausible (empty, most
+    of the image, or missing the wearer) and so not usable."""
     cams = {}
     for c, name in enumerate(s.cameras):
         fp, fq = s.people_fraction[:, c], s.partner_fraction[:, c]
         empty = s.frames[fp < opts.min_fraction]
         full = s.frames[fp > opts.max_fraction]
+        wc = s.wearer_cover[:, c]
+        missed = s.frames[wc < opts.min_wearer_cover]
         cams[str(name)] = {
             "source": SOURCES[int(s.source[c])],
             "people_fraction_median": round(float(np.median(fp)), 5) if len(fp) else None,
             "people_fraction_max": round(float(fp.max()), 5) if len(fp) else None,
             "partner_fraction_median": round(float(np.median(fq)), 5) if len(fq) else None,
             "frames_usable": int(s.usable[:, c].sum()),
-            "not_usable": {"empty": [int(f) for f in empty], "most_of_image": [int(f) for f in full]},
+            "wearer_cover_median": round(float(np.nanmedian(wc)), 4) if np.isfinite(wc).any() else None,
+            "not_usable": {"empty": [int(f) for f in empty], "most_of_image": [int(f) for f in full],
+                           "wearer_missing": [int(f) for f in missed]},
         }
     return {"frames": int(len(s.frames)), "mask_size": [int(v) for v in s.size],
             "scale": float(s.scale), "views_usable": int(s.usable.sum()),
             "views": int(s.usable.size), "cameras": cams,
             "thresholds": {"min_fraction": opts.min_fraction, "max_fraction": opts.max_fraction,
+                           "min_wearer_cover": opts.min_wearer_cover,
                            "colour_distance": opts.threshold}}
 
 
