@@ -506,3 +506,25 @@ def test_occlusion_option_leaves_out_what_the_wearer_hides(scene):
     assert hid[:, 0].min() >= 5 and not hid[:, 1:].any(), hid
     err, _ = _joint_err_mm(scene, fit)
     assert err.max() < 35.0, err  # three views and the unhidden rest of view 0 suffice
+
+
+def test_a_limb_seen_in_one_view_is_not_ground_truth(scene):
+    """The right forearm's keypoints used in one view only (the depth is the model's guess):
+    the fit's ``observed`` leaves the right wrist (and what hangs on it) out of the ground
+    truth in those frames, and keeps the rest of the body. (The elbow stays: the upper arm
+    moves the shoulder keypoint too, by the support rule the marker fit uses.)"""
+    from body.joints import regressor
+    from fitting.marker_graph import observed_points
+    from formats.skeletons import JOINTS3D_25, KP65
+
+    kp = scene.kp.copy()
+    arm = [KP65.index(n) for n in ("r_elbow", "r_wrist")]
+    kp[1:, 2:, 1, arm, 2] = 0.0  # from the third frame on, only view 0 sees them
+    fit, rep = _fit(scene, kp)
+    pts = observed_points(scene.model, regressor(scene.model, "joints3d_25"), fit.joints_observed())
+    j = {n: JOINTS3D_25.index(n) for n in ("r_wrist", "r_elbow", "l_wrist", "pelvis", "head")}
+    assert pts[:2, :17].all()  # every body joint seen in four views (no hand keypoints here:
+    assert not pts[:, JOINTS3D_25.index("r_thumb")].any()  # the fingers are held, not observed)
+    assert not pts[2:, j["r_wrist"]].any() and not pts[2:, JOINTS3D_25.index("r_wrist_end")].any()
+    assert pts[2:, [j["l_wrist"], j["pelvis"], j["head"]]].all()
+    assert rep["joints_observed"]["per_joint"]["r_wrist"] == pytest.approx(2 / F_SYN, abs=1e-3)
