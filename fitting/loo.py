@@ -18,8 +18,9 @@ How the refits run (:class:`_Refits`): frame after frame, the full fit (every ma
 started from its own previous frame moved by the full fit's motion and solved by the same
 Levenberg-Marquardt steps as ``fitting.lm.solve``, vectorised over the held markers. Measured
 on the real pyCGM capture (323 frames, 39 markers, stride 2, a shared and loaded 2-core
-machine): 42 -> 9-11 CPU-s (8 -> 30-37 frames per CPU-second), median 6.855 -> 6.851 mm,
-p90 30.91 -> 30.98 mm; ~1 CPU-s of it is building the compiled graph (once per call).
+machine; old and new run in turn): 24-26 -> 5.9-6.3 CPU-s (12.5-13 -> 51-55 frames per
+CPU-second; under heavier load 42 -> 9-11 CPU-s), median 6.855 -> 6.851 mm, p90 30.91 ->
+30.98 mm; ~1 CPU-s of it is building the compiled graph (once per call).
 """
 from __future__ import annotations
 
