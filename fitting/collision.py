@@ -209,7 +209,12 @@ def inside(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
     nearest surface points ``NN(V, M)`` (exact, ``geometry.nearest_surface``)."""
     p = np.asarray(points, dtype=float)
     V = np.asarray(vertices, dtype=float)
-    idx = np.flatnonzero(winding_number(p, V, faces) > INSIDE_WINDING)
+    # a point outside the mesh's bounding box is outside the mesh: only the rest is tested
+    # (the winding number costs per point; two people side by side overlap little)
+    box = np.flatnonzero(np.all((p >= V.min(axis=0)) & (p <= V.max(axis=0)), axis=1))
+    if not len(box):
+        return _empty()
+    idx = box[winding_number(p[box], V, faces) > INSIDE_WINDING]
     return _collisions(p, idx, V, faces, margin)
 
 
