@@ -7,7 +7,9 @@ into ``bench/work/partner_fit/outputs`` (cached: a second run only re-scores), w
 ``stages.keypoints.stride = STRIDE`` (mediapipe is the cost: ~2.5 CPU-s per frame), so the
 partner is fitted on every ``STRIDE``-th video frame (warm start over the stride). The recipe
 used is written to ``bench/work/partner_fit/recipe.yaml`` (the bench recipe with absolute
-paths and these stage options). ``BENCH_PARTNER_STRIDE`` overrides the stride.
+paths and these stage options). ``BENCH_PARTNER_STRIDE`` overrides the stride;
+``BENCH_PARTNER_VARIANTS`` (comma-separated names of ``VARIANTS``) runs only those ablation
+rows beside the full method.
 
 Truth: ``data/bench/gt/<group>/<action>.npz``, person 1 = the partner. CHI3D protocol
 (``evaluate.metrics``): H36M 17 joints (``body.joints.regressor(model, "h36m17")``) of both,
@@ -266,7 +268,10 @@ def run(work: Path) -> dict[str, float]:
 
     out: dict[str, float] = {}
     base = yaml.safe_load(path.read_text())
+    only = [v for v in os.environ.get("BENCH_PARTNER_VARIANTS", "").split(",") if v]
     for name, over in VARIANTS.items():
+        if only and name != "full" and name not in only:
+            continue
         outputs = work / ("outputs" if name == "full" else f"outputs_{name}")
         vpath = path
         if name != "full":
