@@ -151,3 +151,27 @@ def forward(model: BodyModel, betas, body_pose, global_orient, transl, rest: Res
 
 
 lbs_np = forward
+
+
+def posed_at(model: BodyModel, fit, frames, chunk: int = 64) -> tuple[list, list]:
+    """A fitted body (``fit``: ``frames``, ``betas``, ``body_pose``, ``global_orient``,
+    ``transl``, e.g. an ``artifacts.BodyFit``) posed at video ``frames``: ``(vertices,
+    joints)``, two lists with per frame (V, 3) / (J, 3) or None where the fit has no such frame;
+    ``chunk`` frames posed at a time (a batch's skinning holds V x 12 floats per frame)."""
+    frames = np.asarray(frames)
+    wf = np.asarray(fit.frames)
+    V: list = [None] * len(frames)
+    J: list = [None] * len(frames)
+    if not len(wf):
+        return V, J
+    pos = np.searchsorted(wf, frames).clip(0, len(wf) - 1)
+    at = np.flatnonzero(wf[pos] == frames)
+    betas = np.asarray(fit.betas, float)
+    for s0 in range(0, len(at), chunk):
+        sel = at[s0:s0 + chunk]
+        i = pos[sel]
+        o = forward(model, betas, np.asarray(fit.body_pose)[i], np.asarray(fit.global_orient)[i],
+                    np.asarray(fit.transl)[i])
+        for k, f in enumerate(sel):
+            V[f], J[f] = o.vertices[k], o.joints[k]
+    return V, J

@@ -184,23 +184,10 @@ def body_mask(cam, vertices: np.ndarray, faces: np.ndarray, size: tuple[int, int
 def posed_vertices(model, fit, frames: np.ndarray, chunk: int = 32):
     """Per video frame of ``frames`` the fitted body's vertices (V, 3) (``body.forward``), or
     None where the fit has no such frame; ``chunk`` frames posed at a time."""
-    from body import forward
+    from body.lbs import posed_at
 
-    frames = np.asarray(frames)
-    wf = np.asarray(fit.frames)
-    out: list = [None] * len(frames)
-    if not len(wf):
-        return out
-    pos = np.searchsorted(wf, frames).clip(0, len(wf) - 1)
-    at = np.flatnonzero(wf[pos] == frames)
-    betas = np.asarray(fit.betas, float)
-    for s in range(0, len(at), chunk):
-        sel = at[s:s + chunk]
-        i = pos[sel]
-        V = forward(model, betas, fit.body_pose[i], fit.global_orient[i], fit.transl[i]).vertices
-        for k, f in enumerate(sel):
-            out[f] = V[k]
-    return out
+    return posed_at(model, fit, frames, chunk)[0]
+
 
 
 def silhouettes(read: Callable[[int, int], np.ndarray], cams, frames: np.ndarray,

@@ -817,24 +817,11 @@ def gate_hands(cams, pred: np.ndarray, uv: np.ndarray, conf: np.ndarray,
 
 def wearer_posed(model: BodyModel, wearer: BodyFit, frames: np.ndarray, chunk: int = 64):
     """The wearer's posed body at video ``frames``: ``(vertices, joints)``, two lists with per
-    frame (V, 3) / (J, 3) (NaN-free) or None where the wearer's fit has no such frame; posed
-    ``chunk`` frames at a time (a batch's skinning holds V x 12 floats per frame)."""
-    frames = np.asarray(frames)
-    wf = np.asarray(wearer.frames)
-    V: list = [None] * len(frames)
-    J: list = [None] * len(frames)
-    if not len(wf):
-        return V, J
-    pos = np.searchsorted(wf, frames).clip(0, len(wf) - 1)
-    at = np.flatnonzero(wf[pos] == frames)
-    betas = np.asarray(wearer.betas, float)
-    for s0 in range(0, len(at), chunk):
-        sel = at[s0:s0 + chunk]
-        i = pos[sel]
-        o = forward(model, betas, wearer.body_pose[i], wearer.global_orient[i], wearer.transl[i])
-        for k, f in enumerate(sel):
-            V[f], J[f] = o.vertices[k], o.joints[k]
-    return V, J
+    frame (V, 3) / (J, 3) (NaN-free) or None where the wearer's fit has no such frame
+    (``body.lbs.posed_at``)."""
+    from body.lbs import posed_at
+
+    return posed_at(model, wearer, frames, chunk)
 
 
 def wearer_keypoints(posed, R) -> np.ndarray:
