@@ -108,6 +108,11 @@ HAND_GATE_PX = 25.0
 # the estimate is not the partner (a bystander, an operator): the realistic demo's third
 # person was taken for the partner 350 px away in one view for 25 frames
 BYSTANDER_PX = 80.0
+# the backward sweep after the forward pass (each frame re-solved tied to both neighbours):
+# on the realistic bench session (stride 6) partner MPJPE 37.9 -> 32.6 mm pooled, better in
+# 7 of 8 classes, penetration p95 36.8 -> 21.0 mm, for ~1.7x the fit's CPU; on the demo
+# (stride 1, 100 frames) 33.2 -> 32.8
+TEMPORAL_PASSES = 1
 # a joint of a valid frame is ground truth where keypoints moving with it were used in this
 # many views (one view leaves its depth to the model: Push's right wrist seen by one view
 # 45 px off, the other views' detections gated or a bystander's, was fitted 180-280 mm off)
@@ -158,7 +163,8 @@ class PartnerFitOptions:
     demo it left Handshake at 31.0 mm against 31.1 and Push at 33.7 against 33.2, for 10 %
     more CPU; the detections that held the fit off were not hidden ones); temporal_passes : after the forward pass (each
     frame warm-started from and tied by L_s to the previous one), sweeps backwards over the
-    sequence re-solving each frame tied to both its neighbours (0: none)."""
+    sequence re-solving each frame tied to both its neighbours (0: none; ``TEMPORAL_PASSES``,
+    the reason beside it)."""
 
     weights: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_WEIGHTS))
     sigma_keypoint_px: float = 20.0
@@ -183,7 +189,7 @@ class PartnerFitOptions:
     limit_weight: float = LIMIT_WEIGHT
     hand_gate_px: float = HAND_GATE_PX
     occlusion: bool = False
-    temporal_passes: int = 0
+    temporal_passes: int = TEMPORAL_PASSES
     bystander_px: float = BYSTANDER_PX
 
     def __post_init__(self):
