@@ -29,7 +29,7 @@ and the second detection pass counted); ``frames_valid_fraction``;
 with its body (>= 12 of 23 keypoints) / a hand (>= 5 of 21) detected before and after the
 second detection pass (``detect.refine``).
 
-The wearer's figures on the same frames beside them: ``marker_fit.wearer_mpjpe_mm`` /
+The wearer's figures on the same frames beside them: ``partner_fit.wearer_mpjpe_mm`` /
 ``_pa_mpjpe_mm`` / ``_mpvpe_mm`` (its marker fit, shape from the scan, person 0 of the truth).
 
 Ablation (the paper's Table 3): every variant of ``VARIANTS`` (full method, without ``L_G``,
@@ -232,7 +232,7 @@ def _figures(pooled: dict, prefix: str) -> dict[str, float]:
             for k in ("mpjpe", "pa_mpjpe", "mpvpe"):
                 v = cat(f"wearer_{k}")
                 if len(v):
-                    out[f"marker_fit.wearer_{k}_mm{suf}"] = float(v.mean())
+                    out[f"partner_fit.wearer_{k}_mm{suf}"] = float(v.mean())
         c = cat("contact")
         if len(c):
             out[f"{prefix}contact_dist_median_mm{suf}"] = float(np.median(c))
