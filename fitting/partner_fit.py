@@ -1126,6 +1126,9 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
                     res, blocks, _ = solver.solve(X[f], uv[f], conf[f], f, ref, s_scale=len(nb))
                     iters.append(res.iterations)
                     record(f, rewrap(res.x), blocks, ref, len(nb))
+            for f in range(1, F):  # a held frame holds its predecessor's final pose
+                if not active[f, 0] and reason[f] == REASON_CODE["too_few_keypoints"]:
+                    X[f] = X[f - 1]
     t_fit, c_fit = time.perf_counter() - t0, time.thread_time() - c0
     if first_fit is not None:
         X[:first_fit] = X[first_fit]
