@@ -70,17 +70,13 @@ from geometry import face_normals
 # gap = 10 px^2, as much as ~3 px of 2D error on every keypoint. L_N: (1 + n1.n2)^2, 1/P per
 # pair, 1e2: 60 degrees off opposite costs 25 px^2 (at 1e4 it overruled the 2D evidence and
 # turned the body: Grab MPJPE 25 -> 84 mm; at 1e2 Grab/Handshake/HoldingHands 26.5/34/26.8 mm,
-# against 25.3/34.4/29.2 without L_N).
+# against 25.3/34.4/29.2 without L_N). L_sil (fitting/silhouette.py: the partner's outline,
+# only when the silhouettes stage's masks are given): realistic demo, partner MPJPE over 100
+# frames without / at 3 / 10 / 30: Push 33.7 / 30.4 / 30.1 / 30.4 mm, Handshake 31.1 / 29.4
+# / 28.5 / 28.6.
 DEFAULT_WEIGHTS = {"L_2d": 1.0, "L_theta": 0.02, "L_s": 0.2, "L_gp": 1e5, "L_ic": 1e4,
-                   "L_sc": 1e3, "L_D": 1e5, "L_N": 1e2}
-WIRED = ("L_2d", "L_theta", "L_s", "L_gp", "L_ic", "L_sc", "L_D", "L_N")  # terms evaluated
-# --- L_sil (fitting/silhouette.py, issue #27): the partner's outline in the views; only when
-# the masks are given (extra_terms(silhouettes=...)). Realistic demo, partner MPJPE over 100
-# frames without / at 3 / 10 / 30: Push 33.7 / 30.4 / 30.1 / 30.4 mm, Handshake 31.1 / 29.4 /
-# 28.5 / 28.6 (/work/notes/pfexp_sil.py)
-DEFAULT_WEIGHTS["L_sil"] = 10.0
-WIRED = WIRED + ("L_sil",)
-# --- end L_sil
+                   "L_sc": 1e3, "L_D": 1e5, "L_N": 1e2, "L_sil": 10.0}
+WIRED = ("L_2d", "L_theta", "L_s", "L_gp", "L_ic", "L_sc", "L_D", "L_N", "L_sil")  # terms evaluated
 CONTACT_SELECTIONS = ("annotated", "all", "uniform")  # psi_D modes (contact_selection)
 # L_theta's joint-limit hinge (fitting/priors.py limits), px^2 per rad^2 beyond a limit: at the
 # Gaussian's weight (0.02) a limit cost nothing against the 2D term, and on the realistic demo
@@ -940,12 +936,6 @@ def _observed_summary(model: BodyModel, fit: BodyFit) -> dict:
             "per_joint": {n: round(float(pts[:, i].mean()), 3) for i, n in enumerate(JOINTS3D_25)}}
 
 
-def _silhouette_input(masks, cams):  # L_sil: the masks (artifacts.silhouettes) and the cameras
-    from fitting.silhouette import SilhouetteInput
-
-    return SilhouetteInput(masks, list(cams))
-
-
 def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
                 wearer: BodyFit | None = None, contact=None, ground=None,
                 opts: PartnerFitOptions = PartnerFitOptions(), progress=None,
@@ -984,8 +974,12 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
 
     posed = None if wearer is None else wearer_posed(model, wearer, frames)
     WV = None if posed is None else posed[0]
-    extra, contact_info = extra_terms(model, frames, WV, contact, ground, opts, silhouettes=(
-        None if silhouettes is None else _silhouette_input(silhouettes, cams)))  # L_sil
+    if silhouettes is not None:  # L_sil: the masks (artifacts.silhouettes) and the cameras
+        from fitting.silhouette import SilhouetteInput
+
+        silhouettes = SilhouetteInput(silhouettes, list(cams))
+    extra, contact_info = extra_terms(model, frames, WV, contact, ground, opts,
+                                      silhouettes=silhouettes)
     t0 = time.perf_counter()
     reproj = Reprojection(skel, body.u, Hk, cams, body.sub)
     t_build = time.perf_counter() - t0
