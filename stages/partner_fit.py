@@ -131,9 +131,8 @@ def run(ctx: StageContext) -> None:
         from artifacts.silhouettes import Silhouettes
 
         masks = Silhouettes.load(ctx.inputs["silhouettes"])
-    sil = {} if masks is None else {"silhouettes": masks}
     fit, report = fit_partner(model, shape, keypoints, cams, wearer, contact, ground, o,
-                              progress=ctx.progress, log=log, **sil)
+                              progress=ctx.progress, log=log, silhouettes=masks)
     second = None
     if o.second_pass and not rv.sequence.has_keypoints:
         keypoints, second = _second_pass(ctx, model, cams, keypoints, fit, o)
@@ -141,7 +140,7 @@ def run(ctx: StageContext) -> None:
             second["first_fit_cpu_s"] = report["fit_cpu_s"]
             second["first_fit_frames_valid"] = report["frames_valid"]
             fit, report = fit_partner(model, shape, keypoints, cams, wearer, contact, ground, o,
-                                      progress=ctx.progress, log=log, **sil)
+                                      progress=ctx.progress, log=log, silhouettes=masks)
         keypoints.save(ctx.out)  # the keypoints the fit used (person 1 refined)
     report["second_pass"] = second or {"run": False, "why_not": (
         "option second_pass is off" if not o.second_pass else "precomputed keypoints")}
