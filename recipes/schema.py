@@ -161,6 +161,8 @@ class SequenceSpec(_Strict):
     optionally names, per camera, a video of the empty room (the clean plate labs record with
     the cameras and lights as in the take; any subset of the cameras): the people's masks
     are subtracted from it (stage ``silhouettes``; a camera without one: OpenCV's MOG2).
+    ``refine_rig: true`` refines the cameras from the people's detections before anything is
+    fitted (stage ``rig``, options in ``stages.rig``; needs ``videos`` and ``calibration``).
 
     A marker-only sequence has just ``markers_on`` and ``c3d``: no ``partner``, ``videos`` or
     ``calibration``; it is fitted at the C3D's own rate (or ``mocap.rate_hz``) over its whole
@@ -187,6 +189,7 @@ class SequenceSpec(_Strict):
     keypoints: dict[str, Path] | None = None
     keypoints_format: Literal["openpose", "coco"] | None = None
     clean_plates: dict[str, Path] = Field(default_factory=dict)
+    refine_rig: bool = False
 
     @property
     def has_video(self) -> bool:
@@ -316,6 +319,10 @@ def _ref_problems(s: Session, src: Path, tainted: dict[str, set[str]],
             problem(sid, {"markers_on", "c3d"}, f"sequences.{sid}.c3d: missing required field "
                     f"(markers_on {seq.markers_on!r} wears markers; a markerless sequence names "
                     "no markers_on and its people in people)")
+        if seq.refine_rig and not (seq.videos and seq.calibration):
+            problem(sid, {"refine_rig", "videos", "calibration"}, f"sequences.{sid}.refine_rig: "
+                    "the rig is refined from the people seen in the videos: the sequence needs "
+                    "videos and calibration")
         for who in seq.people:
             if who not in s.subjects and who not in gone:
                 problem(sid, {"people"}, f"sequences.{sid}.people: unknown subject {who!r} "

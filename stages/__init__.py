@@ -30,22 +30,27 @@ PLANNED: tuple[tuple[str, Granularity, tuple[str, ...], str], ...] = (
     ("capture", "sequence", (), "the capture read, unit-checked and cleaned once; the camera rig"),
     ("shape_fit", "subject", ("capture",), "body shape and marker placement per subject"),
     ("keypoints", "sequence", ("capture",), "2D body and hand keypoints per camera and frame"),
-    ("marker_fit", "sequence", ("capture", "shape_fit", "keypoints"),
+    ("rig", "sequence", ("capture", "keypoints"),
+     "the camera rig refined from the person's detections (bundle adjustment with a prior to "
+     "the given calibration; sequences with refine_rig)"),
+    ("marker_fit", "sequence", ("capture", "shape_fit", "keypoints", "rig"),
      "pose of the subject wearing markers"),
     ("marker_loo", "sequence", ("capture", "shape_fit", "marker_fit"),
      "leave-one-out check of the marker fit"),
-    ("silhouettes", "sequence", ("capture", "marker_fit"),
+    ("silhouettes", "sequence", ("capture", "rig", "marker_fit"),
      "people masks from the clean plates; the partner's with the wearer rendered out"),
-    ("partner_fit", "sequence", ("capture", "shape_fit", "keypoints", "marker_fit", "silhouettes"),
+    ("partner_fit", "sequence", ("capture", "shape_fit", "keypoints", "rig", "marker_fit",
+                                 "silhouettes"),
      "pose of the unmarked partner (2D keypoints, contact, collisions, silhouettes)"),
-    ("heldout", "sequence", ("keypoints", "partner_fit"),
+    ("heldout", "sequence", ("keypoints", "rig", "partner_fit"),
      "a view left out of the fit: reprojection into it against its detections, and the "
      "triangulation baseline (markerless sequences)"),
     ("convert", "sequence", ("marker_fit", "partner_fit"), "SMPL-X parameters of both"),
-    ("qa", "sequence", ("capture", "shape_fit", "keypoints", "marker_fit", "partner_fit", "heldout"),
+    ("qa", "sequence", ("capture", "shape_fit", "keypoints", "rig", "marker_fit", "partner_fit",
+                        "heldout"),
      "per-frame quality flags, overlays on the four views, plots, HTML report, 3D scene"),
-    ("export", "sequence", ("capture", "shape_fit", "keypoints", "marker_fit", "partner_fit",
-                            "convert", "qa"),
+    ("export", "sequence", ("capture", "shape_fit", "keypoints", "rig", "marker_fit",
+                            "partner_fit", "convert", "qa"),
      "CHI3D-layout files; frames whose QA flags say the fit is wrong published not valid"),
     ("release", "session", ("export", "qa"),
      "the release folder: every sequence's export, SHA-256 manifest, datasheet, re-read"),
@@ -132,7 +137,7 @@ MARKER_STAGES = ("capture", "marker_fit", "marker_loo")
 def applies(recipe: Session, stage: str, unit: str) -> bool:
     """Whether ``stage`` runs for ``unit``: the video stages only on sequences recorded with
     video (``partner_fit`` also needs a partner, or a markerless sequence; ``heldout`` only on
-    markerless sequences); the
+    markerless sequences); ``rig`` only on sequences with ``refine_rig``; the
     marker stages (``capture``, ``marker_fit``, ``marker_loo``) not on a markerless sequence; ``evaluate`` only when the recipe names a
     ground-truth folder (``stages.evaluate.truth``); everything else always."""
     if stage == "evaluate":
@@ -142,6 +147,8 @@ def applies(recipe: Session, stage: str, unit: str) -> bool:
     seq = recipe.sequences[unit]
     if stage in MARKER_STAGES:
         return not seq.markerless
+    if stage == "rig":  # the rig refined from the people: only when the recipe asks
+        return seq.refine_rig and seq.has_video
     if stage == "silhouettes":  # the partner's outline (L_sil): a wearer and a partner on video
         return seq.has_video and not seq.markerless and seq.partner is not None
     if stage not in VIDEO_STAGES:

@@ -170,9 +170,10 @@ def capture_cameras(ctx, names=None) -> list:
 
 
 def _rig_artifact(ctx):
-    """The upstream artifact holding the rig: ``capture``'s, or on a markerless sequence (no
-    capture stage) the ``keypoints`` stage's, which read the calibration instead."""
-    for stage in ("capture", "keypoints"):
+    """The upstream artifact holding the rig: the ``rig`` stage's (the rig refined from the
+    person, when the sequence asks for it), else ``capture``'s, or on a markerless sequence
+    (no capture stage) the ``keypoints`` stage's, which read the calibration instead."""
+    for stage in ("rig", "capture", "keypoints"):
         art = ctx.inputs.get(stage)
         if art is not None and not isinstance(art, dict) and (
                 artifact_folder(art) / "rig.npz").exists():

@@ -464,8 +464,8 @@ def _export_contact(ctx, model, action: str, frames, corr, rel) -> dict:
 
 
 STAGE = Stage(name="export", func=run, per="sequence",
-              upstream=("capture", "shape_fit", "keypoints", "marker_fit", "partner_fit", "convert",
-                        "qa"),
+              upstream=("capture", "shape_fit", "keypoints", "rig", "marker_fit", "partner_fit",
+                        "convert", "qa"),
               params=Options, raw_inputs=raw_inputs, reads=READS, version="1",
               doc="CHI3D-layout files of the sequence (SMPL-X, Anny, joints, cameras, videos, "
                   "validity, contact signature, text)")

@@ -6,7 +6,8 @@ partner fit's terms and options, ``stages.partner_fit``'s section of the recipe;
 as ``partner_fit`` found them), on every ``stride``-th fitted frame, and their keypoints
 projected into the left-out view against its own detections; beside it the plain baseline,
 each keypoint triangulated from the other views (DLT) and projected the same way
-(``fitting.heldout``). Writes
+(``fitting.heldout``). When the rig was refined from the person (stage ``rig``), the frames
+it was refined on are not scored. Writes
 
 - ``report.json``: per camera and over all, for the fit and the baseline, median / p90 px and
   the count per keypoint group (face, body, hands, all), on the same detections; frames per
@@ -48,18 +49,29 @@ def raw_inputs(recipe, unit: str):  # noqa: ARG001 (the Stage protocol)
     return {"body_model": common.body_model_file(recipe)}
 
 
+def scored_frames(frames, stride: int, max_frames: int | None = None, exclude=()) -> np.ndarray:
+    """Indices into ``frames`` (video frame indices) the held-out view scores: every
+    ``stride``-th, without the video frames in ``exclude`` (those the rig was refined on:
+    the figure is measured where the rig saw nothing), at most ``max_frames``."""
+    frames = np.asarray(frames, np.int64)
+    idx = np.arange(0, len(frames), stride)
+    idx = idx[~np.isin(frames[idx], np.asarray(list(exclude), np.int64))]
+    return idx[:max_frames] if max_frames else idx
+
+
 def compute(model, keypoints, fits, cams, o: Options, fit_opts, ground=None, progress=None,
-            log=lambda _m: None):
+            log=lambda _m: None, exclude_frames=()):
     """The held-out figures of a sequence: ``keypoints`` (``Keypoints2D``, person p in slot
     p), ``fits`` (each person's ``BodyFit``, person 0 first: their shapes), ``cams`` (the
-    rig). Returns ``(report, [fitting.heldout.HeldOut])``."""
+    rig), ``exclude_frames`` (video frames not scored: the rig's refinement frames). Returns
+    ``(report, [fitting.heldout.HeldOut])``."""
     from fitting.heldout import held_out_view, summarise
     from stages.partner_fit import person_keypoints
 
-    F = keypoints.n_frames
-    idx = np.arange(0, F, o.stride)
-    if o.max_frames:
-        idx = idx[: o.max_frames]
+    idx = scored_frames(keypoints.frames, o.stride, o.max_frames, exclude_frames)
+    if not len(idx):
+        raise ValueError(f"stride: no frame left to score ({keypoints.n_frames} frames, stride "
+                         f"{o.stride}, {len(exclude_frames)} refinement frames excluded)")
     people_kp = [person_keypoints(keypoints, p) for p in range(len(fits))]
     betas = [np.asarray(f.betas, float) for f in fits]
     results = []
@@ -70,6 +82,7 @@ def compute(model, keypoints, fits, cams, o: Options, fit_opts, ground=None, pro
     rep = summarise(results)
     rep.update({"stride": o.stride, "frames": [int(keypoints.frames[i]) for i in idx],
                 "min_conf": o.min_conf, "people": len(fits),
+                "excluded_refinement_frames": len(exclude_frames),
                 "measured_on": "detections of the left-out view the baseline can predict "
                                "(seen in >= 2 of the other views), the same for fit and baseline"})
     return rep, results
@@ -118,9 +131,14 @@ def run(ctx: StageContext) -> None:
     fits = [BodyFit.load(a) for a, _ in common.fitted_people(ctx)]
     ground = (np.asarray(rv.ground_plane.normal, float), float(rv.ground_plane.offset))
     fit_opts = FitOptions()  # the partner fit's default terms and weights
+    rig = ctx.inputs.get("rig")  # a rig refined from the person: not scored on its frames
+    exclude = (np.load(common.artifact_folder(rig) / "refine.npz")["frames"]
+               if rig is not None and not isinstance(rig, dict) else np.zeros(0, np.int64))
     rep, results = compute(model, keypoints, fits, cams, o, fit_opts, ground,
-                           progress=ctx.progress, log=lambda s: ctx.log(f"{ctx.unit}: {s}"))
+                           progress=ctx.progress, log=lambda s: ctx.log(f"{ctx.unit}: {s}"),
+                           exclude_frames=exclude)
     rep["sequence"] = ctx.unit
+    rep["rig"] = "refined from the person (stage rig)" if len(exclude) else "as calibrated"
     ctx.out.save_arrays(
         "heldout",
         fit_px=np.concatenate([r.fit_px for r in results]),
@@ -137,7 +155,7 @@ def run(ctx: StageContext) -> None:
             f" px (p90 {a['baseline']['all']['p90_px']})")
 
 
-STAGE = Stage(name="heldout", func=run, per="sequence", upstream=("keypoints", "partner_fit"),
+STAGE = Stage(name="heldout", func=run, per="sequence", upstream=("keypoints", "rig", "partner_fit"),
               params=Options, raw_inputs=raw_inputs, version="1",
               reads=("body_model.kind", "cameras", "ground_plane", "sequence.people"),
               doc="a view left out of the fit: reprojection into it against its detections, "

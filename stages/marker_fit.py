@@ -102,6 +102,6 @@ def run(ctx: StageContext) -> None:
 
 
 STAGE = Stage(name="marker_fit", func=run, per="sequence",
-              upstream=("capture", "shape_fit", "keypoints"),
+              upstream=("capture", "shape_fit", "keypoints", "rig"),
               params=Options, raw_inputs=raw_inputs, reads=READS, version="1",
               doc="pose of the subject wearing markers, frame after frame")

@@ -352,7 +352,8 @@ def _reason(code) -> str:
 
 
 STAGE = Stage(name="partner_fit", func=run, per="sequence",  # markerless: no marker_fit upstream
-              upstream=("capture", "shape_fit", "keypoints", "marker_fit", "silhouettes"),
+              upstream=("capture", "shape_fit", "keypoints", "rig", "marker_fit",
+                        "silhouettes"),
               params=Options,
               raw_inputs=raw_inputs, reads=READS, version="1",
               doc="pose of the unmarked partner (2D keypoints, contact, collisions, silhouettes)")

@@ -492,6 +492,7 @@ def _write_scene(path: Path, model, m, flags, cams, videos, has_video, keypoints
 
 
 STAGE = Stage(name="qa", func=run, per="sequence",
-              upstream=("capture", "shape_fit", "keypoints", "marker_fit", "partner_fit", "heldout"),
+              upstream=("capture", "shape_fit", "keypoints", "rig", "marker_fit", "partner_fit",
+                        "heldout"),
               params=Options, raw_inputs=raw_inputs, reads=READS, version="1",
               doc="per-frame quality flags, overlays on the four views, plots, HTML report, 3D scene")

@@ -102,6 +102,6 @@ def run(ctx: StageContext) -> None:
     ctx.log(f"{ctx.unit}: {report['views_usable']}/{report['views']} views usable")
 
 
-STAGE = Stage(name="silhouettes", func=run, per="sequence", upstream=("capture", "marker_fit"),
+STAGE = Stage(name="silhouettes", func=run, per="sequence", upstream=("capture", "rig", "marker_fit"),
               params=Options, raw_inputs=raw_inputs, reads=READS, version="1",
               doc="people masks from the clean plates; the partner's with the wearer rendered out")

@@ -33,6 +33,15 @@ Keys (``<p>`` = ``real_video`` for the lab recording, ``real_video.studio`` for 
   ``real_video.studio.shape_v2v_mm`` (rest-pose vertex error of the shape from the views
   against the true shape, roots together; ``..._mean_shape_mm``: the mean shape's) and
   ``shape_height_error_mm``.
+- the rig refined from the person (stage ``rig``, ``refine_rig: true`` in the recipe; the
+  held-out view then scores only the frames the refinement did not see):
+  ``<p>.rig_<camera>_moved_mm`` / ``_rotated_deg``, ``<p>.rig_before_median_px`` /
+  ``rig_after_median_px`` (every view's detections against their all-view triangulation on
+  the refinement frames); ``<p>.given_rig.heldout_median_px`` / ``_p90_px`` /
+  ``baseline_*`` / per camera: the held-out view with the rig as calibrated on the same
+  scored frames (the people's shapes of the refined run), what the refinement brings;
+- studio: ``real_video.studio.given_rig.mpjpe_mm`` (...): the same preset run with the rig as
+  calibrated (no refinement), against the truth.
 The overlay of the fitted mesh on all four views: ``bench/work/real_video/real_video_overlay.png``.
 """
 from __future__ import annotations
@@ -74,11 +83,13 @@ LIMITS = {"real_video.heldout_median_px": (
 
 
 def markerless_recipe(src: Path, dst: Path, sequences: list[str] | None = None,
-                      scans: bool = False, stages: dict | None = None) -> Path:
+                      scans: bool = False, stages: dict | None = None,
+                      refine_rig: bool = False, session_suffix: str = "") -> Path:
     """A markerless recipe from a studio recipe: the same videos and calibration, nobody's
     markers (``markers_on`` and ``c3d`` dropped, the wearer and partner become ``people``),
     scans dropped unless ``scans`` (the shape is then estimated from the views), the truth
-    kept for ``evaluate``; paths made absolute (the studio's data stay where they are)."""
+    kept for ``evaluate``; paths made absolute (the studio's data stay where they are);
+    ``refine_rig`` on every sequence; the session named ``<session>_markerless<suffix>``."""
     src, dst = Path(src).resolve(), Path(dst)
     r = yaml.safe_load(src.read_text())
     base = src.parent
@@ -102,9 +113,11 @@ def markerless_recipe(src: Path, dst: Path, sequences: list[str] | None = None,
         t["calibration"] = {c: ab(p) for c, p in s["calibration"].items()}
         if s.get("contact"):
             t["contact"] = ab(s["contact"])
+        if refine_rig:
+            t["refine_rig"] = True
         seqs[q] = t
     r["sequences"] = seqs
-    r["session"] = f"{r['session']}_markerless"
+    r["session"] = f"{r['session']}_markerless{session_suffix}"
     st = dict(stages or {})
     truth = (r.get("stages") or {}).get("evaluate", {}).get("truth")
     if truth:
@@ -148,6 +161,58 @@ def studio_recipe(work: Path) -> Path:
                                    STUDIO_PLAN["scenarios"]))
     tmp.rename(own)
     return own / "recipe.yaml"
+
+
+def _rig_folder(base: Path) -> Path:
+    """The artifact holding the rig the fit used: ``rig/`` (refined from the person) when the
+    sequence has one, else ``keypoints/`` (as calibrated)."""
+    return base / "rig" if (base / "rig" / "rig.npz").is_file() else base / "keypoints"
+
+
+def rig_keys(p: str, base: Path) -> dict[str, float]:
+    """How far the refinement moved each camera, and the refinement frames' reprojection
+    before / after (stage ``rig``'s report); {} when the rig was not refined."""
+    f = base / "rig" / "report.json"
+    if not f.is_file():
+        return {}
+    rep = json.loads(f.read_text())
+    out = {f"{p}.rig_before_median_px": rep["all"]["before"]["median_px"],
+           f"{p}.rig_after_median_px": rep["all"]["after"]["median_px"],
+           f"{p}.rig_frames": float(len(rep["frames_used"]))}
+    for c, r in rep["cameras"].items():
+        out[f"{p}.rig_{c}_moved_mm"] = r["moved_mm"]
+        out[f"{p}.rig_{c}_rotated_deg"] = r["rotated_deg"]
+        out[f"{p}.rig_{c}_before_median_px"] = r["before"]["median_px"]
+        out[f"{p}.rig_{c}_after_median_px"] = r["after"]["median_px"]
+    return {k: float(v) for k, v in out.items()}
+
+
+def given_rig_heldout(base: Path, recipe) -> dict:
+    """The held-out view with the rig as calibrated (``keypoints/rig.npz``) on the frames the
+    ``heldout`` stage scored with the refined rig (the refinement's frames excluded), the
+    people's shapes as the refined run found them: the report of ``stages.heldout.compute``."""
+    from artifacts import BodyFit
+    from artifacts.capture import CameraRig
+    from artifacts.keypoints import Keypoints2D
+    from body import load_model
+    from stages.heldout import Options as HeldOptions
+    from stages.heldout import compute
+    from stages.partner_fit import Options as FitOptions
+
+    model = load_model(recipe.body_model.kind)
+    kp = Keypoints2D.load(base / "keypoints")
+    cams = CameraRig.load(base / "keypoints").cameras(list(recipe.cameras))
+    fits = [BodyFit.load(base / "partner_fit" / "person0")]
+    if (base / "partner_fit" / "fit.npz").is_file():
+        fits.append(BodyFit.load(base / "partner_fit"))
+    o = HeldOptions(**(recipe.stages.get("heldout") or {}))
+    exclude = np.load(base / "rig" / "refine.npz")["frames"]
+    ground = (np.asarray(recipe.ground_plane.normal, float), float(recipe.ground_plane.offset))
+    rep, _ = compute(model, kp, fits, cams, o, FitOptions(), ground, exclude_frames=exclude)
+    scored = json.loads((base / "heldout" / "report.json").read_text())["frames"]
+    if rep["frames"] != scored:
+        raise RuntimeError(f"given-rig held-out frames {rep['frames']} != the stage's {scored}")
+    return rep
 
 
 def _heldout_keys(p: str, rep: dict) -> dict[str, float]:
@@ -208,7 +273,7 @@ def operator_counts(base: Path) -> dict[str, float]:
     from artifacts.keypoints import Keypoints2D
     from fitting.heldout import project_front
 
-    cams = CameraRig.load(base / "keypoints").cameras()
+    cams = CameraRig.load(_rig_folder(base)).cameras()
     kp = Keypoints2D.load(base / "keypoints")
     of, oc, ouv = (np.asarray(z["others_2d_frame"]), np.asarray(z["others_2d_camera"]),
                    np.asarray(z["others_2d_uv"]))
@@ -288,7 +353,7 @@ def overlay_png(base: Path, videos: list[Path], dst: Path, frame: int | None = N
     from drawing.overlay import render_overlays
 
     model = load_model("anny")
-    rig = CameraRig.load(base / "keypoints")
+    rig = CameraRig.load(_rig_folder(base))
     fits = [BodyFit.load(base / "partner_fit" / "person0")]
     if (base / "partner_fit" / "fit.npz").is_file():
         fits.append(BodyFit.load(base / "partner_fit"))
@@ -335,6 +400,9 @@ def run(work: Path) -> dict[str, float]:
     overlay_png(base, [lab.sequences[SEQ].videos[c] for c in lab.cameras],
                 work / "real_video_overlay.png")
     out["real_video.pipeline_wall_s"] = time.perf_counter() - t0
+    out.update(rig_keys("real_video", base))
+    if (base / "rig" / "refine.npz").is_file():
+        out.update(_heldout_keys("real_video.given_rig", given_rig_heldout(base, lab)))
     # the studio's markerless preset: the same studio, nobody's markers, no scans
     try:
         out.update(_studio(work))
@@ -346,13 +414,39 @@ def run(work: Path) -> dict[str, float]:
     return out
 
 
+#: the studio preset's rig refinement: blocks of 4 of its 24 frames, the held-out view on
+#: every other frame of the others (6 frames)
+STUDIO_STAGES = {"qa": {"video": False, "scene": False}, "rig": {"block": 4},
+                 "heldout": {"stride": 2}}
+
+
 def _studio(work: Path) -> dict:
+    """The studio preset with the rig refined from the people (``real_video.studio.*``) and,
+    for comparison, with the rig as calibrated (``real_video.studio.given_rig.*``: the truth
+    figures of its own run, the held-out view on the refined run's scored frames)."""
+    out = _studio_run(work, refine=True)
+    from recipes import load_recipe
+
+    rec = load_recipe(work / "studio_markerless.yaml")
+    g, a = STUDIO_SEQ.split("/")
+    sb = work / "outputs" / rec.session / g / a
+    out.update(_heldout_keys("real_video.studio.given_rig", given_rig_heldout(sb, rec)))
+    out.update(rig_keys("real_video.studio", sb))
+    given = _studio_run(work, refine=False)
+    out.update({k.replace("real_video.studio.", "real_video.studio.given_rig.", 1): v
+                for k, v in given.items()
+                if not k.split(".")[-1].startswith(("heldout", "baseline"))})
+    return out
+
+
+def _studio_run(work: Path, refine: bool) -> dict:
     from recipes import load_recipe
 
     out: dict = {}
     src = studio_recipe(work)
-    rec = markerless_recipe(src, work / "studio_markerless.yaml", [STUDIO_SEQ],
-                            stages={"qa": {"video": False, "scene": False}})
+    name = "studio_markerless.yaml" if refine else "studio_markerless_given_rig.yaml"
+    rec = markerless_recipe(src, work / name, [STUDIO_SEQ], stages=STUDIO_STAGES,
+                            refine_rig=refine, session_suffix="" if refine else "_given_rig")
     from pipeline.cli import main
 
     logs: list[str] = []
@@ -375,6 +469,7 @@ def _studio(work: Path) -> dict:
     truth = Path(yaml.safe_load(rec.read_text())["stages"]["evaluate"]["truth"]) / g / f"{a}.npz"
     if truth.is_file():
         out.update({f"real_video.studio.{k}": v for k, v in shape_accuracy(sb, truth).items()})
-    overlay_png(sb, [r.sequences[STUDIO_SEQ].videos[c] for c in r.cameras],
-                work / "real_video_studio_overlay.png")
+    if refine:
+        overlay_png(sb, [r.sequences[STUDIO_SEQ].videos[c] for c in r.cameras],
+                    work / "real_video_studio_overlay.png")
     return out
