@@ -570,6 +570,8 @@ class Augmented:
                                                   + np.arange(self.n_x)).reshape(-1)])
         self.compiled = base.compiled
         self._H = np.concatenate([b.H for b in blocks]) if blocks else None  # one FK per call
+        self._pattern = (skinned.JacobianPattern(body.skel, self._H, body.sub) if blocks
+                         else None)
         self._at = np.cumsum([0] + [b.points for b in blocks])
 
     def rows(self) -> list[tuple[str, slice]]:
@@ -584,7 +586,8 @@ class Augmented:
         t0 = time.perf_counter()
         rs, js = [r0], [j0]
         if self.blocks:
-            pos, Jp = point_jacobian(self.body.skel, self.body.u, self._H, x, self.body.sub)
+            pos, Jp = point_jacobian(self.body.skel, self.body.u, self._H, x, self.body.sub,
+                                     self._pattern)
             for b, a, e in zip(self.blocks, self._at[:-1], self._at[1:], strict=True):
                 r, J = b.rows(pos[a:e], Jp[a:e])
                 rs.append(r)

@@ -37,6 +37,7 @@ class Reprojection:
         self.skel, self.u, self.cams = skel, np.asarray(u, float), list(cams)
         self.Hk = np.asarray(Hk, float)
         self.sub = skinned.subtree(skel) if sub is None else sub
+        self.pattern = skinned.JacobianPattern(skel, self.Hk, self.sub)
         self.C, self.K = len(self.cams), len(self.Hk)
         self.n_x = skel.n
         self.n_r = 2 * self.C * self.K
@@ -54,7 +55,7 @@ class Reprojection:
 
     def project(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixels (C, K, 2) of the keypoints at unknowns x and their Jacobian (C, K, 2, n)."""
-        pos, Jp = skinned.point_jacobian(self.skel, self.u, self.Hk, x, self.sub)
+        pos, Jp = skinned.point_jacobian(self.skel, self.u, self.Hk, x, self.sub, self.pattern)
         uv = np.empty((self.C, self.K, 2))
         J = np.empty((self.C, self.K, 2, self.n_x))
         for c, cam in enumerate(self.cams):

@@ -170,6 +170,26 @@ def subtree(skel: FitSkeleton) -> np.ndarray:
     return A
 
 
+_EPS = np.zeros((3, 3, 3))  # the Levi-Civita symbol: (a x b)_i = eps_ijk a_j b_k
+_EPS[0, 1, 2] = _EPS[1, 2, 0] = _EPS[2, 0, 1] = 1.0
+_EPS[0, 2, 1] = _EPS[2, 1, 0] = _EPS[1, 0, 2] = -1.0
+_LEVELS: dict[tuple[int, ...], list[tuple[np.ndarray, np.ndarray]]] = {}
+
+
+def _levels(skel: FitSkeleton) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The reduced tree by depth below the root: [(joints, their parents)] per level, so
+    forward kinematics runs one batched product per level, not one per joint (cached)."""
+    key = skel.topology
+    if key not in _LEVELS:
+        par = np.asarray(skel.parents)
+        depth = np.zeros(len(par), np.int64)
+        for i in range(1, len(par)):  # parents come before children
+            depth[i] = depth[par[i]] + 1
+        _LEVELS[key] = [(np.flatnonzero(depth == d), par[depth == d])
+                        for d in range(1, int(depth.max(initial=0)) + 1)]
+    return _LEVELS[key]
+
+
 def _fk_axes(skel: FitSkeleton, u: np.ndarray, x: np.ndarray):
     """G (Q, 3, 3), t (Q, 3) of the reduced tree (fitting/skinned.py) and the world axes
     ``G_i J_r(theta_i)`` (Q, 3, 3) of each joint's local rotation vector (the root: r)."""
@@ -177,18 +197,71 @@ def _fk_axes(skel: FitSkeleton, u: np.ndarray, x: np.ndarray):
     rv = np.concatenate([x[:3], x[6:]]).reshape(Q, 3)
     D = rodrigues(rv)
     Jr = right_jacobian(rv)
-    G = np.zeros((Q, 3, 3))
-    t = np.zeros((Q, 3))
+    G = np.empty((Q, 3, 3))
+    t = np.empty((Q, 3))
     G[0], t[0] = D[0], u[0] + x[3:6]
-    for i in range(1, Q):
-        p = skel.parents[i]
-        G[i] = G[p] @ D[i]
-        t[i] = t[p] + G[p] @ u[i]
+    for idx, par in _levels(skel):
+        Gp = G[par]
+        G[idx] = Gp @ D[idx]
+        t[idx] = t[par] + (Gp @ u[idx][..., None])[..., 0]
     return G, t, G @ Jr
 
 
+class JacobianPattern:
+    """The sparsity of :func:`point_jacobian` for fixed slots ``H (N, Q, 4)``: a point moves
+    only with the joints it is skinned to (its *support*, a few of the Q) and their
+    ancestors, so its positions and Jacobian are sums over those pairs alone, not over all Q.
+    Build once per ``H`` (the keypoints of a fit, an LM round's extra points) and call
+    :meth:`evaluate` at every unknowns ``x``; results equal the dense formula's.
+
+    ``E``: the (joint q, point n) pairs with a nonzero coefficient; ``F``: the (joint i,
+    point n) pairs with i an ancestor-or-self of a support joint of n, each the sum
+    ``S_i(n) = sum_{e in E: n_e = n, q_e under i} (G_q l_e + W_e (t_q - t_i))`` through the
+    sparse matrix ``B (F, E)``."""
+
+    def __init__(self, skel: FitSkeleton, H: np.ndarray, sub: np.ndarray | None = None):
+        H = np.asarray(H, float)
+        A = subtree(skel) if sub is None else np.asarray(sub, bool)
+        self.Q, self.N = len(skel.joints), len(H)
+        n_e, q_e = np.nonzero(np.any(H != 0, axis=2))  # the support pairs
+        self.q_e, self.n_e = q_e, n_e
+        self.l_e, self.w_e = H[n_e, q_e, :3], H[n_e, q_e, 3]
+        e_i, i_i = np.nonzero(A[:, q_e].T)  # (pair e, ancestor-or-self i of q_e)
+        key = i_i * max(self.N, 1) + n_e[e_i]
+        fkey, f_of = np.unique(key, return_inverse=True)
+        self.i_f, self.n_f = fkey // max(self.N, 1), fkey % max(self.N, 1)
+        self.B = sp.csr_matrix((np.ones(len(e_i)), (f_of.reshape(-1), e_i)),
+                               shape=(len(fkey), len(q_e)))
+        self.P = sp.csr_matrix((np.ones(len(n_e)), (n_e, np.arange(len(n_e)))),
+                               shape=(self.N, len(n_e)))
+        self.w_f = self.B @ self.w_e
+        col = np.where(self.i_f == 0, 0, 3 + 3 * self.i_f)  # x: [r, T, theta_1..]
+        n = skel.n  # J (N, 3 [a], n): the flat index of pair f's entry [a, k]
+        self.flat = (self.n_f[:, None, None] * 3 * n + np.arange(3)[None, :, None] * n
+                     + col[:, None, None] + np.arange(3)[None, None, :]).reshape(-1)
+        self.dT = (np.arange(self.N)[:, None, None] * 3 * n + np.arange(3)[None, :, None] * n
+                   + 3 + np.arange(3)[None, :, None]).reshape(-1)  # dp_a / dT_a
+        self.w_n = np.repeat(H[..., 3].sum(1), 3)
+
+    def evaluate(self, skel: FitSkeleton, u: np.ndarray, x: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """(pos (N, 3), J (N, 3, n)) at unknowns x, as :func:`point_jacobian`."""
+        G, t, axes = _fk_axes(skel, u, x)
+        Pe = np.einsum("eab,eb->ea", G[self.q_e], self.l_e) + self.w_e[:, None] * t[self.q_e]
+        pos = self.P @ Pe
+        S = self.B @ Pe - self.w_f[:, None] * t[self.i_f]
+        # d p / d rv_i[k] = axes_i[:, k] x S_i, the Levi-Civita symbol folded into the axes
+        M = np.einsum("abc,qbk->qcak", _EPS, axes).reshape(self.Q, 3, 9)  # [q, c, (a, k)]
+        Jf = S[:, None, :] @ M[self.i_f]  # (F, 1, 9)
+        J = np.zeros(self.N * 3 * skel.n)
+        J[self.flat] = Jf.reshape(-1)
+        J[self.dT] = self.w_n
+        return pos, J.reshape(self.N, 3, skel.n)
+
+
 def point_jacobian(skel: FitSkeleton, u: np.ndarray, H: np.ndarray, x: np.ndarray,
-                   sub: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   sub: np.ndarray | None = None, pattern: JacobianPattern | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """World positions (N, 3) and their exact Jacobian (N, 3, n) w.r.t. the unknowns ``x`` of
     slots ``H (N, Q, 4)`` (:func:`vertex_coeffs`; a point is
     ``sum_q G_q l_q + W_q t_q``).
@@ -196,7 +269,10 @@ def point_jacobian(skel: FitSkeleton, u: np.ndarray, H: np.ndarray, x: np.ndarra
     Turning joint i's rotation vector by ``d`` turns everything below i about ``t_i`` by the
     world axis ``a = G_i J_r(theta_i) d``: ``dp = a x S_i``, ``S_i = sum_{q under i}
     (G_q l_q + W_q (t_q - t_i))``; ``dp/dT = (sum_q W_q) I``. ``sub``: :func:`subtree` (cached
-    by the caller)."""
+    by the caller); ``pattern``: :class:`JacobianPattern` of this H (cached by the caller,
+    evaluates only the nonzero pairs; same result)."""
+    if pattern is not None:
+        return pattern.evaluate(skel, u, x)
     H = np.asarray(H, float)
     G, t, axes = _fk_axes(skel, u, x)
     A = (subtree(skel) if sub is None else sub).astype(float)
@@ -205,9 +281,10 @@ def point_jacobian(skel: FitSkeleton, u: np.ndarray, H: np.ndarray, x: np.ndarra
     P = Hq[..., :3] @ G.transpose(0, 2, 1) + Hq[..., 3:] * t[:, None]  # (Q, N, 3)
     pos = P.sum(0)
     S = (A @ P.reshape(Q, N * 3)).reshape(Q, N, 3) - (A @ Hq[..., 3])[..., None] * t[:, None]
-    # d p / d rv_i[k] = axes_i[:, k] x S_i, for k = 0, 1, 2: (Q, N, 3 [a], 3 [k])
-    Jrot = np.stack([np.cross(axes[:, None, :, k], S) for k in range(3)], axis=-1)
-    Jrot = Jrot.transpose(1, 2, 0, 3)  # (N, 3 [a], Q, 3 [k])
+    # d p / d rv_i[k] = axes_i[:, k] x S_i: one product per joint with the Levi-Civita
+    # symbol folded into the axes, M[i, c, (a, k)] = eps[a, b, c] axes_i[b, k]
+    M = np.einsum("abc,qbk->qcak", _EPS, axes).reshape(Q, 3, 9)
+    Jrot = (S @ M).reshape(Q, N, 3, 3).transpose(1, 2, 0, 3)  # (N, 3 [a], Q, 3 [k])
     J = np.empty((N, 3, 3 * Q + 3))
     J[:, :, 0:3] = Jrot[:, :, 0]
     J[:, :, 3:6] = Hq[..., 3].sum(0)[:, None, None] * np.eye(3)[None]

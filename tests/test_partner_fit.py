@@ -116,6 +116,34 @@ def test_point_jacobian_matches_finite_differences(anny):
     assert np.abs(J - Jfd).max() < 1e-6, np.abs(J - Jfd).max()
 
 
+def test_sparse_jacobian_pattern_equals_the_dense_formula(anny):
+    """JacobianPattern evaluates only the (ancestor joint, point) pairs that can be nonzero:
+    positions and Jacobian equal the dense formula's for mesh vertices (a few skinning
+    joints each), regressed keypoints (many) and a slot of zeros (a point skinned to none)."""
+    from body.joints import regressor
+    from body.lbs import rest_state
+    from fitting import skinned
+
+    rng = np.random.default_rng(3)
+    skel = skinned.fit_skeleton(anny)
+    rest = rest_state(anny, rng.normal(0, 0.5, 10))
+    u, _ = skinned.reduced_offsets(anny, rest, skel)
+    sub = skinned.subtree(skel)
+    vids = rng.choice(anny.num_vertices, 40, replace=False)
+    Hv = skinned.vertex_coeffs(anny, rest, skel, anny.weights[vids], rest.vertices[0, vids])
+    Hk = skinned.regressed_coeffs(anny, rest, skel, regressor(anny, "kp65"))
+    H = np.concatenate([Hv, Hk, np.zeros((1,) + Hv.shape[1:])])
+    pat = skinned.JacobianPattern(skel, H, sub)
+    assert len(pat.i_f) < 0.5 * len(H) * len(skel.joints)  # it is sparse
+    for _ in range(3):
+        x = rng.normal(0, 0.5, skel.n)
+        pos, J = skinned.point_jacobian(skel, u, H, x, sub)
+        pos_s, J_s = skinned.point_jacobian(skel, u, H, x, sub, pattern=pat)
+        assert np.abs(pos_s - pos).max() < 1e-12
+        assert np.abs(J_s - J).max() < 1e-12
+    assert not J_s[-1].any() and not pos_s[-1].any()
+
+
 def test_recovers_the_pose_from_four_views(scene):
     fit, rep = _fit(scene, scene.kp)
     err, _ = _joint_err_mm(scene, fit)
