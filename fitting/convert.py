@@ -696,6 +696,26 @@ def v2s_vertices(model: BodyModel, n: int = V2S_POINTS, seed: int = V2S_SEED) ->
     return np.sort(np.random.default_rng(seed).choice(V, size=n, replace=False))
 
 
+_REST_MEMO: list = []  # [(source model, betas bytes, rest_state, forward at rest)], newest last
+_REST_MEMO_SIZE = 4
+
+
+def _source_rest(source: BodyModel, betas):
+    """(``rest_state(source, betas)``, ``forward`` of it at pose 0): a subject's shape part,
+    computed once per (model object, betas) in a process (a subject is in many sequences).
+    The memo holds the model itself, so an entry can't match another model at a reused id."""
+    b = np.ascontiguousarray(betas, float).tobytes()
+    for m in _REST_MEMO:
+        if m[0] is source and m[1] == b:
+            return m[2], m[3]
+    rest = rest_state(source, betas)
+    at0 = forward(source, None, np.zeros((1, source.num_joints, 3)), np.eye(3)[None],
+                  np.zeros((1, 3)), rest=rest)
+    _REST_MEMO.append((source, b, rest, at0))
+    del _REST_MEMO[:-_REST_MEMO_SIZE]
+    return rest, at0
+
+
 def convert_motion(source: BodyModel, target: BodyModel, corr: Correspondence, betas,
                    body_pose, global_orient, transl, iters: int = ITERS, progress=None,
                    rig=None, fit_shape: bool = True, rest: RestSolution | None = None,
@@ -719,9 +739,7 @@ def convert_motion(source: BodyModel, target: BodyModel, corr: Correspondence, b
     rest = rest if rest is not None else template_rest(source, target, corr)
     Fs = np.asarray(source.faces, np.int64)
     TT = adjacency if adjacency is not None else igl.triangle_triangle_adjacency(Fs)[0]
-    rest_src = rest_state(source, betas)
-    src0 = forward(source, None, np.zeros((1, source.num_joints, 3)), np.eye(3)[None],
-                   np.zeros((1, 3)), rest=rest_src)
+    rest_src, src0 = _source_rest(source, betas)
     if subject is None:
         subject = (subject_rest(source, corr, rig, betas, rest) if fit_shape
                    else rest)
@@ -847,11 +865,17 @@ class GlobalRig:
 
     def set_betas(self, betas):
         self.betas = np.asarray(betas, float)[: self.K].copy()
-        if self._dc is None:
-            b = np.zeros(self.model.num_betas)
-            b[: self.K] = self.betas
-            self.u, H = self._coeffs(b)
-            self.c = self._c(H[..., :3], self.u)
+        if self._dc is None:  # recomputed from the model: memo of the last few betas
+            key = self.betas.tobytes()
+            memo = self.__dict__.setdefault("_memo", {})
+            if key not in memo:
+                b = np.zeros(self.model.num_betas)
+                b[: self.K] = self.betas
+                u, H = self._coeffs(b)
+                memo[key] = (u, self._c(H[..., :3], u))
+                while len(memo) > 4:
+                    memo.pop(next(iter(memo)))
+            self.u, self.c = memo[key]
         else:
             self.c = self._c0 + np.einsum("k,knqx->nqx", self.betas, self._dc)
             self.u = self._u0 + np.einsum("k,kqx->qx", self.betas, self._du)
@@ -930,6 +954,7 @@ class GlobalRig:
         lamf = np.full(F, lam)
         mu = 0.0 if not K else shape_prior * N
         Sw = self.Sq @ sp.diags(ws[self.pn])  # sum over a joint's pairs, weighted by W_n
+        flat = (self.pn[:, None] * n3 + self._cols).ravel()  # the pairs' slots in P (N * 3Q)
 
         def evaluate(G, t0, b):
             if K:
@@ -941,14 +966,17 @@ class GlobalRig:
         b = self.betas.copy()
         ps, r, cost = evaluate(G, t0, b)
         for _ in range(iters):
-            P = np.zeros((F, N, n3), np.float32)
-            P[:, self.pn[:, None], self._cols] = ps
+            P = np.zeros((F, N * n3), np.float32)
+            P[:, flat] = ps.reshape(F, -1)
+            P = P.reshape(F, N, n3)
+            # M[f, a, x, b, y] = sum_n p_na[x] p_nb[y]; the rotation block of the normal
+            # equations is A[(a, x), (b, y)] = tr(M_ab) delta_xy - M[a, y, b, x]
             M = np.matmul(np.swapaxes(P, 1, 2), P).astype(float).reshape(F, Q, 3, Q, 3)
-            M = M.transpose(0, 1, 3, 2, 4)  # (F, a, b, 3, 3) = sum_n p_a p_b^T
-            tr = np.trace(M, axis1=-2, axis2=-1)
             A = np.zeros((F, n, n))
-            blk = tr[..., None, None] * np.eye(3) - np.swapaxes(M, -1, -2)
-            A[:, :n3, :n3] = blk.transpose(0, 1, 3, 2, 4).reshape(F, n3, n3)
+            A[:, :n3, :n3] = -M.transpose(0, 1, 4, 3, 2).reshape(F, n3, n3)
+            tr = M[:, :, 0, :, 0] + M[:, :, 1, :, 1] + M[:, :, 2, :, 2]  # (F, Q, Q)
+            for x in range(3):
+                A[:, x:n3:3, x:n3:3] += tr
             s = self._seg_sum(Sw, ps)  # (F, Q, 3) sum_n W_n p_na
             A[:, n3:n3 + 3, :n3] = (-skew(s)).transpose(0, 2, 1, 3).reshape(F, 3, n3)
             A[:, :n3, n3:n3 + 3] = np.swapaxes(A[:, n3:n3 + 3, :n3], 1, 2)
@@ -1011,7 +1039,7 @@ def initial_rotations(rig: GlobalRig, G_src, src_rest, anchors, G_rest):
 
 
 def best_t0(rig, G, targets, d=None):
-    p = rig.parts(G, d).sum(2)
+    p = rig.sum_parts(rig.parts_sparse(G, d))  # (F, N, 3): sum over joints of the parts
     ws = rig.Wsum
     return np.einsum("fnx,n->fx", targets - p, ws) / float((ws ** 2).sum())
 
@@ -1075,14 +1103,15 @@ def surface_distance(points, faces0, V, F, TT, steps: int = 6):
     Vn = V.shape[-2]
     B = int(np.prod(lead)) if lead else 1
     P = points.reshape(-1, 3).T.copy()  # (3, B N)
-    VT = np.asarray(V, float).reshape(-1, 3).T.copy()  # (3, B Vn)
+    VR = np.ascontiguousarray(V, float).reshape(-1, 3)  # (B Vn, 3): a corner is one row
     N = points.shape[-2]
     off = np.repeat(np.arange(B) * Vn, N)
     f = np.tile(np.asarray(faces0, np.int64), B)
 
     def tri(idx, faces):
-        g = F[faces] + off[idx, None]
-        return VT[:, g[:, 0]], VT[:, g[:, 1]], VT[:, g[:, 2]]
+        g = F[faces] + off[idx, None]  # (M, 3) rows of VR
+        X = np.ascontiguousarray(VR[g].transpose(1, 2, 0))  # (corner, coordinate, M)
+        return X[0], X[1], X[2]
 
     best = np.full(B * N, np.inf)
     last = np.zeros((3, B * N))  # barycentric coordinates in the last facet
