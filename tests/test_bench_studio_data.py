@@ -67,6 +67,47 @@ def test_data_of_other_studio_code_are_regenerated(setup, tmp_path):
     meta = json.loads((data / "gt" / "session.json").read_text())
     meta["studio_source"] = "older"
     (data / "gt" / "session.json").write_text(json.dumps(meta))
+    (data / D.STAMP).write_text("older\n")  # made by another version of the studio's code
     D.ensure(recipe)
     assert len(calls) == 2 and (data / "g" / "mocap" / "a.c3d").read_text() == "generated 2"
     assert D._current(data, "bench")
+
+
+def test_stamped_data_of_this_version_are_kept_whatever_the_studio_source_says(setup):
+    recipe, data, calls = setup
+    D.ensure(recipe)
+    meta = json.loads((data / "gt" / "session.json").read_text())
+    meta["studio_source"] = "a module the studio does not import changed"
+    (data / "gt" / "session.json").write_text(json.dumps(meta))
+    D.ensure(recipe)
+    assert len(calls) == 1 and (data / D.STAMP).read_text().strip() == D.version_key("bench")
+
+
+def _tree(root, files):
+    for name, text in files.items():
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / name).write_text(text)
+
+
+def test_code_hash_follows_the_studios_imports_and_nothing_else(tmp_path):
+    _tree(tmp_path, {
+        "studio/__init__.py": "from .gen import make\n",
+        "studio/gen.py": "import numpy as np\nfrom body.lbs import forward\n"
+                         "def make():\n    from calib import camera\n    return camera\n",
+        "body/__init__.py": "", "body/lbs.py": "def forward(): pass\n",
+        "body/unused.py": "X = 1\n",
+        "calib/__init__.py": "", "calib/camera.py": "from . import constants\n",
+        "calib/constants.py": "K = 1\n", "calib/refine.py": "import calib.camera\n",
+        "drawing/overlay.py": "import studio\n"})
+    names = {f.relative_to(tmp_path).as_posix() for f in D.code_files(tmp_path)}
+    assert names == {"studio/__init__.py", "studio/gen.py", "body/__init__.py", "body/lbs.py",
+                     "calib/__init__.py", "calib/camera.py", "calib/constants.py"}
+    h0 = D.code_hash(tmp_path)
+    _tree(tmp_path, {"calib/refine.py": "# edited\n", "body/unused.py": "X = 2\n",
+                     "drawing/overlay.py": "# edited\n"})
+    assert D.code_hash(tmp_path) == h0  # files the studio does not import
+    _tree(tmp_path, {"calib/constants.py": "K = 2\n"})  # imported relatively, two steps away
+    h1 = D.code_hash(tmp_path)
+    assert h1 != h0
+    _tree(tmp_path, {"body/lbs.py": "def forward(): return 1\n"})
+    assert D.code_hash(tmp_path) != h1
