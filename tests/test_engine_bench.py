@@ -90,7 +90,8 @@ def test_bad_return_values_are_failures(tmp_path):
     (cases / "z.py").write_text('GOALS = {"z.v": ("~", 1)}\ndef run(work):\n    return {}\n')
     assert bench.main([], bench_dir=tmp_path) == 1
     res = json.loads((tmp_path / "results.json").read_text())
-    assert set(res) == {"x.error", "y.error", "z.error"}
+    assert set(res) == {"x.error", "y.error", "z.error", "bench.total_s", "bench.cases_failed"}
+    assert res["bench.cases_failed"] == 3.0
 
 
 def test_a_figure_from_older_code_gets_no_verdict(tmp_path, monkeypatch):

@@ -30,6 +30,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
 TOY = REPO / "tests" / "toy_registry.py"
+AFTER = ("pipeline",)  # that case computes the demo sequence both rerun: runs after it
 GOALS = {
     "cache.rerun_s": ("<=", 2.0),
     "cache.rerun_inproc_s": ("<=", 2.0),

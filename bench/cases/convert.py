@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[2]
+AFTER = ("partner_fit",)  # reuses that case's store of fits: runs after it (bench.run_order)
 GOALS = {
     "convert.v2s_mm": ("<=", 5.0),
     "convert.fps_per_core": (">=", 100.0),

@@ -34,6 +34,7 @@ SEQUENCES = ("s01/Grab 1", "s01/Handshake 1", "s01/Hit 1", "s01/HoldingHands 1")
 CACHED = ("shape_fit", "keypoints")  # hard-linked from the partner_fit case's store
 N_NOOP = 200
 NOOP = Path(__file__).resolve().parent / "_dask_noop.py"
+AFTER = ("partner_fit",)  # reuses that case's store of fits: runs after it (bench.run_order)
 GOALS = {"dask.speedup_2w": (">=", 1.8), "dask.overhead_s_per_task": ("<=", 0.05)}
 LIMITS = {
     "dask.speedup_2w": (

@@ -44,6 +44,7 @@ import yaml
 
 from bench.cases import partner_fit as P
 
+AFTER = ("partner_fit",)  # reuses that case's store of fits: runs after it (bench.run_order)
 GOALS = {"qa.flag_recall": (">=", 1.0), "qa.flag_rate_clean": ("<=", 0.02),
          "qa.s_per_frame": ("<=", 0.1)}
 LIMITS = {

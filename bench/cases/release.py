@@ -30,6 +30,7 @@ import yaml
 from bench.cases import partner_fit as P
 
 TRUTH = P.REPO / "data" / "bench" / "gt"
+AFTER = ("partner_fit",)  # reuses that case's store of fits: runs after it (bench.run_order)
 GOALS = {"release.verified": (">=", 1.0)}
 
 

@@ -1,0 +1,61 @@
+"""The bench harness's run order (a case's ``AFTER``) and the figures of a run of every case
+when one fails (``bench.total_s`` and ``bench.cases_failed`` still written)."""
+from __future__ import annotations
+
+import json
+
+import bench
+
+# each case appends its name to a log in the work root, so the test sees the order they ran in
+CASE = '''{after}
+def run(work):
+    log = work.parent / "order.txt"
+    log.write_text((log.read_text() if log.exists() else "") + "{name}\\n")
+    {body}
+    return {{"{name}.v": 1.0}}
+'''
+
+
+def write(cases, name, after="", body="pass"):
+    (cases / f"{name}.py").write_text(CASE.format(name=name, after=after, body=body))
+
+
+def test_cases_run_after_the_cases_they_reuse_and_a_failure_still_gives_the_total(
+        tmp_path, monkeypatch):
+    monkeypatch.setattr(bench, "code_version", lambda repo=None: "code")
+    monkeypatch.setattr(bench, "commit_label", lambda repo=None: "run")
+    cases = tmp_path / "cases"
+    cases.mkdir()
+    write(cases, "convert", 'AFTER = ("partner_fit",)')
+    write(cases, "dask", 'AFTER = ("partner_fit", "no_such_case")')
+    write(cases, "partner_fit", body='raise RuntimeError("store broke")')
+    write(cases, "zeta")
+    assert [p.stem for p in bench.run_order(bench.discover(cases))] == [
+        "partner_fit", "convert", "dask", "zeta"]
+    assert bench.main([], bench_dir=tmp_path) == 1  # a case failed: recorded, the rest ran
+    order = (tmp_path / "work" / "order.txt").read_text().split()
+    assert order == ["partner_fit", "convert", "dask", "zeta"]
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert "partner_fit.error" in res and res["zeta.v"] == 1.0
+    assert res["bench.cases_failed"] == 1.0 and res["bench.total_s"] >= 0.0
+    md = (tmp_path / "RESULTS.md").read_text()
+    assert "| `bench.cases_failed` |" in md and "FAIL" in md.split("`bench.cases_failed`")[1] \
+        .splitlines()[0]
+    # one case chosen: its AFTER case is not run for it
+    (tmp_path / "work" / "order.txt").unlink()
+    assert bench.main(["convert"], bench_dir=tmp_path) == 0
+    assert (tmp_path / "work" / "order.txt").read_text().split() == ["convert"]
+    # fixed: the full run has no failure, and the total covers every case
+    write(cases, "partner_fit")
+    assert bench.main([], bench_dir=tmp_path) == 0
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert res["bench.cases_failed"] == 0.0 and "partner_fit.error" not in res
+    assert res["bench.total_s"] >= max(res[f"{c}.case_wall_s"] for c in
+                                       ("convert", "dask", "partner_fit", "zeta"))
+
+
+def test_a_cycle_of_after_is_broken_in_name_order_once_nothing_else_can_run(tmp_path):
+    write(tmp_path, "a", 'AFTER = ("b",)')
+    write(tmp_path, "b", 'AFTER = ("a",)')
+    write(tmp_path, "c")
+    assert [p.stem for p in bench.run_order(bench.discover(tmp_path))] == ["c", "a", "b"]
