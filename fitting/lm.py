@@ -122,7 +122,10 @@ class _Objective:
         self.groups = groups
         self.quad = quad
         self.box = box
-        self.J = np.zeros((fun.n_r, fun.n_x))
+        flat = np.asarray(fun._flat)
+        # a dense row-major Jacobian (the partner fit's numpy functions) is used as it comes
+        self.dense = len(flat) == fun.n_r * fun.n_x and bool(np.all(flat == np.arange(len(flat))))
+        self.J = None if self.dense else np.zeros((fun.n_r, fun.n_x))
         self.evaluations = 0
 
     def residual(self, x):
@@ -155,15 +158,18 @@ class _Objective:
         return c, w_rows
 
     def normal_equations(self, x, r, jnz, w_rows):
-        J = self.J
-        J[...] = 0.0
-        J.ravel()[self.fun._flat] = jnz
-        if self.scale is not None:
-            J *= self.scale[:, None]
+        if self.dense:
+            J = np.asarray(jnz).reshape(self.fun.n_r, self.fun.n_x)
+        else:
+            J = self.J
+            J[...] = 0.0
+            J.ravel()[self.fun._flat] = jnz
         sw = np.sqrt(w_rows)
-        Jw = J * sw[:, None]
+        s = sw if self.scale is None else sw * self.scale
+        keep = np.flatnonzero(s)  # rows of weight 0 (a missing keypoint) add nothing
+        Jw = J[keep] * s[keep, None]
         H = Jw.T @ Jw
-        g = Jw.T @ (r * sw)
+        g = Jw.T @ (r[keep] * sw[keep])
         if self.quad is not None:
             H += self.quad.H
             g += self.quad.H @ x - self.quad.g

@@ -669,7 +669,8 @@ class PartnerSolver:
         (:class:`Augmented`). ``L_s`` ties x to ``x_prev`` at ``s_scale`` times its weight (the
         temporal pass: 2 x the neighbours' mean = the sum over both neighbours, up to a
         constant); extra=False: L_2d and the priors alone, one round. Returns (LMResult, the
-        blocks at the solution, rounds)."""
+        blocks of the last round (their terms are reported at the solution; the hooks are
+        not called again after it), rounds)."""
         self.reproj.set_observations(uv, conf)
         quad = self.quad_prior
         if x_prev is not None and self.opts.weights["L_s"] > 0:
@@ -694,7 +695,7 @@ class PartnerSolver:
                                                  else self.opts.max_iters, ftol=self.opts.ftol))
                 x = res.x
             rounds += 1
-            if extra:
+            if extra and k + 1 < self.opts.outer_rounds:  # the next round's points
                 blocks = self.blocks(x, frame)
         return res, blocks, rounds
 

@@ -152,12 +152,21 @@ class SilhouetteTerm:
 
 
 def silhouette_residual(cam, targets: np.ndarray, point: np.ndarray, weights: np.ndarray):
-    """Rows ``weights[m] (pi(p[point[m]]) - targets[m])`` (2 per target, pixels) of points
-    ``p`` (N, 3) seen by ``cam``: ``residual(pos) -> (r (2M,), dr (2M, 3), point (2M,))`` with
-    ``dr`` from ``calib.project_jacobian`` (lens distortion included)."""
-    targets = np.asarray(targets, float)
-    point = np.asarray(point, np.int64)
-    wt = np.asarray(weights, float)
+    """The rows of ``sum_m weights[m]^2 |pi(p[point[m]]) - targets[m]|^2`` (pixels) of points
+    ``p`` (N, 3) seen by ``cam``, two per point: the targets of one point are summed into
+    ``W |pi(p) - t_mean|`` (``W^2 = sum weights^2``, ``t_mean`` their weighted mean), the same
+    sum up to a constant, so the same gradient and Gauss-Newton Hessian with a row pair per
+    point instead of per target (an uncovered mask pulls one point with many pixels).
+    ``residual(pos) -> (r (2P,), dr (2P, 3), point (2P,))`` with ``dr`` from
+    ``calib.project_jacobian`` (lens distortion included)."""
+    targets = np.asarray(targets, float).reshape(-1, 2)
+    w2 = np.asarray(weights, float) ** 2
+    point, inv = np.unique(np.asarray(point, np.int64), return_inverse=True)
+    inv = inv.reshape(-1)
+    W2 = np.bincount(inv, w2, len(point))
+    targets = np.stack([np.bincount(inv, w2 * targets[:, a], len(point)) for a in (0, 1)],
+                       axis=1) / np.maximum(W2, 1e-300)[:, None]
+    wt = np.sqrt(W2)
     rows_point = np.repeat(point, 2)
 
     def residual(pos):
