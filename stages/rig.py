@@ -40,12 +40,14 @@ from stages import common
 @dataclass(frozen=True)
 class Options:
     """block: frames per block; the refinement uses the even-numbered blocks of video frames,
-    the held-out view scores the odd-numbered ones. min_conf: detections at or above this
+    the held-out view scores the odd-numbered ones. min_gain: the check (see :func:`compute`)
+    must improve by at least this share, else the rig stays as calibrated. min_conf: detections at or above this
     confidence are used. keypoints: ``"all"`` KP65 keypoints or ``"body"`` (face and body,
     no hands). The rest are ``calib.rig_refine.PersonRefineOptions``' (the prior's sigmas,
     whether focal length / principal point are refined, the robust loss)."""
 
     block: int = 10
+    min_gain: float = 0.05
     min_conf: float = 0.6
     keypoints: Literal["all", "body"] = "all"
     sigma_rotation_deg: float = 1.0
@@ -54,6 +56,7 @@ class Options:
     sigma_focal_rel: float = 0.02
     refine_principal: bool = False
     sigma_principal_px: float = 20.0
+    sigma_points_mm: float = 100.0
     detection_px: float = 4.0
     loss: str = "soft_l1"
     loss_scale: float = 2.0
@@ -65,6 +68,8 @@ class Options:
     def __post_init__(self):
         if not (isinstance(self.block, int) and self.block >= 1):
             raise ValueError(f"block: must be an integer >= 1, got {self.block!r}")
+        if not 0 <= self.min_gain < 1:
+            raise ValueError(f"min_gain: must be in [0, 1), got {self.min_gain}")
         if not 0 <= self.min_conf <= 1:
             raise ValueError(f"min_conf: must be in [0, 1], got {self.min_conf}")
         if self.keypoints not in ("all", "body"):
@@ -84,30 +89,86 @@ def refinement_frames(frames: np.ndarray, block: int) -> np.ndarray:
     return (np.asarray(frames, np.int64) // int(block)) % 2 == 0
 
 
-def observations(kp: np.ndarray, frames: np.ndarray, o: Options) -> np.ndarray:
-    """``(C, N, 2)`` pixels of every person's keypoint at every refinement frame (NaN where the
-    detection's confidence is below ``min_conf``): ``kp (C, F, persons, 65, 3)``."""
+def observations(kp: np.ndarray, frames: np.ndarray, o: Options, use=None) -> np.ndarray:
+    """``(C, N, 2)`` pixels of every person's keypoint at every refinement frame (or the frames
+    where ``use``, a subset of them; NaN where the detection's confidence is below
+    ``min_conf``): ``kp (C, F, persons, 65, 3)``."""
     kp = np.asarray(kp, float)
-    use = refinement_frames(frames, o.block)
+    ref = refinement_frames(frames, o.block)
+    use = ref if use is None else (ref & np.asarray(use, bool))
     K = np.arange(23) if o.keypoints == "body" else np.arange(kp.shape[3])
     sub = kp[:, use][:, :, :, K]
     uv = np.where(sub[..., 2:3] >= o.min_conf, sub[..., :2], np.nan)
     return uv.reshape(kp.shape[0], -1, 2)
 
 
+def leave_one_out_px(cams, kp: np.ndarray, min_conf: float) -> float:
+    """Median px of every detection ``kp (C, F, persons, 65, 3)`` against its keypoint
+    triangulated (DLT) from the other views and projected into its view (the held-out view's
+    baseline), NaN when nothing is measured."""
+    from fitting.heldout import pixel_errors, triangulated
+
+    kp = np.asarray(kp, float)
+    errs = []
+    for h in range(len(cams)):
+        oth = [i for i in range(len(cams)) if i != h]
+        for p in range(kp.shape[2]):
+            X = triangulated([cams[i] for i in oth], kp[oth][:, :, p], min_conf)
+            e = pixel_errors(cams[h], X, kp[h, :, p], min_conf)
+            errs.append(e[np.isfinite(e)])
+    e = np.concatenate(errs) if errs else np.zeros(0)
+    return float(np.median(e)) if len(e) else float("nan")
+
+
 def compute(cams, keypoints, o: Options, log=lambda _m: None):
     """The refinement of ``cams`` (``calib.Camera`` s, recipe order) from ``keypoints``
-    (``Keypoints2D``, same cameras). Returns ``(calib.rig_refine.PersonRefinement, frames
-    used, report)``. ValueError when the refinement frames hold too few detections."""
+    (``Keypoints2D``, same cameras), on the refinement frames only.
+
+    First a check, inside the refinement frames: the rig refined on half of their blocks
+    must bring the leave-one-camera-out triangulation error (the held-out baseline) on the
+    other half down by ``min_gain`` against the given rig; if not (detections whose errors a
+    rig cannot explain, e.g. a calibration already exact), the rig stays as calibrated
+    (``applied`` false). Then the refinement on all of them.
+
+    Returns ``(calib.rig_refine.PersonRefinement, frames used, report)``; the refinement's
+    cameras are the given ones when not applied. ValueError when the refinement frames hold
+    too few detections."""
     from calib.rig_refine import refine_from_points
 
     frames = np.asarray(keypoints.frames, np.int64)
-    used_frames = frames[refinement_frames(frames, o.block)]
+    ref = refinement_frames(frames, o.block)
+    used_frames = frames[ref]
     if not len(used_frames):
         raise ValueError(f"block: no refinement frame (frames {frames.min()}..{frames.max()}, "
                          f"block {o.block})")
+    # the check: fit on the blocks 0, 4, 8, ... (x block), measure on 2, 6, 10, ...
+    half = (frames // o.block) % 4 == 0
+    chk = ref & ~half
+    check = {"fit_frames": int((ref & half).sum()), "check_frames": int(chk.sum())}
+    applied = True
+    if check["fit_frames"] and check["check_frames"]:
+        log("rig refinement: the check (half of the refinement frames)")
+        r_half = refine_from_points(cams, observations(keypoints.kp, frames, o, use=half),
+                                    o.refine_options())
+        kp_chk = np.asarray(keypoints.kp, float)[:, chk]
+        given_px = leave_one_out_px(cams, kp_chk, o.min_conf)
+        refined_px = leave_one_out_px(list(r_half.cameras), kp_chk, o.min_conf)
+        applied = bool(refined_px <= (1 - o.min_gain) * given_px)
+        check.update({"given_px": round(given_px, 2), "refined_px": round(refined_px, 2),
+                      "min_gain": o.min_gain, "passed": applied})
+        log(f"rig refinement check: leave-one-camera-out median {given_px:.2f} px as "
+            f"calibrated, {refined_px:.2f} px refined on the other half: "
+            f"{'applied' if applied else 'NOT applied (the rig stays as calibrated)'}")
+    else:
+        check.update({"passed": None, "why": "too few blocks for a check"})
     uv = observations(keypoints.kp, frames, o)
     r = refine_from_points(cams, uv, o.refine_options(), log=log)
+    solved = {c.name: {"moved_mm": round(float(r.moved_mm[i]), 1),
+                       "rotated_deg": round(float(r.rotated_deg[i]), 3)} for i, c in enumerate(cams)}
+    if not applied:  # the rig stays as calibrated (the report keeps what the solve found)
+        z = np.zeros(len(cams))
+        r = dataclasses.replace(r, cameras=tuple(cams), moved_mm=z, rotated_deg=z, focal_rel=z,
+                                principal_px=z, after_px=r.before_px)
 
     def stats(e):
         e = e[np.isfinite(e)]
@@ -123,7 +184,8 @@ def compute(cams, keypoints, o: Options, log=lambda _m: None):
                        "principal_moved_px": round(float(r.principal_px[i]), 2),
                        "observations": int(r.used[i].sum()),
                        "before": stats(r.before_px[i]), "after": stats(r.after_px[i])}
-    rep = {"cameras": per, "all": {"before": stats(r.before_px), "after": stats(r.after_px)},
+    rep = {"applied": applied, "check": check, "solved": solved,
+           "cameras": per, "all": {"before": stats(r.before_px), "after": stats(r.after_px)},
            "frames_used": [int(f) for f in used_frames], "block": o.block,
            "scored_by_heldout": "the frames of odd-numbered blocks (not used here)",
            "gauge": r.gauge, "points": int(np.isfinite(r.points[:, 0]).sum()),
@@ -200,8 +262,12 @@ def run(ctx: StageContext) -> None:
     CameraRig.from_cameras(r.cameras, sources).save(ctx.out)
     ctx.out.save_arrays("refine", frames=np.asarray(used_frames, np.int64),
                         before_px=r.before_px, after_px=r.after_px, points=r.points)
+    ck = rep["check"]
     rig_plot(ctx.out.path("rig.png"), rep,
-             f"{ctx.unit}: rig refined from the person ({len(used_frames)} frames)")
+             f"{ctx.unit}: rig refined from the person ({len(used_frames)} frames)"
+             if rep["applied"] else
+             f"{ctx.unit}: rig NOT refined (check: {ck.get('given_px')} px as calibrated, "
+             f"{ck.get('refined_px')} px refined; gain < {o.min_gain:.0%})")
     rep.update({"sequence": ctx.unit, "plot": "rig.png"})
     ctx.out.save_json("report", rep)
     for c, v in rep["cameras"].items():
