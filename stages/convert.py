@@ -31,6 +31,7 @@ template rest fit excluded), ``registration_cpu_s``, ``warnings``.
 from __future__ import annotations
 
 import os
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,9 +47,10 @@ WARN_V2S_MM = 10.0  # a person converted worse than this (median over frames): s
 NUM_BETAS = 10
 
 READS = ("body_model.kind", "sequence.markers_on", "sequence.partner")
-# The per-model-pair precomputations of a process: {correspondence key: (fit rig, v2s rig,
-# the source's facet adjacency)}. They depend on the two model files alone (the key hashes
-# both); every use sets the rigs' betas first. A run of many sequences in one process (the
+# The per-model-pair precomputations of a process: {(correspondence key, thread): (fit rig,
+# v2s rig, the source's facet adjacency)}. They depend on the two model files alone (the key
+# hashes both); every use sets the rigs' betas first, and a thread has its own (an executor
+# running two sequences in two threads of one process must not share the rigs' betas). A run of many sequences in one process (the
 # serial executor, a Dask worker) builds them once, as the registration is made once; the
 # first sequence's conversion pays for them (counted in its cpu_s).
 _RIGS: dict[str, tuple] = {}
@@ -189,13 +191,15 @@ def run(ctx: StageContext) -> None:
         raise InputError("partner_fit/fit.npz", "frames",
                          "no frame of marker_fit is also in partner_fit: nothing to convert")
     t1 = time.process_time()
-    rigs = _RIGS.get(key)  # built once per model pair in this process (see _RIGS)
+    mine = (key, threading.get_ident())  # a rig holds the betas it was last set to: one per thread
+    rigs = _RIGS.get(mine)  # built once per model pair and thread in this process (see _RIGS)
     if rigs is None:
         rigs = (GlobalRig(target, subsample_vertices(target), NUM_BETAS),
                 GlobalRig(target, v2s_vertices(target), NUM_BETAS, shape=False),
                 igl.triangle_triangle_adjacency(np.asarray(source.faces, np.int64))[0])
-        _RIGS.clear()
-        _RIGS[key] = rigs
+        if len(_RIGS) >= 4:
+            _RIGS.clear()
+        _RIGS[mine] = rigs
     rig, eval_rig, adjacency = rigs
     setup_cpu = time.process_time() - t1  # the rigs and the source's facet adjacency
     K = rig.K
