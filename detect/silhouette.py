@@ -181,15 +181,6 @@ def body_mask(cam, vertices: np.ndarray, faces: np.ndarray, size: tuple[int, int
     return m.astype(bool)
 
 
-def posed_vertices(model, fit, frames: np.ndarray, chunk: int = 32):
-    """Per video frame of ``frames`` the fitted body's vertices (V, 3) (``body.forward``), or
-    None where the fit has no such frame; ``chunk`` frames posed at a time."""
-    from body.lbs import posed_at
-
-    return posed_at(model, fit, frames, chunk)[0]
-
-
-
 def silhouettes(read: Callable[[int, int], np.ndarray], cams, frames: np.ndarray,
                 plates: dict[int, Iterable[np.ndarray]], wearer_vertices=None, faces=None,
                 opts: SilhouetteOptions = SilhouetteOptions(),
@@ -201,7 +192,7 @@ def silhouettes(read: Callable[[int, int], np.ndarray], cams, frames: np.ndarray
     read alike); cams : ``calib.Camera`` per view (their image size); frames : (F,) video frames,
     increasing; plates : camera index -> the clean plate's frames (same channel order as
     ``read``); a camera without one uses MOG2 over ``frames``; wearer_vertices : per frame the
-    wearer's posed mesh (V, 3) or None (:func:`posed_vertices`), or None (no wearer: partner =
+    wearer's posed mesh (V, 3) or None (``body.lbs.posed_at``), or None (no wearer: partner =
     people); faces : (T, 3) the mesh's faces; progress : iterable wrapper.
 
     Returns the :class:`Silhouettes` and a report: per camera the source, the median people

@@ -64,7 +64,8 @@ def run(ctx: StageContext) -> None:
     import cv2
 
     from artifacts import BodyFit
-    from detect.silhouette import overlay, posed_vertices, silhouettes
+    from body.lbs import posed_at
+    from detect.silhouette import overlay, silhouettes
     from formats.video import VideoReader
 
     o: Options = ctx.params or Options()
@@ -83,7 +84,7 @@ def run(ctx: StageContext) -> None:
         wearer = BodyFit.load(ctx.inputs["marker_fit"])
         frames = np.asarray(wearer.frames, np.int64)
         frames = frames[(frames >= 0) & (frames < n)]
-        wearer_V = posed_vertices(model, wearer, frames)
+        wearer_V = posed_at(model, wearer, frames, chunk=32)[0]
         faces = np.asarray(model.faces)
     readers = [VideoReader(p, (c.width, c.height)) for p, c in zip(videos, cams, strict=True)]
     try:
