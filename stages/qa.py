@@ -265,7 +265,7 @@ def run(ctx: StageContext) -> None:
     # upstream pictures, the report
     figures = [("QA metrics per frame, flagged spans shaded", "qa.png")]
     (out / "figures").mkdir(exist_ok=True)
-    for stage in ("marker_fit", "partner_fit", "keypoints"):
+    for stage in ("marker_fit", "partner_fit", "keypoints", "rig"):
         art = ctx.inputs.get(stage)
         if art is None:
             continue
@@ -284,7 +284,7 @@ def run(ctx: StageContext) -> None:
                                "sample": True, "images": [str(images[f].relative_to(out))]})
     summ = {**summary(m, flags), "thresholds": m.thresholds, "units": m.units}
     stage_reports = {}
-    for stage in ("shape_fit", "keypoints", "marker_fit", "partner_fit"):
+    for stage in ("shape_fit", "keypoints", "rig", "marker_fit", "partner_fit"):
         art = ctx.inputs.get(stage)
         if isinstance(art, dict):
             for unit, a in art.items():
