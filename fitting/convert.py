@@ -100,10 +100,14 @@ class Correspondence:
     def arrays(self) -> dict[str, np.ndarray]:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
 
-    def target_points(self, src_vertices: np.ndarray) -> np.ndarray:
-        """Source surface at each target vertex: (..., Vs, 3) -> (..., Vt, 3)."""
-        tri = np.asarray(src_vertices)[..., self.src_faces[self.tgt_vert_face], :]  # (..., Vt, 3, 3)
-        return np.einsum("...vkx,vk->...vx", tri, self.tgt_vert_bary)
+    def target_points(self, src_vertices: np.ndarray, vertices=None) -> np.ndarray:
+        """Source surface at each target vertex: (..., Vs, 3) -> (..., Vt, 3); at the target
+        vertices ``vertices`` only when given: (..., len(vertices), 3)."""
+        face, bary = self.tgt_vert_face, self.tgt_vert_bary
+        if vertices is not None:
+            face, bary = face[vertices], bary[vertices]
+        tri = np.asarray(src_vertices)[..., self.src_faces[face], :]  # (..., Vt, 3, 3)
+        return np.einsum("...vkx,vk->...vx", tri, bary)
 
     def save(self, path: Path) -> None:
         """Atomic write (a temporary file in the same folder, then renamed)."""
@@ -760,10 +764,10 @@ def convert_motion(source: BodyModel, target: BodyModel, corr: Correspondence, b
     for fb in loop:
         out = forward(source, None, body_pose[fb], global_orient[fb], transl[fb], rest=rest_src)
         Vs = out.vertices
-        tg = corr.target_points(Vs)
+        tg = corr.target_points(Vs, rig.vertices)  # the fitted points only
         G = initial_rotations(rig, out.joint_rot, src0.joint_rot[0], anchors, G_rest[0])
-        t0 = best_t0(rig, G, tg[:, rig.vertices], rig.correctives(G))
-        G, t0, _ = rig.fit_pose(G, t0, tg[:, rig.vertices], iters=iters)
+        t0 = best_t0(rig, G, tg, rig.correctives(G))
+        G, t0, _ = rig.fit_pose(G, t0, tg, iters=iters)
         D = rig.local_rotations(G)
         R_all[fb] = G[:, 0]
         T_all[fb] = t0 - rig.u[0]
