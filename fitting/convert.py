@@ -766,8 +766,9 @@ def convert_motion(source: BodyModel, target: BodyModel, corr: Correspondence, b
         Vs = out.vertices
         tg = corr.target_points(Vs, rig.vertices)  # the fitted points only
         G = initial_rotations(rig, out.joint_rot, src0.joint_rot[0], anchors, G_rest[0])
-        t0 = best_t0(rig, G, tg, rig.correctives(G))
-        G, t0, _ = rig.fit_pose(G, t0, tg, iters=iters)
+        ps = rig.parts_sparse(G, rig.correctives(G))  # the start's parts, used twice
+        t0 = best_t0(rig, G, tg, parts=ps)
+        G, t0, _ = rig.fit_pose(G, t0, tg, iters=iters, parts=ps)
         D = rig.local_rotations(G)
         R_all[fb] = G[:, 0]
         T_all[fb] = t0 - rig.u[0]
@@ -939,11 +940,13 @@ class GlobalRig:
         y = S @ x.transpose(1, 0, 2).reshape(x.shape[1], F * 3)
         return y.reshape(-1, F, 3).transpose(1, 0, 2)
 
-    def fit_pose(self, G, t0, targets, iters: int = 3, lam: float = 1e-3, shape_prior=None):
+    def fit_pose(self, G, t0, targets, iters: int = 3, lam: float = 1e-3, shape_prior=None,
+                 parts=None):
         """Batched LM on (G, t0) of every frame: ``sum_n |v_n - target_n|^2``; with
         ``shape_prior`` (one frame only) the betas too, with ridge ``shape_prior * N``.
         One trial step per iteration: a frame whose cost does not drop keeps its unknowns and
-        raises its damping. Returns (G, t0, cost (F,))."""
+        raises its damping. ``parts``: the start's ``parts_sparse(G, correctives(G))`` when
+        the caller has them (not for a betas fit; updated in place). Returns (G, t0, cost (F,))."""
         F, Q = G.shape[:2]
         G, t0 = G.copy(), t0.copy()
         N = targets.shape[1]
@@ -968,7 +971,12 @@ class GlobalRig:
             return ps, r, (r * r).sum((1, 2)) + mu * float(b @ b)
 
         b = self.betas.copy()
-        ps, r, cost = evaluate(G, t0, b)
+        if parts is not None and not K:  # the caller's parts_sparse(G, correctives(G))
+            ps = parts
+            r = ws[None, :, None] * t0[:, None] + self.sum_parts(ps) - targets
+            cost = (r * r).sum((1, 2))
+        else:
+            ps, r, cost = evaluate(G, t0, b)
         for _ in range(iters):
             P = np.zeros((F, N * n3), np.float32)
             P[:, flat] = ps.reshape(F, -1)
@@ -1042,8 +1050,10 @@ def initial_rotations(rig: GlobalRig, G_src, src_rest, anchors, G_rest):
     return G
 
 
-def best_t0(rig, G, targets, d=None):
-    p = rig.sum_parts(rig.parts_sparse(G, d))  # (F, N, 3): sum over joints of the parts
+def best_t0(rig, G, targets, d=None, parts=None):
+    """(F, 3) the root position that best places the points posed by ``G`` (``parts``: their
+    ``rig.parts_sparse(G, d)`` when already computed)."""
+    p = rig.sum_parts(rig.parts_sparse(G, d) if parts is None else parts)  # (F, N, 3)
     ws = rig.Wsum
     return np.einsum("fnx,n->fx", targets - p, ws) / float((ws ** 2).sum())
 
