@@ -49,7 +49,6 @@ from artifacts.keypoints import PARTNER, Keypoints2D
 from body.joints import regressor
 from body.lbs import RestState, forward, rest_state
 from body.model import BodyModel
-from body.rotations import rotmat_to_rotvec
 from calib import project
 from fitting import collision, lm, priors, skinned, terms
 from fitting.init_pose import InitOptions, init_pose
@@ -822,23 +821,6 @@ def gate_hands(cams, pred: np.ndarray, uv: np.ndarray, conf: np.ndarray,
     return conf, gated
 
 
-def _warm_start(init: BodyFit | None, frames: np.ndarray, skel: skinned.FitSkeleton, F: int):
-    """(X0 (F, n), warm (F,) bool): the unknowns of ``init``'s valid frames at ``frames``."""
-    X0, warm = np.zeros((F, skel.n)), np.zeros(F, bool)
-    if init is None:
-        return X0, warm
-    pos = {int(g): i for i, g in enumerate(np.asarray(init.frames))}
-    for f, g in enumerate(frames):
-        i = pos.get(int(g))
-        if i is None or not bool(np.asarray(init.valid)[i]):
-            continue
-        X0[f, :3] = rotmat_to_rotvec(np.asarray(init.global_orient[i], float))
-        X0[f, 3:6] = np.asarray(init.transl[i], float)
-        X0[f, 6:] = np.asarray(init.body_pose[i], float)[skel.joints[1:]].reshape(-1)
-        warm[f] = True
-    return X0, warm
-
-
 def wearer_posed(model: BodyModel, wearer: BodyFit, frames: np.ndarray, chunk: int = 64):
     """The wearer's posed body at video ``frames``: ``(vertices, joints)``, two lists with per
     frame (V, 3) / (J, 3) (NaN-free) or None where the wearer's fit has no such frame
@@ -961,7 +943,7 @@ def _observed_summary(model: BodyModel, fit: BodyFit) -> dict:
 def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
                 wearer: BodyFit | None = None, contact=None, ground=None,
                 opts: PartnerFitOptions = PartnerFitOptions(), progress=None,
-                log=None, silhouettes=None, init: BodyFit | None = None) -> tuple[BodyFit, dict]:
+                log=None, silhouettes=None) -> tuple[BodyFit, dict]:
     """The partner's motion over the keypoints' video frames.
 
     model : BodyModel; shape : the partner's own :class:`artifacts.ShapeFit` (betas held
@@ -972,11 +954,7 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
     ``fitting.contact_signature.ContactAnnotation`` (``L_D`` / ``L_N`` in its interval, with
     the wearer; what was used: ``report["contact_terms"]``, :func:`extra_terms`); ground :
     ``(normal (3,), offset)`` of the
-    ground plane (``L_gp``; None: none); progress : iterable wrapper; log : ``log(str)``;
-    init : a fit of the same partner over these frames (the fit before the second detection
-    pass): each frame it published as valid starts from its pose, not from the previous
-    frame's or a triangulation, and its hands are gated against that pose (no body-only
-    solve); the other frames are fitted as without it.
+    ground plane (``L_gp``; None: none); progress : iterable wrapper; log : ``log(str)``.
 
     Returns the :class:`artifacts.BodyFit` (no marker fields) and a report dict whose
     ``per_frame`` entry holds arrays (the stage writes them to ``terms.npz``): ``reproj_px
@@ -1070,7 +1048,6 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
     views = (conf[:, :, :N_BODY] > 0).any(2).sum(1)
     enough = (det >= opts.min_keypoints) & (views >= opts.min_views)
     x_prev, miss, first_fit, inits, iters = None, 0, None, 0, []
-    X0, warm = _warm_start(init, frames, skel, F)
     from threadpoolctl import threadpool_limits
 
     it = range(F) if progress is None else progress(range(F), total=F, desc="partner_fit")
@@ -1078,8 +1055,8 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
     with threadpool_limits(limits=1):
         for f in it:
             start = x_prev is None or miss > opts.reinit_after
-            x0 = X0[f] if (warm[f] and enough[f]) else x_prev
-            if enough[f] and start and not warm[f]:
+            x0 = x_prev
+            if enough[f] and start:
                 kpi = kp_raw[:, f].copy()
                 if gate:  # from the body alone (a wrong hand triangulated drags the arm)
                     kpi[:, N_BODY:, 2] = 0.0
@@ -1105,10 +1082,8 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
                 flipped[f] |= vc.flipped
                 dropped[f] |= vc.dropped
                 far[f] |= vc.far
-            first = start and not warm[f]
-            if gate and warm[f] and occluder is None:  # the hands against the start's body
-                cf, gated[f] = gate_hands(cams, slots(x0), uvf, cf, opts.hand_gate_px)
-            elif gate or occluder is not None:  # a first solve from the body keypoints alone
+            first = start
+            if gate or occluder is not None:  # a first solve from the body keypoints alone
                 cb = cf.copy()
                 if gate:
                     cb[:, N_BODY:] = 0.0
@@ -1172,8 +1147,7 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
         "frames": F, "first_fitted_frame": None if first_fit is None else int(frames[first_fit]),
         "frames_valid": reasons["fitted"],
         "frames_not_valid": {n: reasons[n] for n in PARTNER_FIT_REASONS},
-        "initialisations": inits, "frames_warm_started": int(np.count_nonzero(warm & enough)),
-        "terms": names, "weights": dict(opts.weights),
+        "initialisations": inits, "terms": names, "weights": dict(opts.weights),
         "reprojection_px": rp, "hands": bool(opts.use_hands), "fitted_joints": list(skel.names),
         "prior": prior.source, "build_s": round(t_build, 3),
         "fit_s": round(t_fit, 3), "fit_cpu_s": c_fit, "extra_jacobian_s": round(body.jacobian_s, 3),

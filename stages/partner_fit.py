@@ -11,9 +11,7 @@ masks (``artifacts.silhouettes.Silhouettes``: ``L_sil``, when the stage ran and 
 > 0). After the first fit, the
 second detection pass (``detect.refine``, option ``second_pass``) runs the detector again in
 tight crops around the fitted partner in the views that lacked it (the videos are raw inputs),
-and the partner is fitted again on the merged keypoints, each frame the first fit published as
-valid starting from its pose (``fit_partner(init=...)``: on the demo's Push, 40 frames, 23 %
-less CPU and 1.8 mm lower MPJPE than a second fit from scratch). Writes
+and the partner is fitted again on the merged keypoints. Writes
 
 - ``fit.npz``: an ``artifacts.BodyFit`` (the layout of marker_fit's, without the marker
   fields): ``valid`` / ``invalid_reason`` (``too_few_keypoints``,
@@ -142,8 +140,7 @@ def run(ctx: StageContext) -> None:
             second["first_fit_cpu_s"] = report["fit_cpu_s"]
             second["first_fit_frames_valid"] = report["frames_valid"]
             fit, report = fit_partner(model, shape, keypoints, cams, wearer, contact, ground, o,
-                                      progress=ctx.progress, log=log, silhouettes=masks,
-                                      init=fit)  # each valid frame starts from the first fit
+                                      progress=ctx.progress, log=log, silhouettes=masks)
         keypoints.save(ctx.out)  # the keypoints the fit used (person 1 refined)
     report["second_pass"] = second or {"run": False, "why_not": (
         "option second_pass is off" if not o.second_pass else "precomputed keypoints")}

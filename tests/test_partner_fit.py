@@ -182,25 +182,6 @@ def test_frames_without_detections_are_held_and_not_valid(scene):
     assert rep["frames_not_valid"]["too_few_keypoints"] == 2
 
 
-def test_a_second_fit_starts_from_the_first_fits_valid_frames(scene):
-    """init=: each frame the first fit published as valid starts from its pose (no
-    triangulation, no body-only solve); a frame it did not publish is fitted as without it.
-    Started at the solution, it lands where a fit from scratch does."""
-    kp = scene.kp.copy()
-    kp[1:, 2, 1, :, 2] = 0  # frame 2 seen in one view in the first fit: held, not valid
-    first, _ = _fit(scene, kp, opts={"temporal_passes": 0})
-    assert not first.valid[2] and first.valid.sum() == len(first.valid) - 1
-    opts = {"temporal_passes": 0, "use_hands": True}
-    cold, rep_cold = _fit(scene, scene.kp, opts=opts)
-    warm, rep = _fit(scene, scene.kp, opts=opts, init=first)
-    assert rep["frames_warm_started"] == len(first.valid) - 1
-    assert rep_cold["frames_warm_started"] == 0 and rep["initialisations"] == 0
-    err, _ = _joint_err_mm(scene, warm)
-    err_cold, _ = _joint_err_mm(scene, cold)
-    assert warm.valid.all() and err.max() < 30.0, err
-    assert abs(err.mean() - err_cold.mean()) < 2.0, (err, err_cold)
-
-
 def test_ground_term_lifts_a_foot_below_the_floor(scene):
     """The plane 3 cm above the true lowest vertex: with L_gp the fitted body's lowest
     vertex comes up to the plane (the keypoints pull it down), without it it stays below."""
