@@ -642,6 +642,77 @@ class _Surface:
         return np.sqrt(np.maximum(np.asarray(d2), 0.0))
 
 
+class _Winding:
+    """libigl's fast winding number against one posed proxy mesh, its hierarchy built once
+    and kept for the frame's queries (``geometry.winding_number`` builds it on every call;
+    the numbers are the same: each query point is evaluated on its own), and the exact
+    distance to that mesh (an AABB tree, built on first use)."""
+
+    def __init__(self, P, faces):
+        import igl
+
+        self.P = np.ascontiguousarray(P, np.float64)
+        self.F = np.ascontiguousarray(faces, np.int64)
+        self.bvh = igl.FastWindingNumberBVH()
+        self.bvh.init(self.P, self.F)
+        self.tree = None
+
+    def __call__(self, Q) -> np.ndarray:
+        Q = np.ascontiguousarray(Q, np.float64)
+        return np.asarray(self.bvh.winding_number(Q)) if len(Q) else np.zeros(0)
+
+    def distance(self, Q) -> np.ndarray:
+        import igl
+
+        if self.tree is None:
+            self.tree = igl.AABB()
+            self.tree.init(self.P, self.F)
+        d2, _, _ = self.tree.squared_distance(self.P, self.F, np.ascontiguousarray(Q, np.float64))
+        return np.sqrt(np.maximum(np.asarray(d2), 0.0))
+
+
+GRID_BLOCK = 3  # cells per side of a block of the volume grid tested as one where it can be
+
+
+def _grid_inside(W: _Winding, G: np.ndarray, n, want: np.ndarray) -> np.ndarray:
+    """(N,) bool: the cells ``want`` (N,) bool of the grid ``G`` (N, 3) (``n`` cells per
+    axis, ``indexing="ij"``) inside the mesh of ``W`` (winding number > 0.5); False elsewhere.
+
+    Blocks of ``GRID_BLOCK``^3 cells whose wanted cells lie in a ball that the surface does
+    not meet (exact distance from the ball's centre to the mesh larger than its radius) are
+    on one side of the surface (the winding number is constant off the surface): one cell
+    tested stands for the block. The other blocks test every cell. The same decisions as
+    testing every cell wherever the fast winding number is on the right side of 0.5 off the
+    surface (its error there is far smaller)."""
+    out = np.zeros(len(G), bool)
+    idx = np.flatnonzero(want)
+    if not len(idx):
+        return out
+    ijk = np.stack(np.unravel_index(idx, tuple(int(x) for x in n)), axis=1) // GRID_BLOCK
+    _, blk = np.unique(ijk, axis=0, return_inverse=True)
+    blk = blk.reshape(-1)
+    nb = int(blk.max()) + 1
+    X = G[idx]
+    lo = np.full((nb, 3), np.inf)
+    hi = np.full((nb, 3), -np.inf)
+    np.minimum.at(lo, blk, X)
+    np.maximum.at(hi, blk, X)
+    centre, radius = (lo + hi) / 2, np.linalg.norm(hi - lo, axis=1) / 2
+    clear = W.distance(centre) > radius * (1 + 1e-9) + 1e-9
+    first = np.full(nb, len(idx))
+    np.minimum.at(first, blk, np.arange(len(idx)))
+    test = ~clear[blk]  # every cell of a block the surface may cross
+    test[first[clear]] = True  # one cell of the others
+    w = W(X[test]) > 0.5
+    res = np.zeros(len(idx), bool)
+    res[test] = w
+    rep = np.zeros(nb, bool)
+    rep[clear] = res[first[clear]]
+    res[clear[blk]] = rep[blk[clear[blk]]]
+    out[idx] = res
+    return out
+
+
 def _pair_frame(VA, VB, faces, proxy, need_near: bool):
     """Deepest interpenetration (m), penetrating volume (m^3) and (when ``need_near``) the
     closest distance (m, clipped at NEAR_M; 0 when penetrating) of two posed meshes VA, VB
@@ -651,10 +722,10 @@ def _pair_frame(VA, VB, faces, proxy, need_near: bool):
     the proxy points of one body (``proxy.points``: surface points riding on the full mesh)
     against the other's proxy mesh; the depth of the points found inside is exact (nearest
     point of the other's full mesh). The volume counts the cells of a grid over the bounding
-    box of the penetrating points inside both proxies; the closest distance is that of the
-    proxy points to the other full mesh (both ways)."""
-    from geometry import winding_number
-
+    box of the penetrating points inside both proxies (:func:`_grid_inside`: blocks of cells
+    away from a surface tested by one cell); the closest distance is that of the proxy points
+    to the other full mesh (both ways). One winding-number hierarchy per proxy mesh and
+    frame serves all its queries."""
     PA, PB = proxy.points(VA), proxy.points(VB)
     pf = proxy.faces
     faces = np.ascontiguousarray(faces, dtype=np.int64)
@@ -662,12 +733,19 @@ def _pair_frame(VA, VB, faces, proxy, need_near: bool):
     pen, inside_pts = 0.0, []
     boxA, boxB = _bbox(VA), _bbox(VB)
     overlap = np.all(boxA[0] <= boxB[1]) and np.all(boxB[0] <= boxA[1])
+    wind: dict = {}
+
+    def winding(k):  # the proxy mesh of A (0) or B (1), its hierarchy built on first use
+        if k not in wind:
+            wind[k] = _Winding((PA, PB)[k], pf)
+        return wind[k]
+
     if overlap:
-        for X, (WP, W, box) in ((PA, (PB, SB, boxB)), (PB, (PA, SA, boxA))):
+        for X, (k, W, box) in ((PA, (1, SB, boxB)), (PB, (0, SA, boxA))):
             cand = np.flatnonzero(_in_box(X, box))
             if not len(cand):
                 continue
-            ins = cand[winding_number(X[cand], WP, pf) > 0.5]
+            ins = cand[winding(k)(X[cand]) > 0.5]
             if len(ins):
                 d = W.distance(X[ins])
                 pen = max(pen, float(d.max()))
@@ -686,9 +764,9 @@ def _pair_frame(VA, VB, faces, proxy, need_near: bool):
             n = np.ceil(ext / cell).astype(int) + 1
         g = [lo[k] + cell * (np.arange(n[k]) + 0.5) for k in range(3)]
         G = np.stack(np.meshgrid(*g, indexing="ij"), -1).reshape(-1, 3)
-        inA = winding_number(G, PA, pf) > 0.5
+        inA = _grid_inside(winding(0), G, n, np.ones(len(G), bool))
         if inA.any():
-            inB = winding_number(G[inA], PB, pf) > 0.5
+            inB = _grid_inside(winding(1), G, n, inA)
             vol = float(inB.sum()) * cell ** 3
     near = np.nan
     if need_near:

@@ -135,3 +135,70 @@ def test_work_beside_runs_in_another_process_and_fails_here():
         side.result()
     assert calls == [os.getpid()]  # the child's call is not in this process's list
     side.close()  # closing after the result is a no-op
+
+
+def _two_bodies(anny):
+    """Two posed proxies, B shifted so that A's arm region and B's torso overlap."""
+    from body import forward
+
+    rng = np.random.default_rng(11)
+    pose = rng.normal(0, 0.15, (1, anny.num_joints, 3))
+    V = forward(anny, np.zeros(1), pose, np.eye(3)[None], np.zeros((1, 3))).vertices[0]
+    proxy = QM.body_proxy(anny)
+    PA = proxy.points(V)
+    PB = proxy.points(V + np.array([0.25, 0.05, 0.1]))
+    return proxy, PA, PB
+
+
+def test_kept_winding_hierarchy_gives_the_winding_numbers_of_geometry(anny):
+    from geometry import winding_number
+
+    proxy, PA, PB = _two_bodies(anny)
+    W = QM._Winding(PA, proxy.faces)
+    rng = np.random.default_rng(2)
+    lo, hi = PA.min(0), PA.max(0)
+    for Q in (PB, rng.uniform(lo, hi, (3000, 3)), PA[:5]):  # one hierarchy, several queries
+        np.testing.assert_array_equal(W(Q), winding_number(Q, PA, proxy.faces))
+    np.testing.assert_array_equal(W.distance(PB), nearest_surface(PB, PA, proxy.faces).distance)
+
+
+def test_grid_blocks_give_the_cells_of_testing_every_cell(anny):
+    """The volume grid's inside test by blocks (one cell for a block the surface does not
+    cross) decides every cell as testing each one does, for the whole grid and for a subset
+    of wanted cells, at several block sizes; the grid has cells inside, outside and on both
+    sides of the surface within single blocks."""
+    from geometry import winding_number
+
+    proxy, PA, PB = _two_bodies(anny)
+    lo = np.maximum(PA.min(0), PB.min(0))
+    hi = np.minimum(PA.max(0), PB.max(0))
+    cell = 0.02
+    n = np.ceil((hi - lo) / cell).astype(int) + 1
+    g = [lo[k] + cell * (np.arange(n[k]) + 0.5) for k in range(3)]
+    G = np.stack(np.meshgrid(*g, indexing="ij"), -1).reshape(-1, 3)
+    wantA = winding_number(G, PA, proxy.faces) > 0.5
+    wantB = winding_number(G, PB, proxy.faces) > 0.5
+    assert 100 < wantA.sum() < len(G) - 100 and (wantA & wantB).sum() > 50
+
+    class Counting(QM._Winding):
+        asked: list = []
+
+        def __call__(self, Q):
+            self.asked.append(len(Q))
+            return super().__call__(Q)
+
+    WA, WB = Counting(PA, proxy.faces), QM._Winding(PB, proxy.faces)
+    old = QM.GRID_BLOCK
+    try:
+        for b in (1, 3, 5):
+            QM.GRID_BLOCK = b
+            WA.asked = []
+            inA = QM._grid_inside(WA, G, n, np.ones(len(G), bool))
+            np.testing.assert_array_equal(inA, wantA)
+            if b > 1:  # blocks away from the surface were tested by one cell
+                assert sum(WA.asked) < 0.7 * len(G)
+            inB = QM._grid_inside(WB, G, n, inA)
+            np.testing.assert_array_equal(inB, wantA & wantB)
+            assert not QM._grid_inside(WB, G, n, np.zeros(len(G), bool)).any()
+    finally:
+        QM.GRID_BLOCK = old
