@@ -20,10 +20,14 @@ Levenberg-Marquardt steps as ``fitting.lm.solve``, vectorised over the held mark
 on the real pyCGM capture (323 frames, 39 markers, stride 2, a shared and loaded 2-core
 machine; old and new run in turn): 24-26 -> 5.9-6.3 CPU-s (12.5-13 -> 51-55 frames per
 CPU-second; under heavier load 42 -> 9-11 CPU-s), median 6.855 -> 6.851 mm, p90 30.91 ->
-30.98 mm; ~1 CPU-s of it is building the compiled graph (once per call).
+30.98 mm; ~1 CPU-s of it was building the compiled graph. That graph is now kept per
+thread (:func:`_graph`: a later call with the same subject reuses it) and its library is
+found without generating its C (``fitting.compiled.function_key``): ~0.6 CPU-s on a first
+call, nothing on a later one.
 """
 from __future__ import annotations
 
+import threading
 import time
 import warnings
 
@@ -68,6 +72,30 @@ LAMBDA_INIT = 1e-6  # LM damping of a refit's first step (it starts close to its
 REFIT_FTOL = 1e-6  # a refit frame has converged below this relative cost decrease (lm.solve: 1e-8)
 
 
+_GRAPHS = threading.local()  # per thread: {(spec, compile options): MarkerGraph}
+GRAPHS_KEPT = 4
+
+
+def _graph(spec, copts):
+    """The ``MarkerGraph`` of ``spec`` compiled with ``copts``, built once per thread and
+    process (building it, ~0.6 CPU-s, is the fixed cost of a call: the engine runs the
+    sequences of a subject one after the other, with the same graph). Per thread: a graph
+    holds the buffers its compiled function evaluates into. The last ``GRAPHS_KEPT``."""
+    from fitting.marker_graph import MarkerGraph
+
+    memo = getattr(_GRAPHS, "memo", None)
+    if memo is None:
+        memo = _GRAPHS.memo = {}
+    key = (spec, copts)
+    g = memo.pop(key, None)
+    if g is None:
+        g = MarkerGraph(spec, copts)
+    memo[key] = g  # most recent last
+    while len(memo) > GRAPHS_KEPT:
+        memo.pop(next(iter(memo)))
+    return g
+
+
 class _Refits:
     """The leave-one-out refits of one sequence, all held markers of a frame solved together.
 
@@ -106,7 +134,7 @@ class _Refits:
     def __init__(self, model, shape: ShapeFit, template: Placement, obs, vis, opts, source):
         from fitting import compiled, priors
         from fitting.marker_fit import FrameSolver
-        from fitting.marker_graph import GraphSpec, MarkerGraph, body_joints, placement_support
+        from fitting.marker_graph import GraphSpec, body_joints, placement_support
 
         pl = placement_of(shape)
         if template.names != pl.names:
@@ -119,7 +147,7 @@ class _Refits:
         self.Hm = marker_coeffs(model, rest, self.skel, pl)
         spec = GraphSpec(self.skel.topology, placement_support(model, self.skel, template, self.Hm),
                          (), 0, "h36m")
-        graph = MarkerGraph(spec, compiled.CompileOptions(mode=opts.compile))
+        graph = _graph(spec, compiled.CompileOptions(mode=opts.compile))
         self.solver = FrameSolver(graph, self.skel, self.u, self.Hm,
                                   priors.default_prior(self.skel.names[1:]), opts)
         self.obs, self.vis, self.source = obs, np.asarray(vis, bool), source

@@ -209,3 +209,49 @@ def test_refit_rows_rewrap_as_the_marker_fit_does():
     Y = _rewrap_rows(X)
     assert np.array_equal(Y, np.stack([rewrap(x) for x in X]))
     assert not np.array_equal(Y, X)  # some rotations were past pi
+
+
+def test_the_graph_is_built_once_per_thread_and_reused_with_the_same_numbers(anny, capture,
+                                                                             monkeypatch):
+    """A second call with the same subject and options in the same thread reuses the compiled
+    graph (no MarkerGraph built) and gives the held-out errors of the first bit for bit; a
+    call in another thread builds its own (a graph's buffers are not shared between threads);
+    another compile mode is another graph."""
+    import threading
+
+    from fitting import loo
+    from fitting import marker_graph as MG
+    from fitting.marker_fit import MarkerFitOptions
+
+    built = []
+
+    class Counting(MG.MarkerGraph):
+        def __init__(self, *a, **k):
+            built.append(threading.get_ident())
+            super().__init__(*a, **k)
+
+    monkeypatch.setattr(MG, "MarkerGraph", Counting)
+    monkeypatch.setattr(loo, "_GRAPHS", threading.local())
+    betas, tpl, m = capture
+    sf = to_shape_fit(betas, tpl, "given", "given")
+
+    six = MarkerFitOptions(max_frames=6)
+
+    def call(opts=six):
+        return leave_one_out(anny, sf, tpl, m, mocap.VideoClock(FPS), np.arange(F),
+                             held=HELD[:2], opts=opts, stride=1)
+
+    a = call()
+    assert len(built) == 1
+    b = call()
+    assert len(built) == 1
+    np.testing.assert_array_equal(a["error_mm"], b["error_mm"])
+    out = {}
+    t = threading.Thread(target=lambda: out.update(r=call()))
+    t.start()
+    t.join()
+    assert len(built) == 2 and built[1] != built[0]
+    np.testing.assert_array_equal(out["r"]["error_mm"], a["error_mm"])
+    c = call(MarkerFitOptions(max_frames=6, compile="interpreted"))
+    assert len(built) == 3
+    np.testing.assert_allclose(c["error_mm"], a["error_mm"], rtol=0, atol=1e-6)
