@@ -688,8 +688,11 @@ def _grid_inside(W: _Winding, G: np.ndarray, n, want: np.ndarray) -> np.ndarray:
     idx = np.flatnonzero(want)
     if not len(idx):
         return out
-    ijk = np.stack(np.unravel_index(idx, tuple(int(x) for x in n)), axis=1) // GRID_BLOCK
-    _, blk = np.unique(ijk, axis=0, return_inverse=True)
+    n = tuple(int(x) for x in n)
+    ijk = np.unravel_index(idx, n)
+    nb_axis = tuple(-(-x // GRID_BLOCK) for x in n)
+    bid = np.ravel_multi_index(tuple(a // GRID_BLOCK for a in ijk), nb_axis)
+    _, blk = np.unique(bid, return_inverse=True)
     blk = blk.reshape(-1)
     nb = int(blk.max()) + 1
     X = G[idx]
