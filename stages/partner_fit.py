@@ -8,10 +8,10 @@ here, before anything is computed or written), the partner's own ``shape_fit``
 ``keypoints`` artifact (person 1; its video frames are the frames fitted) and the wearer's
 ``marker_fit`` (``artifacts.BodyFit``: the other body of ``L_ic``), and the ``silhouettes``
 masks (``artifacts.silhouettes.Silhouettes``: ``L_sil``, when the stage ran and the weight is
-> 0). After a quick first fit (one LM round, no ``L_sil``, no temporal pass: where the
-partner is), the second detection pass (``detect.refine``, option ``second_pass``) runs the
-detector again in tight crops around it in the views that lacked the partner (the videos are
-raw inputs), and the partner is fitted on the merged keypoints with every term. Writes
+> 0). After the first fit, the
+second detection pass (``detect.refine``, option ``second_pass``) runs the detector again in
+tight crops around the fitted partner in the views that lacked it (the videos are raw inputs),
+and the partner is fitted again on the merged keypoints. Writes
 
 - ``fit.npz``: an ``artifacts.BodyFit`` (the layout of marker_fit's, without the marker
   fields): ``valid`` / ``invalid_reason`` (``too_few_keypoints``,
@@ -31,7 +31,6 @@ raw inputs), and the partner is fitted on the merged keypoints with every term. 
 """
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -132,21 +131,17 @@ def run(ctx: StageContext) -> None:
         from artifacts.silhouettes import Silhouettes
 
         masks = Silhouettes.load(ctx.inputs["silhouettes"])
-    second = None
-    if o.second_pass and not rv.sequence.has_keypoints:
-        # a quick first fit only says where the partner is (the crops of the second pass):
-        # one LM round, no L_sil, no temporal pass (bench Grab 1: 3.5 CPU-s against 23, the
-        # crops' body 49 mm MPJPE against 42); the fit that is published comes after it
-        quick = dataclasses.replace(o, outer_rounds=1, temporal_passes=0,
-                                    weights={**o.weights, "L_sil": 0.0})
-        first, first_report = fit_partner(model, shape, keypoints, cams, wearer, contact, ground,
-                                          quick, progress=ctx.progress, log=log)
-        keypoints, second = _second_pass(ctx, model, cams, keypoints, first, o)
-        second["first_fit_cpu_s"] = first_report["fit_cpu_s"]
-        second["first_fit_frames_valid"] = first_report["frames_valid"]
-        keypoints.save(ctx.out)  # the keypoints the fit used (person 1 refined)
     fit, report = fit_partner(model, shape, keypoints, cams, wearer, contact, ground, o,
                               progress=ctx.progress, log=log, silhouettes=masks)
+    second = None
+    if o.second_pass and not rv.sequence.has_keypoints:
+        keypoints, second = _second_pass(ctx, model, cams, keypoints, fit, o)
+        if second["views_improved"]:
+            second["first_fit_cpu_s"] = report["fit_cpu_s"]
+            second["first_fit_frames_valid"] = report["frames_valid"]
+            fit, report = fit_partner(model, shape, keypoints, cams, wearer, contact, ground, o,
+                                      progress=ctx.progress, log=log, silhouettes=masks)
+        keypoints.save(ctx.out)  # the keypoints the fit used (person 1 refined)
     report["second_pass"] = second or {"run": False, "why_not": (
         "option second_pass is off" if not o.second_pass else "precomputed keypoints")}
     fig = contact_figures(model, fit, wearer, contact, ground)
@@ -178,6 +173,8 @@ def _second_pass(ctx: StageContext, model, cams, keypoints, fit, o: Options):
     """The partner's second detection pass around the first fit (``detect.refine``). Returns
     the keypoints with person 1 refined, and the report entry (views redone and improved,
     detection rates before and after, detector calls and CPU seconds)."""
+    import dataclasses
+
     from body import forward
     from body.joints import regressor
     from calib import project
@@ -240,6 +237,7 @@ PERSON0 = "person0"
 
 def person_keypoints(keypoints, person: int):
     """The keypoints with ``person``'s slot in the partner's (the slot the fit reads)."""
+    import dataclasses
 
     from artifacts.keypoints import PARTNER
 
@@ -262,6 +260,7 @@ def run_markerless(ctx: StageContext, o: Options, model, cams) -> None:
     seen; the betas then stay fixed). Person 1 is written as a partner's fit is (``fit.npz``,
     ``terms.npz``, ``summary.json``), person 0 the same in ``person0/``; ``report.json`` has
     each person's report under ``people``."""
+    import dataclasses
 
     from artifacts import ShapeFit
     from artifacts.keypoints import Keypoints2D

@@ -403,7 +403,6 @@ def test_engine_on_the_small_session(small_session, tmp_path):
     # the second detection pass ran on the stage's own detections and never lost any
     sp = json.loads((pf / "report.json").read_text())["second_pass"]
     assert sp["run"] and sp["view_frames"] == 4 * len(fr)
-    assert sp["first_fit_frames_valid"] >= 1 and sp["first_fit_cpu_s"] > 0  # the quick fit ran
     for g in ("body", "hands"):
         assert sp["detected_after"][g] >= sp["detected_before"][g], sp
     refined = Keypoints2D.load(pf)  # the keypoints the fit used: a valid artifact
