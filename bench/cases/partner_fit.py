@@ -186,12 +186,6 @@ def _score(recipe, outputs: Path, model, h36) -> tuple[dict, dict, float, int]:
             cpu += float(sp.get("cpu_s", 0.0)) + float(sp.get("first_fit_cpu_s", 0.0))
         cpu += float(rep["fit_cpu_s"])
         fitted += int(np.count_nonzero(terms["term_active"][:, 0]))
-        cls = _class(action)
-        for k, v in m.items():
-            pooled.setdefault(("all", k), []).append(v)
-            pooled.setdefault((cls, k), []).append(v)
-        pooled.setdefault(("all", "valid"), []).append(ok)
-        pooled.setdefault((cls, "valid"), []).append(ok)
         wart = outputs / recipe.session / group / action / "marker_fit"
         if wart.exists():  # the wearer (markers, shape from the scan) on the same frames
             wf = BodyFit.load(wart)
@@ -208,6 +202,12 @@ def _score(recipe, outputs: Path, model, h36) -> tuple[dict, dict, float, int]:
                 m["wearer_mpjpe"] = M.mpjpe(wp, wt) * 1000
                 m["wearer_pa_mpjpe"] = M.pa_mpjpe(wp, wt) * 1000
                 m["wearer_mpvpe"] = M.mpvpe(wv.vertices, gw[0], wv.joints[:, 0], gw[1][:, 0]) * 1000
+        cls = _class(action)  # pooled after the wearer's figures joined m
+        for k, v in m.items():
+            pooled.setdefault(("all", k), []).append(v)
+            pooled.setdefault((cls, k), []).append(v)
+        pooled.setdefault(("all", "valid"), []).append(ok)
+        pooled.setdefault((cls, "valid"), []).append(ok)
         per_seq[sid] = {k: float(np.mean(v)) if len(v) else None for k, v in m.items()}
         per_seq[sid].update(frames=int(len(fr)), valid=int(ok.sum()),
                             not_valid=rep["frames_not_valid"], fps=rep["fps"],
