@@ -33,37 +33,26 @@ from typing import Literal
 
 import numpy as np
 
+from calib.rig_refine import PersonRefineOptions
 from pipeline.spec import Stage, StageContext
 from stages import common
 
 
 @dataclass(frozen=True)
-class Options:
+class Options(PersonRefineOptions):
     """block: frames per block; the refinement uses the even-numbered blocks of video frames,
     the held-out view scores the odd-numbered ones. min_gain: the check (see :func:`compute`)
-    must improve by at least this share, else the rig stays as calibrated. min_conf: detections at or above this
-    confidence are used. keypoints: ``"all"`` KP65 keypoints or ``"body"`` (face and body,
-    no hands). The rest are ``calib.rig_refine.PersonRefineOptions``' (the prior's sigmas,
-    whether focal length / principal point are refined, the robust loss)."""
+    must improve by at least this share, else the rig stays as calibrated. min_conf: detections
+    at or above this confidence are used. keypoints: ``"all"`` KP65 keypoints or ``"body"``
+    (face and body, no hands). The rest are ``calib.rig_refine.PersonRefineOptions``' (the
+    prior's sigmas, whether focal length / principal point are refined, the robust loss), with
+    up to 6000 points here."""
 
     block: int = 10
     min_gain: float = 0.05
     min_conf: float = 0.6
     keypoints: Literal["all", "body"] = "all"
-    sigma_rotation_deg: float = 1.0
-    sigma_position_mm: float = 30.0
-    refine_focal: bool = False
-    sigma_focal_rel: float = 0.02
-    refine_principal: bool = False
-    sigma_principal_px: float = 20.0
-    sigma_points_mm: float = 100.0
-    detection_px: float = 4.0
-    loss: str = "soft_l1"
-    loss_scale: float = 2.0
-    max_error_px: float = 80.0
-    min_views: int = 2
     max_points: int = 6000
-    max_nfev: int = 60
 
     def __post_init__(self):
         if not (isinstance(self.block, int) and self.block >= 1):
@@ -74,11 +63,9 @@ class Options:
             raise ValueError(f"min_conf: must be in [0, 1], got {self.min_conf}")
         if self.keypoints not in ("all", "body"):
             raise ValueError(f"keypoints: must be 'all' or 'body', got {self.keypoints!r}")
-        self.refine_options()  # its own checks, naming the field
+        super().__post_init__()  # its own checks, naming the field
 
-    def refine_options(self):
-        from calib.rig_refine import PersonRefineOptions
-
+    def refine_options(self) -> PersonRefineOptions:
         names = {f.name for f in fields(PersonRefineOptions)}
         return PersonRefineOptions(**{k: getattr(self, k) for k in names})
 
