@@ -111,3 +111,19 @@ def test_code_hash_follows_the_studios_imports_and_nothing_else(tmp_path):
     assert h1 != h0
     _tree(tmp_path, {"body/lbs.py": "def forward(): return 1\n"})
     assert D.code_hash(tmp_path) != h1
+
+
+def test_a_killed_runs_half_made_copies_are_removed_by_the_next(setup, tmp_path):
+    """A run killed while copying (SIGTERM skips its ``finally``) leaves a ``.<name>.tmp-*``
+    sibling of the data or cache folder; the next run, holding the preset's lock, removes it."""
+    recipe, data, calls = setup
+    D.ensure(recipe)
+    cached = tmp_path / "cache" / f"bench-{D.version_key('bench')}"
+    left = [data.parent / ".bench.tmp-deadbeef", cached.parent / f".{cached.name}.tmp-0badf00d"]
+    for d in left:
+        (d / "gt").mkdir(parents=True)
+    other = data.parent / ".other.tmp-12345678"  # another folder's: not ours to remove
+    other.mkdir()
+    D.ensure(recipe)
+    assert not any(d.exists() for d in left) and other.exists()
+    assert len(calls) == 1 and (data / "g" / "mocap" / "a.c3d").exists()

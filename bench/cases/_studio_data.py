@@ -184,6 +184,9 @@ def _ensure(recipe: Path) -> Path:
     preset, data = _data_dir(recipe)
     key = version_key(preset)
     cached = cache_root() / f"{preset}-{key}"
+    for d in (data, cached):  # copies a killed run left half-made (SIGTERM skips finally);
+        for tmp in d.parent.glob(f".{d.name}.tmp-*"):  # safe: we hold the preset's lock
+            shutil.rmtree(tmp, ignore_errors=True)
     if not _current(data, preset):
         if _current(cached, preset):
             print(f"[bench] {data}: copied from the studio cache {cached}", file=sys.stderr)
