@@ -1036,7 +1036,7 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
         active[f, :3] = True, True, x_ref is not None
         for b in blocks:
             j = names.index(b.name)
-            r, _ = b.evaluate(skel, body.u, x, body.sub)
+            r = b.residual(skinned.slot_positions_np(skel, body.u, b.H, x))[0]  # no Jacobian
             cost[f, j] += opts.weights[b.name] * float(r @ r)
             active[f, j] = True
             npts[f, j] += b.points
