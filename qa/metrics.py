@@ -885,23 +885,26 @@ def _person_metrics(person, fit, rows, V, P3, frames, fps, ground, feet, values,
 
 # ---------------------------------------------------------------------------- per-frame geometry
 
-_GEOM: dict | None = None  # what the geometry pass reads (set before worker processes fork)
+_GEOM: dict | None = None  # a worker process's static part of the geometry pass
+PARALLEL_MIN_FRAMES = 48   # per worker: fewer frames run in one process (a worker's start
+                           # costs ~1-2 CPU-s of imports, about 10 frames of this pass)
 
 
-def _geometry_frames(rows) -> list[tuple]:
-    """Per frame row of ``_GEOM``: (row, self-penetration m per person, deepest
-    interpenetration m, volume m^3, closest distance m, contact gap m; NaN = not measured)."""
+def _geometry_frames(g: dict, rows, verts, frames) -> list[tuple]:
+    """Per frame: (row, self-penetration m per person, deepest interpenetration m, volume m^3,
+    closest distance m, contact gap m; NaN = not measured). ``g`` the static part (proxy,
+    faces, contact, sel, lo, hi); ``verts`` one (len(rows), V, 3) array per person and
+    ``frames`` (len(rows),) the rows' frame numbers."""
     from fitting.collision import self_collisions
 
-    g = _GEOM
     out = []
-    for i in rows:
-        sp = [self_collisions(g["proxy"], g["proxy"].points(V[i].astype(float))).deepest
-              for V in g["verts"]]
+    for k, i in enumerate(rows):
+        sp = [self_collisions(g["proxy"], g["proxy"].points(V[k].astype(float))).deepest
+              for V in verts]
         pen = vol = near = gap = np.nan
-        if len(g["verts"]) == 2:
-            f = int(g["frames"][i])
-            a, b = (V[i].astype(float) for V in g["verts"])
+        if len(verts) == 2:
+            f = int(frames[k])
+            a, b = (V[k].astype(float) for V in verts)
             contact, lo, hi = g["contact"], g["lo"], g["hi"]
             outside = contact is not None and not (contact.has_contact and lo <= f <= hi)
             pen, vol, near = _pair_frame(a, b, g["faces"], g["proxy"], outside)
@@ -911,28 +914,48 @@ def _geometry_frames(rows) -> list[tuple]:
     return out
 
 
-def _geometry(geom: dict, F: int, workers: int, progress) -> list[tuple]:
-    """:func:`_geometry_frames` over the ``F`` frames, in ``workers`` forked processes when
-    more than one (frames interleaved over chunks; each frame's numbers are the same either
-    way), in frame order."""
+def _geometry_init(static: dict) -> None:
+    """Worker initializer: the static part of the pass, sent once per worker."""
     global _GEOM
-    chunks = [np.arange(F)[k::max(1, 4 * workers)] for k in range(min(F, max(1, 4 * workers)))]
-    _GEOM = geom
-    try:
-        if workers > 1 and F > 1:
-            import multiprocessing as mp
+    _GEOM = static
 
-            with mp.get_context("fork").Pool(workers) as pool:
-                it = pool.imap_unordered(_geometry_frames, chunks)
-                if progress is not None:
-                    it = progress(it, total=len(chunks), desc="qa geometry (chunks)")
-                res = [r for part in it for r in part]
-        else:
-            it = chunks if progress is None else progress(chunks, total=len(chunks),
-                                                          desc="qa geometry (chunks)")
-            res = [r for c in it for r in _geometry_frames(c)]
-    finally:
-        _GEOM = None
+
+def _geometry_chunk(rows, verts, frames) -> list[tuple]:
+    return _geometry_frames(_GEOM, rows, verts, frames)
+
+
+def _geometry(geom: dict, F: int, workers: int, progress) -> list[tuple]:
+    """:func:`_geometry_frames` over the ``F`` frames, in frame order: in ``workers`` worker
+    processes when more than one and every worker gets ``PARALLEL_MIN_FRAMES`` (frames
+    interleaved over chunks; each frame's numbers are the same either way).
+
+    The workers are spawned (``pipeline.procs.process_pool``: they die with this process and
+    are killed when the pass fails or is interrupted), never forked: a fork of a process with
+    threads and OpenMP pools, carrying the engine's SIGTERM handler, could hang in the child or
+    outlive ``Pool.terminate`` (a CI run hung on it). Each chunk carries its own frames'
+    vertices; the proxy, faces and contact go once per worker."""
+    verts, frames = geom["verts"], np.asarray(geom["frames"])
+    static = {k: v for k, v in geom.items() if k not in ("verts", "frames")}
+    workers = max(1, min(int(workers), F // max(1, PARALLEL_MIN_FRAMES)))
+    n_chunks = min(F, max(1, 4 * workers))
+    chunks = [np.arange(F)[k::n_chunks] for k in range(n_chunks)]
+
+    def show(it):
+        return it if progress is None else progress(it, total=len(chunks),
+                                                    desc="qa geometry (chunks)")
+
+    if workers > 1:
+        import concurrent.futures as cf
+
+        from pipeline.procs import process_pool
+
+        with process_pool(workers, initializer=_geometry_init, initargs=(static,)) as pool:
+            futs = [pool.submit(_geometry_chunk, rows, [V[rows] for V in verts], frames[rows])
+                    for rows in chunks]
+            res = [r for fut in show(cf.as_completed(futs)) for r in fut.result()]
+    else:
+        res = [r for rows in show(chunks)
+               for r in _geometry_frames(static, rows, [V[rows] for V in verts], frames[rows])]
     return sorted(res, key=lambda r: r[0])
 
 

@@ -212,8 +212,8 @@ def run(ctx: StageContext) -> None:
             + (": " + ", ".join(sorted({r for s in flags.spans for r in s.reasons}))
                if flags.spans else ""))
 
-    # the plot and the 3D scene: in a forked process beside the overlays when there is a
-    # second core (each writes its own files; the timings are measured where they run)
+    # the plot and the 3D scene: in a thread beside the overlays when there is a second core
+    # (each writes its own files; the timings are measured where they run)
     def plot_and_scene():
         t = time.perf_counter()
         qa_plot(out / "qa.png", np.asarray(m.frames), fps, m.values, m.units, m.thresholds,
@@ -326,49 +326,45 @@ def run(ctx: StageContext) -> None:
                       scene=scene["file"] if scene else None)).save(ctx.out)
 
 
-_BESIDE = None  # the work a forked _Beside process runs (set before it forks)
-
-
-def _run_beside():
-    return _BESIDE()
-
-
 class _Beside:
-    """``func()`` run in a forked process while the caller goes on (``parallel``), else in
-    this process when the result is asked for. A failure in the process (or a result that
-    does not come back) runs ``func`` again here, so that its error is raised as usual."""
+    """``func()`` run in a thread while the caller goes on (``parallel``), else in the
+    caller's thread when the result is asked for; its error comes out of :meth:`result`.
+
+    A thread, not a forked process: a fork of this process (worker, watchdog and tqdm threads,
+    OpenMP pools, the engine's SIGTERM handler) could deadlock in the child or outlive a
+    ``Pool.terminate`` (CI hung on it). The plot and the scene write their own files and
+    touch no state the overlays use."""
 
     def __init__(self, func, parallel: bool):
-        global _BESIDE
-        self.func, self.pool, self.job = func, None, None
+        self.func, self.thread, self.outcome = func, None, None
         if parallel:
-            import multiprocessing as mp
+            import threading
 
-            _BESIDE = func
-            try:
-                self.pool = mp.get_context("fork").Pool(1)
-                self.job = self.pool.apply_async(_run_beside)
-            finally:
-                _BESIDE = None
+            def run():
+                try:
+                    self.outcome = (True, func())
+                except BaseException as e:  # noqa: BLE001 - handed to result()
+                    self.outcome = (False, e)
+
+            self.thread = threading.Thread(target=run, name="qa-beside", daemon=True)
+            self.thread.start()
 
     def result(self):
-        if self.pool is None:
+        if self.thread is None:
             return self.func()
-        try:
-            return self.job.get()
-        except Exception:  # noqa: BLE001 - redone here: its error then comes out as usual
-            return self.func()
-        finally:
-            self.pool.close()
-            self.pool.join()
-            self.pool = None
+        self.thread.join()
+        self.thread = None
+        ok, value = self.outcome
+        if not ok:
+            raise value
+        return value
 
     def close(self) -> None:
-        """Stop the process if it is still running (the caller failed first)."""
-        if self.pool is not None:
-            self.pool.terminate()
-            self.pool.join()
-            self.pool = None
+        """Wait for the thread if it is still running (the caller failed first): it owns
+        files in the stage's temporary folder."""
+        if self.thread is not None:
+            self.thread.join()
+            self.thread = None
 
 
 def geometry_workers(cores: int) -> int:

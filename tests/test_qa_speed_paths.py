@@ -3,6 +3,8 @@ kept for the frame's queries measures what ``geometry.nearest_surface`` measures
 proxy is decimated once per model object."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from geometry import nearest_surface
@@ -72,12 +74,23 @@ def test_surface_tree_over_the_faces_near_the_queries_gives_the_same_distances(a
         assert (capped[~near] > 0.02 - 1e-12).all()
 
 
-def test_geometry_in_worker_processes_gives_the_same_metrics(anny):
+@dataclasses.dataclass
+class NoContact:  # an annotation saying the two never touch: every frame is "outside"
+    has_contact: bool = False
+    interval: tuple = (0, 0)
+    region_pairs: tuple = ()
+
+    def active(self, f):
+        return False
+
+
+def test_geometry_in_worker_processes_gives_the_same_metrics(anny, monkeypatch):
     """The per-frame geometry (self-penetration of each body, interpenetration depth and
-    volume, the closest distance outside an annotated contact) computed in two forked
-    processes equals the one-process run value for value; the case has a forearm pushed into
-    the other body in two frames (so the numbers are not all zero)."""
-    import dataclasses
+    volume, the closest distance outside an annotated contact) computed in two spawned worker
+    processes equals the one-process run value for value, and no worker outlives the pass;
+    the case has a forearm pushed into the other body in two frames (so the numbers are not
+    all zero)."""
+    import multiprocessing as mp
 
     from test_qa_metrics import _fit
 
@@ -91,17 +104,22 @@ def test_geometry_in_worker_processes_gives_the_same_metrics(anny):
     bp[4, anny.joint_index("upperarm01.L")] = [0.0, 1.5, 0.0]  # an arm into the own body
     partner = dataclasses.replace(partner, body_pose=bp)
 
-    @dataclasses.dataclass
-    class NoContact:  # an annotation saying the two never touch: every frame is "outside"
-        has_contact: bool = False
-        interval: tuple = (0, 0)
-        region_pairs: tuple = ()
+    here = []
+    frames_here = QM._geometry_frames
 
-        def active(self, f):
-            return False
+    def spy(*args):  # a worker imports the module afresh: only this process's calls count
+        here.append(len(args[1]))
+        return frames_here(*args)
 
-    runs = [QM.sequence_metrics(anny, wearer, partner, None, [], NoContact(), None, 25.0,
-                                workers=w) for w in (1, 2)]
+    monkeypatch.setattr(QM, "_geometry_frames", spy)
+    runs = []
+    for w, min_frames in ((1, 48), (2, 1)):
+        monkeypatch.setattr(QM, "PARALLEL_MIN_FRAMES", min_frames)
+        here.clear()
+        runs.append(QM.sequence_metrics(anny, wearer, partner, None, [], NoContact(), None,
+                                        25.0, workers=w))
+        assert sum(here) == (F if w == 1 else 0)  # with two workers every frame ran in them
+    assert mp.active_children() == []
     a, b = runs
     assert list(a.values) == list(b.values)
     for n in a.values:
@@ -112,28 +130,45 @@ def test_geometry_in_worker_processes_gives_the_same_metrics(anny):
     assert a.values["partner.self_penetration_mm"][4] > 50 + a.values["partner.self_penetration_mm"][0]
 
 
-def test_work_beside_runs_in_another_process_and_fails_here():
-    """stages.qa._Beside: the plot and scene run in a forked process while the overlays are
-    drawn (another pid, the result handed back), in this process when not parallel; work that
-    fails in the process is run again here, so its own error comes out."""
-    import os
+def test_geometry_stays_in_one_process_below_the_frames_a_worker_is_worth(anny, monkeypatch):
+    """Fewer than PARALLEL_MIN_FRAMES frames per worker: no worker is started."""
+    from test_qa_metrics import _fit
+
+    import pipeline.procs as procs
+
+    def no_pool(*a, **k):
+        raise AssertionError("a worker pool for a few frames")
+
+    monkeypatch.setattr(procs, "process_pool", no_pool)
+    F = 4
+    fit = _fit(anny, np.stack([np.zeros(F), np.zeros(F), np.ones(F)], 1))
+    other = _fit(anny, np.tile([1.45, 0.0, 1.0], (F, 1)))
+    m = QM.sequence_metrics(anny, fit, other, None, [], NoContact(), None, 25.0, workers=2)
+    assert np.isfinite(m.values["penetration_mm"]).all()
+
+
+def test_work_beside_runs_in_another_thread_and_its_error_comes_out_here():
+    """stages.qa._Beside: the plot and scene run in a thread while the overlays are drawn
+    (another thread, the result handed back), in the caller's thread when not parallel; the
+    work's own error comes out of result(), raised once."""
+    import threading
 
     import pytest
 
     from stages.qa import _Beside
 
-    assert _Beside(os.getpid, True).result() != os.getpid()
-    assert _Beside(os.getpid, False).result() == os.getpid()
+    assert _Beside(threading.get_ident, True).result() != threading.get_ident()
+    assert _Beside(threading.get_ident, False).result() == threading.get_ident()
     calls = []
 
     def fails():
-        calls.append(os.getpid())
+        calls.append(threading.get_ident())
         raise KeyError("no such camera")
 
     side = _Beside(fails, True)
     with pytest.raises(KeyError, match="no such camera"):
         side.result()
-    assert calls == [os.getpid()]  # the child's call is not in this process's list
+    assert len(calls) == 1 and calls[0] != threading.get_ident()
     side.close()  # closing after the result is a no-op
 
 
