@@ -59,3 +59,20 @@ def test_a_cycle_of_after_is_broken_in_name_order_once_nothing_else_can_run(tmp_
     write(tmp_path, "b", 'AFTER = ("a",)')
     write(tmp_path, "c")
     assert [p.stem for p in bench.run_order(bench.discover(tmp_path))] == ["c", "a", "b"]
+
+
+def test_partner_fit_ablation_rows_asked_for():
+    """bench partner_fit: BENCH_PARTNER_VARIANTS picks the ablation rows; the full method and,
+    beside any row, the reference row (the full method on the first detection pass) always
+    run, in table order; an unknown name is an error naming it."""
+    import pytest
+
+    from bench.cases import partner_fit as P
+
+    assert P.variants_to_run("none") == ["full"]
+    assert P.variants_to_run("") == ["full", "first_pass", *P.DEFAULT_VARIANTS]
+    assert P.variants_to_run("all") == list(P.VARIANTS)
+    assert P.variants_to_run("no_temporal, no_L_G") == ["full", "first_pass", "no_L_G", "no_temporal"]
+    with pytest.raises(ValueError, match="no_L_x"):
+        P.variants_to_run("no_L_x")
+    assert set(P.ROWS) == set(P.VARIANTS)

@@ -8,8 +8,10 @@ into ``bench/work/partner_fit/outputs`` (cached: a second run only re-scores), w
 partner is fitted on every ``STRIDE``-th video frame (warm start over the stride). The recipe
 used is written to ``bench/work/partner_fit/recipe.yaml`` (the bench recipe with absolute
 paths and these stage options). ``BENCH_PARTNER_STRIDE`` overrides the stride;
-``BENCH_PARTNER_VARIANTS`` (comma-separated names of ``VARIANTS``) runs only those ablation
-rows beside the full method and the reference row (``none``: the full method alone).
+``BENCH_PARTNER_VARIANTS`` (comma-separated names of ``VARIANTS``) runs those ablation rows
+beside the full method and the reference row; default ``DEFAULT_VARIANTS`` (the two rows issue
+#27 added: without L_sil, without the temporal pass), ``all`` every row of the paper's Table 3,
+``none`` the full method alone.
 
 Truth: ``data/bench/gt/<group>/<action>.npz``, person 1 = the partner. CHI3D protocol
 (``evaluate.metrics``): H36M 17 joints (``body.joints.regressor(model, "h36m17")``) of both,
@@ -44,9 +46,12 @@ second detector pass also cut a row's cost ~2.5x.) Its figures are the keys
 ``partner_fit.table3.<variant>.<figure>[_<class>]``, shown in the RESULTS.md section of
 :func:`report` rather than in the main table.
 
-Executor: the engine runs with ``--executor dask --workers 2`` (two sequences at once on the
-two cores; ``BENCH_PARTNER_EXECUTOR=serial`` for the serial executor); the CPU figures are the
-stage's own and do not depend on it.
+Executor: the full method runs on the serial executor, alone on the machine, because its
+reports give ``fps_per_core``: two fits at once on this machine's two vCPUs take ~1.5x the
+thread CPU each (bench Grab 1's published fit: 19.4 CPU-s alone, 30.3 beside another), so a
+figure measured beside another fit is not comparable. The ablation rows, whose CPU is not
+reported, run with ``--executor dask --workers 2`` (``BENCH_PARTNER_EXECUTOR=serial`` for the
+serial executor): ~1.3x less wall.
 """
 from __future__ import annotations
 
@@ -141,6 +146,7 @@ VARIANTS = {  # the paper's Table 3 ablation: stage option overrides of each row
     "no_hand_gate": {"hand_gate_px": 0.0},
     "no_temporal": {"temporal_passes": 0},
 }
+DEFAULT_VARIANTS = ("no_L_sil", "no_temporal")  # with the reference row first_pass
 TABLE_PREFIX = "partner_fit.table3."
 SECTION_PREFIXES = (TABLE_PREFIX,)
 
@@ -259,11 +265,27 @@ def _figures(pooled: dict, prefix: str) -> dict[str, float]:
 
 
 def executor_args() -> list[str]:
-    """The engine's executor for the case's runs (``BENCH_PARTNER_EXECUTOR``: dask or serial)."""
+    """The engine's executor for the ablation rows (``BENCH_PARTNER_EXECUTOR``: dask or serial)."""
     kind = os.environ.get("BENCH_PARTNER_EXECUTOR", "dask")
     if kind not in ("dask", "serial"):
         raise ValueError(f"BENCH_PARTNER_EXECUTOR: dask or serial, got {kind!r}")
     return ["--executor", "dask", "--workers", "2"] if kind == "dask" else ["--executor", "serial"]
+
+
+def variants_to_run(spec: str) -> list[str]:
+    """The rows ``BENCH_PARTNER_VARIANTS`` asks for, in table order: the full method always,
+    the reference row ``first_pass`` with any other row; ``""`` DEFAULT_VARIANTS, ``all``
+    every row, ``none`` the full method alone, else comma-separated names of VARIANTS."""
+    only = [v.strip() for v in spec.split(",") if v.strip()]
+    if only == ["none"]:
+        return ["full"]
+    only = list(VARIANTS) if only == ["all"] else (only or list(DEFAULT_VARIANTS))
+    unknown = set(only) - set(VARIANTS)
+    if unknown:
+        raise ValueError(f"BENCH_PARTNER_VARIANTS: unknown {sorted(unknown)}; "
+                         f"names of {list(VARIANTS)}, all or none")
+    rows = {"full", "first_pass", *only}
+    return [v for v in VARIANTS if v in rows]
 
 
 def run(work: Path) -> dict[str, float]:
@@ -285,11 +307,8 @@ def run(work: Path) -> dict[str, float]:
 
     out: dict[str, float] = {}
     base = yaml.safe_load(path.read_text())
-    only = [v for v in os.environ.get("BENCH_PARTNER_VARIANTS", "").split(",") if v]
-    for name, over in VARIANTS.items():
-        if only and name != "full" and name not in only and (
-                name != "first_pass" or only == ["none"]):  # the reference joins any variant
-            continue
+    for name in variants_to_run(os.environ.get("BENCH_PARTNER_VARIANTS", "")):
+        over = VARIANTS[name]
         outputs = work / ("outputs" if name == "full" else f"outputs_{name}")
         vpath = path
         if name != "full":
@@ -301,7 +320,9 @@ def run(work: Path) -> dict[str, float]:
             vpath.write_text(yaml.safe_dump(rec, sort_keys=False))
         logs: list[str] = []
         rc = main(["sequence", *recipe.sequences, "--recipe", str(vpath), "--outputs",
-                   str(outputs), "--until", "partner_fit", *executor_args()], log=logs.append)
+                   str(outputs), "--until", "partner_fit",
+                   *(["--executor", "serial"] if name == "full" else executor_args())],
+                  log=logs.append)
         if rc != 0:
             raise RuntimeError(f"engine failed ({name}):\n" + "\n".join(logs[-30:]))
         pooled, per_seq, cpu, fitted = _score(recipe, outputs, model, h36)
@@ -335,7 +356,8 @@ def report(results: dict) -> str:
              "Each row the stage run through the engine with the variant's options on the "
              "same upstream artifacts (`bench/cases/partner_fit.py` VARIANTS); every row but "
              "the first is one fit on the first detection pass (second_pass off), so compare "
-             "it with the reference row; mm, CHI3D "
+             "it with the reference row; a row of '-' was not run (the default runs "
+             "DEFAULT_VARIANTS; BENCH_PARTNER_VARIANTS=all every row); mm, CHI3D "
              "protocol, valid frames. Cells: MPJPE / translation error / contact distance "
              "mean / median (annotated contact frames) / penetration p95.", ""]
     cols = ["all", *CLASSES]
