@@ -336,41 +336,33 @@ class _Beside:
     touch no state the overlays use."""
 
     def __init__(self, func, parallel: bool):
-        self.func, self.thread, self.outcome = func, None, None
+        self.func, self.pool, self.future = func, None, None
         if parallel:
-            import threading
+            import concurrent.futures as cf
 
-            def run():
-                try:
-                    self.outcome = (True, func())
-                except BaseException as e:  # noqa: BLE001 - handed to result()
-                    self.outcome = (False, e)
-
-            self.thread = threading.Thread(target=run, name="qa-beside", daemon=True)
-            self.thread.start()
+            self.pool = cf.ThreadPoolExecutor(1, thread_name_prefix="qa-beside")
+            self.future = self.pool.submit(func)
 
     def result(self):
-        if self.thread is None:
+        if self.future is None:
             return self.func()
-        self.thread.join()
-        self.thread = None
-        ok, value = self.outcome
-        if not ok:
-            raise value
-        return value
+        try:
+            return self.future.result()
+        finally:
+            self.close()
 
     def close(self) -> None:
         """Wait for the thread if it is still running (the caller failed first): it owns
         files in the stage's temporary folder."""
-        if self.thread is not None:
-            self.thread.join()
-            self.thread = None
+        if self.pool is not None:
+            self.pool.shutdown(wait=True)
+            self.pool, self.future = None, None
 
 
 def geometry_workers(cores: int) -> int:
     """Processes for the metrics' per-frame geometry: the cores the executor granted (0: the
     machine's), one when the stage runs outside the main thread (a Dask worker's task thread:
-    no fork there)."""
+    a pool's workers die with the thread that started them, see ``pipeline.procs``)."""
     import os
     import threading
 
