@@ -3,21 +3,25 @@ bench session.
 
 Data: ``recipes/bench.yaml`` (studio preset ``bench``: all eight interaction scenarios, two
 Anny people in different clothing, four 900 x 900 views; its data in ``data/bench`` are
-generated on demand by ``studio.ensure_generated`` and shared with other cases). For a quick
-look, ``BENCH_KEYPOINTS_RECIPE=<recipe.yaml>`` runs the case on another studio session.
+generated on demand by ``studio.ensure_generated`` and shared with other cases).
 
-Every sequence is run through the stage's own code (``stages.keypoints.compute``, the
-adapter around ``detect.sequence.detect_keypoints``: mediapipe, crops from the markers, the
-partner rule, the cross-view check) on every ``STRIDE``-th video frame, with one worker
-process per core. Truth: the studio's posed vertices and joints (``gt/<group>/<action>.npz``)
-through ``body.joints`` KP65 regressor, projected with the calibrated cameras.
+The stride keys: every sequence's keypoints artifact in the partner_fit case's store
+(``bench/work/partner_fit/outputs``: the stage as the engine runs it, on every
+``partner_fit.STRIDE``-th video frame (``BENCH_PARTNER_STRIDE``), one worker process per core,
+its report's CPU seconds), computed by that case in a run of every case (``AFTER``) and by
+this one when it runs alone; the detector ran once on those frames for both cases (it ran a
+second time, at stride 10, before). ``BENCH_KEYPOINTS_RECIPE=<recipe.yaml>`` runs the stage's
+code (``stages.keypoints.compute``: mediapipe, crops from the markers, the partner rule, the
+cross-view check) on another studio session at stride ``STRIDE`` instead. Truth: the
+studio's posed vertices and joints (``gt/<group>/<action>.npz``) through ``body.joints`` KP65
+regressor, projected with the calibrated cameras.
 
 Keys:
 
 - ``keypoints.fps_per_core``: video frames (all four views) per CPU-second of the workers;
   ``keypoints.fps_per_core_steady``: the same without ``setup_cpu_s`` (importing mediapipe
   and building its graphs, opening the videos: ~1.2 s per worker process and chunk, paid
-  once per 12-frame sequence here but once per 32 frames, the import once per worker, on a
+  once per sequence and worker here, once per 32 frames, the import once per worker, on a
   full sequence at stride 1);
 - ``keypoints.median_px`` and ``_body`` / ``_hands`` / ``_feet`` (groups of detect.metrics),
   ``_wearer`` / ``_partner``: median pixel error of detected keypoints (confidence >= 0.1)
@@ -36,12 +40,12 @@ Keys:
 - ``keypoints.fps_per_core_clip``, ``_clip_steady``, ``keypoints.median_px_clip``,
   ``keypoints.identity_swaps_clip``, ``keypoints.lr_flips_<person>_clip``: the stage at its
   defaults (stride 1, chunks of 32, ``video_mode`` auto = on) on the first CLIP_FRAMES
-  frames of every sequence (512 frames, every interaction class), one detector per sequence
-  in this process (two chunks; a worker's pool task on a full sequence runs about four, so
-  the detector's warm-up weighs a little more here): the figure the
-  5-CPU-minutes-per-770-frames goal is about. The stride-10 keys above have
-  mediapipe's tracking off (people move too far between kept frames) and pay a fresh
-  worker process and detector per 12-frame sequence.
+  frames of every second sequence (``CLIP_SEQUENCES``: Grab, Hit, Hug, Posing; 256 frames;
+  all eight sequences before, 512, for ~200 CPU-s more), one detector per sequence in this
+  process (two chunks; a worker's pool task on a full sequence runs about four, so the
+  detector's warm-up weighs a little more here): the figure the
+  5-CPU-minutes-per-770-frames goal is about. The stride keys above have mediapipe's
+  tracking off (people move too far between kept frames).
 
 Per-sequence details go to ``bench/work/keypoints/sequences.json``.
 """
@@ -55,8 +59,10 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[2]
-STRIDE = 10
+STRIDE = 10  # BENCH_KEYPOINTS_RECIPE only: the bench session's stride is partner_fit's
 CLIP_FRAMES = 64
+CLIP_SEQUENCES = slice(0, None, 2)  # of the recipe's sequences, in order
+AFTER = ("partner_fit",)  # reads that case's keypoints artifacts: runs after it (bench.run_order)
 GOALS = {
     "keypoints.identity_swaps": ("<=", 0),
     "keypoints.median_px": ("<=", 8.0),
@@ -91,32 +97,68 @@ def _truth_uv(recipe, sid: str, seq, frames: np.ndarray, reg) -> np.ndarray:
                      for c in recipe.cameras])
 
 
-def run(work: Path) -> dict[str, float]:
-    from body import load_model
-    from body.joints import regressor
-    from detect.metrics import GROUPS, group_summary, identity_swaps, keypoint_errors, lr_flips
+def _stored(work: Path):
+    """The bench session's keypoints artifacts in the partner_fit case's store (``python -m
+    pipeline sequence ... --until keypoints`` on that case's recipe: cached when the partner_fit
+    case ran, computed here otherwise): (recipe path, ``{sequence: (Keypoints2D, report)}``)."""
+    from artifacts.keypoints import Keypoints2D
+    from bench.cases import partner_fit as P
+    from pipeline.cli import main
+    from recipes import load_recipe
+
+    store = work.parent / "partner_fit"
+    store.mkdir(parents=True, exist_ok=True)
+    path = P.bench_recipe(store, int(os.environ.get("BENCH_PARTNER_STRIDE", P.STRIDE)))
+    recipe = load_recipe(path)
+    logs: list[str] = []
+    rc = main(["sequence", *recipe.sequences, "--recipe", str(path), "--outputs",
+               str(store / "outputs"), "--until", "keypoints"], log=logs.append)
+    print("\n".join(logs[-4:]), flush=True)
+    if rc != 0:
+        raise RuntimeError("engine failed (keypoints):\n" + "\n".join(logs[-30:]))
+    got = {}
+    for sid in recipe.sequences:
+        g, a = sid.split("/")
+        art = store / "outputs" / recipe.session / g / a / "keypoints"
+        got[sid] = (Keypoints2D.load(art), json.loads((art / "report.json").read_text()))
+    return path, got
+
+
+def _computed(recipe_path: Path):
+    """Another studio session's keypoints (``BENCH_KEYPOINTS_RECIPE``), by the stage's code
+    in this process at ``STRIDE``: (recipe path, ``{sequence: (Keypoints2D, report)}``)."""
     from recipes import load_recipe
     from stages import view_for
     from stages.capture import capture_of
     from stages.keypoints import Options, compute, raw_inputs
 
-    recipe_path = Path(os.environ.get("BENCH_KEYPOINTS_RECIPE", REPO / "recipes" / "bench.yaml"))
-    if recipe_path.resolve() == (REPO / "recipes" / "bench.yaml").resolve():
-        from bench.cases._studio_data import ensure
+    recipe = load_recipe(recipe_path)
+    opts = Options(stride=STRIDE, workers=os.cpu_count() or 1)
+    got = {}
+    for sid in recipe.sequences:
+        mk, cams, _ = capture_of(recipe, sid)
+        c = compute(view_for(recipe, "keypoints", sid), raw_inputs(recipe, sid), opts, unit=sid,
+                    recipe_path=recipe_path, markers=mk, cams=cams)
+        got[sid] = (c.keypoints, c.report)
+    return recipe_path, got
 
-        ensure(recipe_path)  # generated by this studio code (cached outside the checkout)
+
+def run(work: Path) -> dict[str, float]:
+    from body import load_model
+    from body.joints import regressor
+    from detect.metrics import GROUPS, group_summary, identity_swaps, keypoint_errors, lr_flips
+    from recipes import load_recipe
+
+    other = os.environ.get("BENCH_KEYPOINTS_RECIPE")
+    recipe_path, got = _computed(Path(other)) if other else _stored(work)
     recipe = load_recipe(recipe_path)
     reg = regressor(load_model("anny"), "kp65")
-    opts = Options(stride=STRIDE, workers=os.cpu_count() or 1)
     errs, swaps, frames_total, cpu, setup, per_seq = [], 0, 0, 0.0, 0.0, {}
     swap_views = 0
     flips = np.zeros(2, int)
     for sid, seq in recipe.sequences.items():
         cls = _class(sid.split("/", 1)[-1])
-        mk, cams, _ = capture_of(recipe, sid)
-        c = compute(view_for(recipe, "keypoints", sid), raw_inputs(recipe, sid), opts, unit=sid,
-                    recipe_path=recipe_path, markers=mk, cams=cams)
-        res = c.keypoints
+        res, rep = got[sid]
         truth = _truth_uv(recipe, sid, seq, res.frames, reg)
         inside = (truth[..., 0] >= 0) & (truth[..., 0] < 900) & (truth[..., 1] >= 0) & (truth[..., 1] < 900)
         err = keypoint_errors(res.kp, truth, inside)
@@ -127,15 +169,15 @@ def run(work: Path) -> dict[str, float]:
         swaps += int(sw.any(axis=0).sum())
         swap_views += int(sw.sum())
         frames_total += len(res.frames)
-        cpu += c.report["cpu_s"]
-        setup += c.report["detector_calls"].get("setup_cpu_s", 0.0)
+        cpu += rep["cpu_s"]
+        setup += rep["detector_calls"].get("setup_cpu_s", 0.0)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             per_seq[sid] = {"frames": len(res.frames), "swapped_frames": int(sw.any(axis=0).sum()),
                             "lr_flipped_views": fl.sum(axis=(0, 1)).tolist(),
                             "wearer": group_summary(err[:, :, 0], inside[:, :, 0]),
                             "partner": group_summary(err[:, :, 1], inside[:, :, 1]),
-                            "report": c.report}
+                            "report": rep}
 
     clip = _clip(recipe, recipe_path, reg, per_seq)
     (work / "sequences.json").write_text(json.dumps(per_seq, indent=1, default=float))
@@ -170,7 +212,7 @@ def run(work: Path) -> dict[str, float]:
 
 def _clip(recipe, recipe_path, reg, per_seq: dict) -> dict[str, float]:
     """The stage at its defaults (stride 1, chunk 32, video mode on) on the first CLIP_FRAMES
-    frames of every sequence, in this process (one detector per sequence, as a worker's
+    frames of ``CLIP_SEQUENCES``, in this process (one detector per sequence, as a worker's
     pool task of a few chunks): speed, median error, swaps and flips."""
     from detect.metrics import group_summary, identity_swaps, keypoint_errors, lr_flips
     from stages import view_for
@@ -179,7 +221,7 @@ def _clip(recipe, recipe_path, reg, per_seq: dict) -> dict[str, float]:
 
     frames = cpu = setup = 0.0
     errs, swaps, flips = [], 0, np.zeros(2, int)
-    for sid, seq in recipe.sequences.items():
+    for sid, seq in list(recipe.sequences.items())[CLIP_SEQUENCES]:
         o = Options(stride=1, start=0, stop=CLIP_FRAMES, workers=1)
         mk, cams, _ = capture_of(recipe, sid)
         c = compute(view_for(recipe, "keypoints", sid), raw_inputs(recipe, sid), o, unit=sid,
