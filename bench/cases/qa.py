@@ -105,11 +105,12 @@ def delay_video(src: Path, dst: Path, frames: int) -> None:
 
 
 def fault_recipe(base: dict, work: Path) -> tuple[Path, dict]:
-    """The faults session's recipe (the three sequences, their planted raw inputs in
-    ``work/planted``) and where the faults are."""
+    """The faults session's recipe (the sequences whose raw inputs are planted, in
+    ``work/planted``: the swap's and the sync offset's; the limb rotation is planted into the
+    clean session's fit, :func:`limb_fault`, and needs no engine run) and where the faults are."""
     rec = json.loads(json.dumps(base))
     rec["session"] = FAULT_SESSION
-    keep = {SWAP_SEQUENCE, SYNC_SEQUENCE, LIMB_SEQUENCE}
+    keep = {SWAP_SEQUENCE, SYNC_SEQUENCE}
     rec["sequences"] = {k: v for k, v in rec["sequences"].items() if k in keep}
     planted = work / "planted"
     planted.mkdir(parents=True, exist_ok=True)
