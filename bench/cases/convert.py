@@ -83,7 +83,7 @@ def run(work: Path) -> dict[str, float]:
         from bench.cases import partner_fit as P
 
         store.mkdir(parents=True, exist_ok=True)
-        recipe = P.bench_recipe(store, P.STRIDE)
+        recipe = P.bench_recipe(store, P.stride())
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     cmd = [sys.executable, "-m", "pipeline", "release", "--recipe", str(recipe), "--outputs",
            str(outputs), "--until", "convert", "--executor", "serial"]

@@ -103,19 +103,15 @@ def _stored(work: Path):
     case ran, computed here otherwise): (recipe path, ``{sequence: (Keypoints2D, report)}``)."""
     from artifacts.keypoints import Keypoints2D
     from bench.cases import partner_fit as P
-    from pipeline.cli import main
+    from bench.cases._engine import run_engine
     from recipes import load_recipe
 
     store = work.parent / "partner_fit"
     store.mkdir(parents=True, exist_ok=True)
-    path = P.bench_recipe(store, int(os.environ.get("BENCH_PARTNER_STRIDE", P.STRIDE)))
+    path = P.bench_recipe(store, P.stride())
     recipe = load_recipe(path)
-    logs: list[str] = []
-    rc = main(["sequence", *recipe.sequences, "--recipe", str(path), "--outputs",
-               str(store / "outputs"), "--until", "keypoints"], log=logs.append)
-    print("\n".join(logs[-4:]), flush=True)
-    if rc != 0:
-        raise RuntimeError("engine failed (keypoints):\n" + "\n".join(logs[-30:]))
+    run_engine(["sequence", *recipe.sequences, "--recipe", str(path), "--outputs",
+                str(store / "outputs"), "--until", "keypoints"], "keypoints", echo=4)
     got = {}
     for sid in recipe.sequences:
         g, a = sid.split("/")

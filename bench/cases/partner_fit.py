@@ -107,6 +107,13 @@ def bench_recipe(work: Path, stride: int) -> Path:
     return path
 
 
+def stride() -> int:
+    """The bench session's keypoints stride: ``BENCH_PARTNER_STRIDE`` or ``STRIDE``. Every case
+    that shares this case's store (keypoints, qa, release, dask, convert) writes its recipe at
+    this stride, so that they all agree on the store's keys."""
+    return int(os.environ.get("BENCH_PARTNER_STRIDE", STRIDE))
+
+
 def _class(action: str) -> str:
     return action.rsplit(" ", 1)[0].lower().replace(" ", "_")
 
@@ -293,13 +300,12 @@ def variants_to_run(spec: str) -> list[str]:
 def run(work: Path) -> dict[str, float]:
     import yaml
 
+    from bench.cases._engine import run_engine
     from body import load_model
     from body.joints import regressor
-    from pipeline.cli import main
     from recipes import load_recipe
 
-    stride = int(os.environ.get("BENCH_PARTNER_STRIDE", STRIDE))
-    path = bench_recipe(work, stride)
+    path = bench_recipe(work, stride())
     recipe = load_recipe(path)
     model = load_model("anny")
     R = regressor(model, "h36m17")
@@ -320,13 +326,9 @@ def run(work: Path) -> dict[str, float]:
                              "partner_fit": {**over, "second_pass": False}}
             vpath = work / f"recipe_{name}.yaml"
             vpath.write_text(yaml.safe_dump(rec, sort_keys=False))
-        logs: list[str] = []
-        rc = main(["sequence", *recipe.sequences, "--recipe", str(vpath), "--outputs",
-                   str(outputs), "--until", "partner_fit",
-                   *(["--executor", "serial"] if name == "full" else executor_args())],
-                  log=logs.append)
-        if rc != 0:
-            raise RuntimeError(f"engine failed ({name}):\n" + "\n".join(logs[-30:]))
+        run_engine(["sequence", *recipe.sequences, "--recipe", str(vpath), "--outputs",
+                    str(outputs), "--until", "partner_fit",
+                    *(["--executor", "serial"] if name == "full" else executor_args())], name)
         pooled, per_seq, cpu, fitted = _score(recipe, outputs, model, h36)
         if name == "full":
             (work / "sequences.json").write_text(json.dumps(per_seq, indent=1))

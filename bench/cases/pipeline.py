@@ -46,18 +46,15 @@ def _cpu(manifest: Path) -> tuple[float, bool]:
 
 
 def run(work: Path) -> dict[str, float]:
+    from bench.cases._engine import run_engine
     from bench.cases._studio_data import ensure
     from formats.video import video_info
-    from pipeline.cli import main
     from recipes import load_recipe
 
     ensure(RECIPE)  # the demo's data as this studio code makes them (cached outside the checkout)
-    logs: list[str] = []
-    rc = main(["sequence", "--recipe", str(RECIPE), "--until", "export",
-               next(iter(load_recipe(RECIPE, check_files=False).sequences))], log=logs.append)
-    (work / "engine.log").write_text("\n".join(logs))
-    if rc != 0:
-        raise RuntimeError("engine failed on the demo sequence:\n" + "\n".join(logs[-20:]))
+    run_engine(["sequence", "--recipe", str(RECIPE), "--until", "export",
+                next(iter(load_recipe(RECIPE, check_files=False).sequences))], "the demo sequence",
+               log_file=work / "engine.log", tail=20)
     recipe = load_recipe(RECIPE)
     seq_id, seq = next(iter(recipe.sequences.items()))
     root = REPO / "outputs" / recipe.session

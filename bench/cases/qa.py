@@ -65,15 +65,11 @@ FAULT_SESSION = "studio_bench_qa_faults"
 
 
 def _engine(recipe: Path, outputs: Path, until: str, work: Path, name: str) -> float:
-    from pipeline.cli import main
+    from bench.cases._engine import run_engine
 
-    logs: list[str] = []
     t0 = time.perf_counter()
-    rc = main(["release", "--recipe", str(recipe), "--outputs", str(outputs), "--until", until,
-               "--executor", "serial"], log=logs.append)
-    (work / f"{name}.log").write_text("\n".join(logs))
-    if rc != 0:
-        raise RuntimeError(f"engine failed ({name}):\n" + "\n".join(logs[-30:]))
+    run_engine(["release", "--recipe", str(recipe), "--outputs", str(outputs), "--until", until,
+                "--executor", "serial"], name, log_file=work / f"{name}.log")
     return time.perf_counter() - t0
 
 
@@ -219,7 +215,7 @@ def truth_errors(outputs: Path, session: str, unit: str, frames: np.ndarray, mod
 def run(work: Path) -> dict[str, float]:
     store_work = work.parent / "partner_fit"
     store_work.mkdir(parents=True, exist_ok=True)
-    base_path = P.bench_recipe(store_work, P.STRIDE)
+    base_path = P.bench_recipe(store_work, P.stride())
     base = yaml.safe_load(base_path.read_text())
     outputs = store_work / "outputs"
     clean_path = work / "clean.yaml"

@@ -386,16 +386,10 @@ def overlay_png(base: Path, videos: list[Path], dst: Path, frame: int | None = N
 
 
 def _run(recipe: Path, seq: str, outputs: Path, until: str | None = None) -> None:
-    from pipeline.cli import main
+    from bench.cases._engine import run_engine
 
-    logs: list[str] = []
     args = ["sequence", seq, "--recipe", str(recipe), "--outputs", str(outputs)]
-    if until:
-        args += ["--until", until]
-    rc = main(args, log=logs.append)
-    print("\n".join(logs[-8:]), flush=True)
-    if rc != 0:
-        raise RuntimeError(f"pipeline {' '.join(args)} failed (exit {rc}):\n" + "\n".join(logs[-20:]))
+    run_engine(args + (["--until", until] if until else []), seq, echo=8, tail=20)
 
 
 def run(work: Path) -> dict[str, float]:
@@ -445,10 +439,9 @@ def _studio(work: Path) -> dict:
     g, a = STUDIO_SEQ.split("/")
     sb = work / "outputs" / rec.session / g / a
     out.update(rig_keys("real_video.studio", sb))
-    if given_rig_wanted():
-        out.update(_heldout_keys("real_video.studio.given_rig", given_rig_heldout(sb, rec)))
     if not given_rig_wanted():
         return out
+    out.update(_heldout_keys("real_video.studio.given_rig", given_rig_heldout(sb, rec)))
     given = _studio_run(work, refine=False)
     out.update({k.replace("real_video.studio.", "real_video.studio.given_rig.", 1): v
                 for k, v in given.items()
@@ -464,14 +457,10 @@ def _studio_run(work: Path, refine: bool) -> dict:
     name = "studio_markerless.yaml" if refine else "studio_markerless_given_rig.yaml"
     rec = markerless_recipe(src, work / name, [STUDIO_SEQ], stages=STUDIO_STAGES,
                             refine_rig=refine, session_suffix="" if refine else "_given_rig")
-    from pipeline.cli import main
+    from bench.cases._engine import run_engine
 
-    logs: list[str] = []
-    rc = main(["release", "--recipe", str(rec), "--outputs", str(work / "outputs"),
-               "--executor", "serial"], log=logs.append)
-    print("\n".join(logs[-8:]), flush=True)
-    if rc != 0:
-        raise RuntimeError("studio markerless release failed:\n" + "\n".join(logs[-20:]))
+    run_engine(["release", "--recipe", str(rec), "--outputs", str(work / "outputs"),
+                "--executor", "serial"], "studio markerless release", echo=8, tail=20)
     r = load_recipe(rec)
     g, a = STUDIO_SEQ.split("/")
     sb = work / "outputs" / r.session / g / a

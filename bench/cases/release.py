@@ -35,24 +35,20 @@ GOALS = {"release.verified": (">=", 1.0)}
 
 
 def run(work: Path) -> dict[str, float]:
-    from pipeline.cli import main
+    from bench.cases._engine import run_engine
 
     store_work = work.parent / "partner_fit"
     store_work.mkdir(parents=True, exist_ok=True)
-    base = P.bench_recipe(store_work, P.STRIDE)  # writes the partner case's recipe too
+    base = P.bench_recipe(store_work, P.stride())  # writes the partner case's recipe too
     rec = yaml.safe_load(base.read_text())
     rec["stages"] = {**(rec.get("stages") or {}), "evaluate": {"truth": str(TRUTH)}}
     path = work / "recipe.yaml"
     path.write_text(yaml.safe_dump(rec, sort_keys=False))
     outputs = store_work / "outputs"
-    logs: list[str] = []
     t0 = time.perf_counter()
-    rc = main(["release", "--recipe", str(path), "--outputs", str(outputs), "--until",
-               "evaluate", "--executor", "serial"], log=logs.append)
+    run_engine(["release", "--recipe", str(path), "--outputs", str(outputs), "--until",
+                "evaluate", "--executor", "serial"], "release", log_file=work / "engine.log")
     wall = time.perf_counter() - t0
-    (work / "engine.log").write_text("\n".join(logs))
-    if rc != 0:
-        raise RuntimeError("engine failed:\n" + "\n".join(logs[-30:]))
     root = outputs / rec["session"] / "session"
     rel, ev = root / "release", root / "evaluate"
     from artifacts import Release
