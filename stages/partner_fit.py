@@ -33,6 +33,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -51,7 +52,12 @@ class Options(PartnerFitOptions):
     detection pass: second_pass : after a first fit, run the detector again in tight crops
     around the fitted partner in the views that lacked it (``detect.refine``; only for
     sequences whose keypoints the stage detected itself, not precomputed ones), then fit again
-    on the merged keypoints; pose_min_conf / hand_min_conf : its mediapipe thresholds.
+    on the merged keypoints; pose_min_conf / hand_min_conf : its mediapipe thresholds;
+    first_fit : the fit before the second pass, whose only use is to place its crops:
+    "light" (``LIGHT_FIRST_FIT``: without the temporal pass and the two costliest hooks,
+    ``L_sc`` and ``L_sil``; the final fit is always the full one, also when the pass improved
+    no view) or "full" (the final fit's options: when the pass improves no view, the first
+    fit is kept as the final one).
     A markerless sequence (:func:`run_markerless`): shape_frames : the first frames where a
     person without scan is seen, whose triangulated bones give its shape
     (``fitting.partner_fit.shape_from_views``); ic_rounds : after each person is fitted
@@ -59,6 +65,7 @@ class Options(PartnerFitOptions):
     many times."""
 
     second_pass: bool = True
+    first_fit: Literal["light", "full"] = "light"
     pose_min_conf: float = 0.3
     hand_min_conf: float = 0.3
     shape_frames: int = 20
@@ -70,6 +77,23 @@ class Options(PartnerFitOptions):
             raise ValueError(f"shape_frames: must be >= 1, got {self.shape_frames}")
         if self.ic_rounds < 0:
             raise ValueError(f"ic_rounds: must be >= 0, got {self.ic_rounds}")
+        if self.first_fit not in ("light", "full"):
+            raise ValueError(f"first_fit: must be 'light' or 'full', got {self.first_fit!r}")
+
+
+#: what the light first fit leaves out (``Options.first_fit``): the second pass needs only
+#: where the partner projects (crops of a few hundred pixels), not its last millimetres
+LIGHT_FIRST_FIT = {"temporal_passes": 0, "weights": {"L_sc": 0.0, "L_sil": 0.0}}
+
+
+def first_fit_options(o: Options) -> Options:
+    """The options of the fit before the second pass (``o.first_fit``)."""
+    import dataclasses
+
+    if o.first_fit == "full":
+        return o
+    return dataclasses.replace(o, temporal_passes=LIGHT_FIRST_FIT["temporal_passes"],
+                               weights={**o.weights, **LIGHT_FIRST_FIT["weights"]})
 
 
 #: the report's headline figures the export republishes (``artifacts.FitSummary``)
@@ -131,12 +155,16 @@ def run(ctx: StageContext) -> None:
         from artifacts.silhouettes import Silhouettes
 
         masks = Silhouettes.load(ctx.inputs["silhouettes"])
-    fit, report = fit_partner(model, shape, keypoints, cams, wearer, contact, ground, o,
-                              progress=ctx.progress, log=log, silhouettes=masks)
+    two = o.second_pass and not rv.sequence.has_keypoints
+    o1 = first_fit_options(o) if two else o
+    light = o1 is not o
+    fit, report = fit_partner(model, shape, keypoints, cams, wearer, contact, ground, o1,
+                              progress=ctx.progress, log=log, silhouettes=None if light else masks)
     second = None
-    if o.second_pass and not rv.sequence.has_keypoints:
+    if two:
         keypoints, second = _second_pass(ctx, model, cams, keypoints, fit, o)
-        if second["views_improved"]:
+        second["first_fit"] = o.first_fit
+        if second["views_improved"] or light:
             second["first_fit_cpu_s"] = report["fit_cpu_s"]
             second["first_fit_frames_valid"] = report["frames_valid"]
             fit, report = fit_partner(model, shape, keypoints, cams, wearer, contact, ground, o,

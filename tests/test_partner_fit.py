@@ -401,8 +401,14 @@ def test_engine_on_the_small_session(small_session, tmp_path):
     print(f"small session {sid}: MPJPE {np.mean(mpjpe):.1f} mm over {ok.sum()}/{len(ok)} valid frames")
     assert np.mean(mpjpe) < 40.0, mpjpe  # mm: mediapipe keypoints (measured 26.7)
     # the second detection pass ran on the stage's own detections and never lost any
-    sp = json.loads((pf / "report.json").read_text())["second_pass"]
+    report = json.loads((pf / "report.json").read_text())
+    sp = report["second_pass"]
     assert sp["run"] and sp["view_frames"] == 4 * len(fr)
+    # the light first fit only placed the crops: the published fit is the full one
+    from fitting.partner_fit import DEFAULT_WEIGHTS
+
+    assert sp["first_fit"] == "light" and "first_fit_cpu_s" in sp
+    assert report["weights"]["L_sc"] == DEFAULT_WEIGHTS["L_sc"] > 0
     for g in ("body", "hands"):
         assert sp["detected_after"][g] >= sp["detected_before"][g], sp
     refined = Keypoints2D.load(pf)  # the keypoints the fit used: a valid artifact
@@ -556,3 +562,25 @@ def test_a_limb_seen_in_one_view_is_not_ground_truth(scene):
     assert not pts[2:, j["r_wrist"]].any() and not pts[2:, JOINTS3D_25.index("r_wrist_end")].any()
     assert pts[2:, [j["l_wrist"], j["pelvis"], j["head"]]].all()
     assert rep["joints_observed"]["per_joint"]["r_wrist"] == pytest.approx(2 / F_SYN, abs=1e-3)
+
+
+def test_the_light_first_fit_leaves_out_only_the_temporal_pass_and_the_costly_hooks():
+    """The fit that places the second pass's crops (stages.partner_fit.first_fit_options):
+    "light" drops the temporal pass, L_sc and L_sil and keeps every other option and weight
+    as given; "full" is the final fit's options; anything else is refused."""
+    import dataclasses
+
+    from stages.partner_fit import LIGHT_FIRST_FIT, Options, first_fit_options
+
+    o = Options(weights={"L_ic": 5e3}, temporal_passes=2, max_iters=7)
+    light = first_fit_options(o)
+    assert light.temporal_passes == 0 and light.max_iters == 7
+    assert light.weights["L_sc"] == 0 and light.weights["L_sil"] == 0
+    kept = {k: v for k, v in o.weights.items() if k not in LIGHT_FIRST_FIT["weights"]}
+    assert kept and all(light.weights[k] == v for k, v in kept.items())
+    assert light.weights["L_ic"] == 5e3 and o.weights["L_sc"] > 0  # o itself is untouched
+    full = dataclasses.replace(o, first_fit="full")
+    assert first_fit_options(full) is full
+    with pytest.raises(ValueError, match="first_fit"):
+        Options(first_fit="half")
+
