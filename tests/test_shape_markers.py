@@ -62,6 +62,26 @@ def _v2v(model, b1, b2) -> float:
     return float(np.linalg.norm((a - a.mean(0)) - (b - b.mean(0)), axis=1).mean() * 1000)
 
 
+def test_a_surface_tree_projects_as_a_fresh_query_does(anny):
+    """project_to_surface with a prebuilt tree (fitting.placement.surface_tree, built once per
+    rest mesh) returns exactly what a query that builds its own returns, one point or many."""
+    from body.lbs import rest_state
+    from fitting import placement as P
+
+    rest = rest_state(anny, np.zeros(1)).vertices[0]
+    faces = np.asarray(anny.faces)
+    rng = np.random.default_rng(3)
+    pts = rest[rng.integers(0, len(rest), 40)] + rng.normal(0, 0.03, (40, 3))
+    tree = P.surface_tree(rest, faces)
+    for q in (pts, pts[7:8]):
+        for a, b in zip(P.project_to_surface(rest, faces, q), P.project_to_surface(rest, faces, q, tree),
+                        strict=True):
+            np.testing.assert_array_equal(a, b)
+    f, bary, off = P.project_to_surface(rest, faces, pts, tree)
+    surf = np.einsum("mk,mkd->md", bary, rest[faces[f]])
+    assert np.all(np.abs(off) <= np.linalg.norm(pts - surf, axis=1) + 1e-12)
+
+
 @pytest.fixture(scope="module")
 def hard_fit(anny):
     from bench import fitting_synth as S
