@@ -334,7 +334,7 @@ def run(work: Path) -> dict[str, float]:
             (work / "sequences.json").write_text(json.dumps(per_seq, indent=1))
             out.update(_figures(pooled, "partner_fit."))
             out["partner_fit.fps_per_core"] = float(fitted / max(cpu, 1e-9))
-            out["partner_fit.stride"] = float(stride)
+            out["partner_fit.stride"] = float(stride())
         out.update(_figures(pooled, f"{TABLE_PREFIX}{name}."))
     return out
 
