@@ -168,3 +168,21 @@ def test_vertex_jacobian_vs_finite_differences(anny):
     # without the bind-rotation part the beta columns are measurably wrong (Anny)
     J0 = shape.vertex_jacobian(m, rest, skel, x, vids, S)
     assert np.abs(J0[:, :, :S] - fd[:, :, :S]).max() > 1e-3
+
+
+def test_bind_jacobian_closed_form_matches_central_differences(anny):
+    """The polar factor's closed-form derivative against central differences of
+    ``bind_rotations`` on every beta of Anny, at a shape far from the mean."""
+    from body.lbs import bind_rotations, pad_betas
+    from fitting import shape
+
+    m = anny
+    S = m.num_betas
+    b = pad_betas(m, np.random.default_rng(1).normal(0, 1.0, S))
+    dA = shape.bind_jacobian(m, b[0], S)
+    assert dA.shape == (m.num_joints, 3, 3, S)
+    eps = 1e-6
+    E = np.eye(S) * eps
+    fd = np.moveaxis((bind_rotations(m, b + E) - bind_rotations(m, b - E)) / (2 * eps), 0, -1)
+    assert np.abs(fd).max() > 1e-2  # the bind rotations do move with the shape
+    np.testing.assert_allclose(dA, fd, atol=1e-7)
