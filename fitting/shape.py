@@ -179,16 +179,11 @@ def bind_jacobian(model: BodyModel, betas: np.ndarray, S: int):
     return np.einsum("jab,jscb->jacs", np.asarray(model.ref_orient, float), dR)
 
 
-def vertex_jacobian(model: BodyModel, rest, skel: skinned.FitSkeleton, x: np.ndarray,
-                    vids: np.ndarray, S: int, dA: np.ndarray | None = None) -> np.ndarray:
-    """d vertices[vids] / d [betas[:S], x]: (len(vids), 3, S + n).
-
-    Betas: analytic through the rest vertices, rest joints and offsets, plus the bind
-    rotations through ``dA = bind_jacobian(...)`` (J, 3, 3, S) when given (Anny's reference
-    posture changes with the shape: ignoring it lets the pose absorb shape); x: forward
-    differences with the rest state fixed (``FD_STEP``)."""
-    from scipy import sparse
-
+def _joint_terms(model: BodyModel, rest, skel: skinned.FitSkeleton, x: np.ndarray, S: int,
+                 dA: np.ndarray | None):
+    """The posed frames at x and the joints' part of d vertex / d betas[:S]: (G (J, 3, 3),
+    GA = G A (J, 3, 3), the rest joints h (J, 3), c (J, 3, S)) with a vertex's betas
+    derivative sum_j w_vj (G_j A_j shapedirs_v + c_j) (+ the bind rotations' part)."""
     from body.lbs import forward_kinematics
 
     pose = np.zeros((1, model.num_joints, 3))
@@ -214,7 +209,23 @@ def vertex_jacobian(model: BodyModel, rest, skel: skinned.FitSkeleton, x: np.nda
     for j in range(1, J):
         dt[j] = dt[par[j]] + G[par[j]] @ do[j]
     GA = G @ A
-    c = dt - np.einsum("jab,jbs->jas", GA, dh)  # (J, 3, S)
+    return G, GA, h, dt - np.einsum("jab,jbs->jas", GA, dh)
+
+
+def vertex_jacobian(model: BodyModel, rest, skel: skinned.FitSkeleton, x: np.ndarray,
+                    vids: np.ndarray, S: int, dA: np.ndarray | None = None) -> np.ndarray:
+    """d vertices[vids] / d [betas[:S], x]: (len(vids), 3, S + n).
+
+    Betas: analytic through the rest vertices, rest joints and offsets, plus the bind
+    rotations through ``dA = bind_jacobian(...)`` (J, 3, 3, S) when given (Anny's reference
+    posture changes with the shape: ignoring it lets the pose absorb shape); x: forward
+    differences with the rest state fixed (``FD_STEP``). The scan fit projects it onto its
+    rows without forming it (:func:`residual_jacobian`); this per-vertex form is that one's
+    peer in the tests."""
+    from scipy import sparse
+
+    G, GA, h, c = _joint_terms(model, rest, skel, x, S, dA)
+    J = model.num_joints
     W = model.weights[vids]  # (n_v, J) sparse
     Mv = (W @ GA.reshape(J, 9)).reshape(-1, 3, 3)
     sd = np.asarray(model.shapedirs[vids, :, :S], dtype=float)
@@ -234,6 +245,57 @@ def vertex_jacobian(model: BodyModel, rest, skel: skinned.FitSkeleton, x: np.nda
         e[k] = FD_STEP
         jx[:, :, k] = (_posed_vertices(model, skel, None, x + e, rest=rest)[vids] - v0) / FD_STEP
     return np.concatenate([jb, jx], axis=2)
+
+
+def residual_jacobian(model: BodyModel, rest, skel: skinned.FitSkeleton, x: np.ndarray,
+                      rows: np.ndarray, verts: np.ndarray, vecs: np.ndarray, n_rows: int, S: int,
+                      dA: np.ndarray | None = None) -> np.ndarray:
+    """d r / d [betas[:S], x]: (n_rows, S + n) for residuals linear in the posed vertices,
+    r_i = sum over m with rows[m] = i of vecs[m] . vertex[verts[m]] (+ constants): the scan
+    fit's point-to-plane rows (barycentric weight x normal per face corner).
+
+    The same derivative as ``B @`` :func:`vertex_jacobian` (B the sparse row operator), without
+    the (vertices, 3, S + n) array: each of its terms is projected onto the rows first, so the
+    shape directions, the joint terms and the bind rotations enter as sparse-by-dense products
+    and the pose's forward differences as differences of r."""
+    from scipy import sparse
+
+    G, GA, h, c = _joint_terms(model, rest, skel, x, S, dA)
+    J, V = model.num_joints, model.num_vertices
+    rows, verts, vecs = np.asarray(rows), np.asarray(verts), np.asarray(vecs, float)
+    # the rest vertices through the shape directions: vecs^T (W GA)_v shapedirs_v
+    W = model.weights
+    Mv = (W[verts] @ GA.reshape(J, 9)).reshape(-1, 3, 3)
+    vb = np.einsum("ma,mab->mb", vecs, Mv)
+    B1 = sparse.csr_matrix((vb.reshape(-1), (np.repeat(rows, 3),
+                                             (3 * verts[:, None] + np.arange(3)).reshape(-1))),
+                           shape=(n_rows, 3 * V))
+    jb = B1 @ np.asarray(model.shapedirs, float).reshape(3 * V, -1)[:, :S]
+    # the joints (and bind rotations) through the skinning weights: each row's nonzero w_vj
+    Wm = W[verts].tocoo()  # row k of Wm = block m
+    mr, mj, mw = rows[Wm.row], Wm.col, Wm.data
+    B2 = sparse.csr_matrix(((mw[:, None] * vecs[Wm.row]).reshape(-1),
+                            (np.repeat(mr, 3), (3 * mj[:, None] + np.arange(3)).reshape(-1))),
+                           shape=(n_rows, 3 * J))
+    jb += B2 @ c.reshape(3 * J, S)
+    if dA is not None:  # sum_j w_vj vecs . G_j dA_j (v_c - h_j)
+        GdA = np.einsum("jab,jbcs->jcas", G, dA).reshape(9 * J, S)  # rows (j, c, a)
+        lever = rest.vertices[0, verts[Wm.row]] - h[mj]  # (k, 3)
+        val = mw[:, None, None] * lever[:, :, None] * vecs[Wm.row][:, None, :]  # (k, c, a)
+        B3 = sparse.csr_matrix((val.reshape(-1), (np.repeat(mr, 9), (9 * mj[:, None]
+                                                                      + np.arange(9)).reshape(-1))),
+                               shape=(n_rows, 9 * J))
+        jb += B3 @ GdA
+    B = sparse.csr_matrix((vecs.reshape(-1), (np.repeat(rows, 3),
+                                               (3 * verts[:, None] + np.arange(3)).reshape(-1))),
+                          shape=(n_rows, 3 * V))
+    r0 = B @ _posed_vertices(model, skel, None, x, rest=rest).reshape(-1)
+    jx = np.empty((n_rows, len(x)))
+    for k in range(len(x)):
+        e = np.zeros_like(x)
+        e[k] = FD_STEP
+        jx[:, k] = (B @ _posed_vertices(model, skel, None, x + e, rest=rest).reshape(-1) - r0) / FD_STEP
+    return np.concatenate([jb, jx], axis=1)
 
 
 def _scan_residuals(model, skel, b, x, rest, corr):
@@ -325,13 +387,12 @@ def fit_scan(model: BodyModel, points: np.ndarray, normals: np.ndarray | None,
         N = len(r)
         w = robust.weight(r * r, "geman_mcclure", opts.sigma_m) / N
         # Jacobian of the residuals through the vertices they touch
-        vids = np.unique(np.concatenate([faces[cf].reshape(-1), vsel]))
-        pos = np.full(len(v), -1)
-        pos[vids] = np.arange(len(vids))
-        Jv = vertex_jacobian(model, rest, skel, x, vids, S, bind_jacobian(model, betas, S))
-        J1 = np.einsum("ik,id,ikdz->iz", cb, cn, Jv[pos[faces[cf]]])
-        J2 = np.einsum("id,idz->iz", q_n, Jv[pos[vsel]])
-        Jr = np.concatenate([J1, J2])
+        n1 = len(cf)
+        rows = np.concatenate([np.repeat(np.arange(n1), 3), n1 + np.arange(len(vsel))])
+        verts = np.concatenate([faces[cf].reshape(-1), vsel])
+        vecs = np.concatenate([(cb[:, :, None] * cn[:, None, :]).reshape(-1, 3), q_n])
+        Jr = residual_jacobian(model, rest, skel, x, rows, verts, vecs, len(r), S,
+                               bind_jacobian(model, betas, S))
         z = np.concatenate([betas, x])
         H = (Jr * w[:, None]).T @ Jr + np.diag(prior_w)
         g = (Jr * w[:, None]).T @ r + prior_w * z

@@ -168,6 +168,17 @@ def test_vertex_jacobian_vs_finite_differences(anny):
     # without the bind-rotation part the beta columns are measurably wrong (Anny)
     J0 = shape.vertex_jacobian(m, rest, skel, x, vids, S)
     assert np.abs(J0[:, :, :S] - fd[:, :, :S]).max() > 1e-3
+    # the scan fit's rows (weighted sums of vertices) projected term by term: B @ Jv
+    n_rows = 40
+    rows = rng.integers(0, n_rows, 3 * n_rows)
+    pick = rng.integers(0, len(vids), 3 * n_rows)
+    vecs = rng.normal(0, 1, (3 * n_rows, 3))
+    Jr = shape.residual_jacobian(m, rest, skel, x, rows, vids[pick], vecs, n_rows, S,
+                                 shape.bind_jacobian(m, b, S))
+    want = np.zeros((n_rows, Jv.shape[2]))
+    np.add.at(want, rows, np.einsum("ma,maz->mz", vecs, Jv[pick]))
+    np.testing.assert_allclose(Jr[:, :S], want[:, :S], atol=1e-10)
+    np.testing.assert_allclose(Jr[:, S:], want[:, S:], atol=1e-8)
 
 
 def test_bind_jacobian_closed_form_matches_central_differences(anny):
