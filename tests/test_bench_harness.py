@@ -76,3 +76,21 @@ def test_partner_fit_ablation_rows_asked_for():
     with pytest.raises(ValueError, match="no_L_x"):
         P.variants_to_run("no_L_x")
     assert set(P.ROWS) == set(P.VARIANTS)
+
+
+def test_an_engine_run_that_fails_is_raised_or_returned_with_its_log(tmp_path):
+    """bench.cases._engine.run_engine: a failed run raises naming what ran (check) or returns
+    its exit code (the real case records a failed capture and goes on); the log is kept."""
+    import pytest
+
+    from bench.cases._engine import run_engine
+
+    args = ["sequence", "s/a", "--recipe", str(tmp_path / "missing.yaml"), "--outputs",
+            str(tmp_path / "out")]
+    log = tmp_path / "run.log"
+    with pytest.raises(RuntimeError, match="the missing recipe"):
+        run_engine(args, "the missing recipe", log_file=log)
+    assert "missing.yaml" in log.read_text()
+    log.unlink()
+    rc = run_engine(args, "the missing recipe", log_file=log, check=False)
+    assert rc != 0 and "missing.yaml" in log.read_text()
