@@ -109,6 +109,9 @@ BYSTANDER_PX = 80.0
 # 7 of 8 classes, penetration p95 36.8 -> 21.0 mm, for ~1.7x the fit's CPU; on the demo
 # (stride 1, 100 frames) 33.2 -> 32.8
 TEMPORAL_PASSES = 1
+# LM rounds of a temporal re-solve: the frame starts at its forward solution, whose hooks'
+# points it re-finds once (the forward pass's later rounds found them already)
+TEMPORAL_ROUNDS = 1
 # a joint of a valid frame is ground truth where keypoints moving with it were used in this
 # many views (one view leaves its depth to the model: Push's right wrist seen by one view
 # 45 px off, the other views' detections gated or a bystander's, was fitted 180-280 mm off)
@@ -160,7 +163,8 @@ class PartnerFitOptions:
     more CPU; the detections that held the fit off were not hidden ones); temporal_passes : after the forward pass (each
     frame warm-started from and tied by L_s to the previous one), sweeps backwards over the
     sequence re-solving each frame tied to both its neighbours (0: none; ``TEMPORAL_PASSES``,
-    the reason beside it)."""
+    the reason beside it); temporal_rounds : outer rounds of such a re-solve
+    (``TEMPORAL_ROUNDS``)."""
 
     weights: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_WEIGHTS))
     sigma_keypoint_px: float = 20.0
@@ -186,6 +190,7 @@ class PartnerFitOptions:
     hand_gate_px: float = HAND_GATE_PX
     occlusion: bool = False
     temporal_passes: int = TEMPORAL_PASSES
+    temporal_rounds: int = TEMPORAL_ROUNDS
     bystander_px: float = BYSTANDER_PX
 
     def __post_init__(self):
@@ -211,7 +216,7 @@ class PartnerFitOptions:
         for name, lo in (("min_keypoints", 1), ("min_views", 2), ("max_iters", 1),
                          ("first_iters", 1), ("outer_rounds", 1), ("reinit_after", 0),
                          ("ground_k", 1), ("proxy_vertices", 100), ("contact_facets_n", 1),
-                         ("temporal_passes", 0)):
+                         ("temporal_passes", 0), ("temporal_rounds", 1)):
             if getattr(self, name) < lo:
                 problems.append(f"{name}: must be >= {lo}, got {getattr(self, name)}")
         if self.max_frames is not None and self.max_frames < 1:
@@ -662,12 +667,13 @@ class PartnerSolver:
         return out
 
     def solve(self, x0, uv, conf, frame: int, x_prev=None, first=False, s_scale=1.0,
-              extra=True):
+              extra=True, rounds_max=None):
         """One frame: uv (C, K, 2) pixels, conf (C, K) (0 = missing). Rounds of LM; before
         each the hooks choose the offending points, which LM then evaluates exactly
         (:class:`Augmented`). ``L_s`` ties x to ``x_prev`` at ``s_scale`` times its weight (the
         temporal pass: 2 x the neighbours' mean = the sum over both neighbours, up to a
-        constant); extra=False: L_2d and the priors alone, one round. Returns (LMResult, the
+        constant); extra=False: L_2d and the priors alone, one round; rounds_max: at most this
+        many rounds (default ``outer_rounds``). Returns (LMResult, the
         blocks of the last round (their terms are reported at the solution; the hooks are
         not called again after it), rounds)."""
         self.reproj.set_observations(uv, conf)
@@ -679,7 +685,8 @@ class PartnerSolver:
         res, rounds = None, 0
         extra = extra and bool(self.extra)
         blocks = self.blocks(x, frame) if (extra and not first) else []
-        for k in range(self.opts.outer_rounds if extra else 1):
+        n_rounds = (self.opts.outer_rounds if rounds_max is None else rounds_max) if extra else 1
+        for k in range(n_rounds):
             if k > 0 and not blocks:
                 break
             fun, scale = self.reproj, self.row_scale
@@ -694,7 +701,7 @@ class PartnerSolver:
                                                  else self.opts.max_iters, ftol=self.opts.ftol))
                 x = res.x
             rounds += 1
-            if extra and k + 1 < self.opts.outer_rounds:  # the next round's points
+            if k + 1 < n_rounds:  # the next round's points
                 blocks = self.blocks(x, frame)
         return res, blocks, rounds
 
@@ -1047,7 +1054,7 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
     det = (conf[:, :, :N_BODY] > 0).sum((1, 2))
     views = (conf[:, :, :N_BODY] > 0).any(2).sum(1)
     enough = (det >= opts.min_keypoints) & (views >= opts.min_views)
-    x_prev, miss, first_fit, inits, iters = None, 0, None, 0, []
+    x_prev, miss, first_fit, inits, iters, rounds, t_rounds = None, 0, None, 0, [], [], []
     from threadpoolctl import threadpool_limits
 
     it = range(F) if progress is None else progress(range(F), total=F, desc="partner_fit")
@@ -1098,7 +1105,8 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
                 if gate:  # the hands that are not that body's hands left out
                     cf, gated[f] = gate_hands(cams, slots(res.x), uvf, cf, opts.hand_gate_px)
                 x0, first = res.x, False
-            res, blocks, _ = solver.solve(x0, uvf, cf, f, None if start else x_prev, first=first)
+            res, blocks, nr = solver.solve(x0, uvf, cf, f, None if start else x_prev, first=first)
+            rounds.append(nr)
             if opts.check_views:  # and against this frame's own solution
                 vc = check_views(cams, slots(res.x), uvf, cf, flipK, other, far_px=opts.bystander_px)
                 if vc.changed:
@@ -1121,8 +1129,10 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
                     if not active[f, 0] or not nb:
                         continue
                     ref = np.mean(nb, axis=0)
-                    res, blocks, _ = solver.solve(X[f], uv[f], conf[f], f, ref, s_scale=len(nb))
+                    res, blocks, nr = solver.solve(X[f], uv[f], conf[f], f, ref, s_scale=len(nb),
+                                                   rounds_max=opts.temporal_rounds)
                     iters.append(res.iterations)
+                    t_rounds.append(nr)
                     record(f, rewrap(res.x), blocks, ref, len(nb))
             for f in range(1, F):  # a held frame holds its predecessor's final pose
                 if not active[f, 0] and reason[f] == REASON_CODE["too_few_keypoints"]:
@@ -1154,6 +1164,9 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
         "extra_hooks_s": round(body.hook_s, 3),
         "fps": round(n_fit / max(t_fit, 1e-9), 2),
         "mean_iterations": float(np.mean(iters)) if iters else 0.0,
+        # LM rounds per frame (hooks re-run between them): forward pass, temporal pass
+        "mean_rounds": float(np.mean(rounds)) if rounds else 0.0,
+        "mean_rounds_temporal": float(np.mean(t_rounds)) if t_rounds else 0.0,
         "contact_frames": 0 if contact is None or not contact.has_contact else int(np.count_nonzero(
             (frames >= contact.interval[0]) & (frames <= contact.interval[1]))),
         "contact_terms": {**contact_info, **_too_far(extra, frames)},

@@ -54,7 +54,7 @@ class Options(PartnerFitOptions):
     sequences whose keypoints the stage detected itself, not precomputed ones), then fit again
     on the merged keypoints; pose_min_conf / hand_min_conf : its mediapipe thresholds;
     first_fit : the fit before the second pass, whose only use is to place its crops:
-    "light" (``LIGHT_FIRST_FIT``: without the temporal pass and the two costliest hooks,
+    "light" (``LIGHT_FIRST_FIT``: one round per frame, without the temporal pass and the two costliest hooks,
     ``L_sc`` and ``L_sil``; the final fit is always the full one, also when the pass improved
     no view) or "full" (the final fit's options: when the pass improves no view, the first
     fit is kept as the final one).
@@ -83,7 +83,7 @@ class Options(PartnerFitOptions):
 
 #: what the light first fit leaves out (``Options.first_fit``): the second pass needs only
 #: where the partner projects (crops of a few hundred pixels), not its last millimetres
-LIGHT_FIRST_FIT = {"temporal_passes": 0, "weights": {"L_sc": 0.0, "L_sil": 0.0}}
+LIGHT_FIRST_FIT = {"temporal_passes": 0, "outer_rounds": 1, "weights": {"L_sc": 0.0, "L_sil": 0.0}}
 
 
 def first_fit_options(o: Options) -> Options:
@@ -93,6 +93,7 @@ def first_fit_options(o: Options) -> Options:
     if o.first_fit == "full":
         return o
     return dataclasses.replace(o, temporal_passes=LIGHT_FIRST_FIT["temporal_passes"],
+                               outer_rounds=LIGHT_FIRST_FIT["outer_rounds"],
                                weights={**o.weights, **LIGHT_FIRST_FIT["weights"]})
 
 

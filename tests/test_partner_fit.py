@@ -230,6 +230,17 @@ def test_interpenetration_term_pushes_the_partner_out_of_the_wearer(scene):
                       for f in range(F)])
     assert rep["frames_with"]["L_ic"] >= 1
     assert np.all(depth < truth_depth) and depth.mean() < 0.5 * truth_depth.mean(), (depth, truth_depth)
+    # the temporal pass re-solves in temporal_rounds rounds (1), the forward pass in
+    # outer_rounds (3: L_ic finds points in every frame here); three temporal rounds also end
+    # out of the wearer
+    assert rep["mean_rounds"] == 3 and rep["mean_rounds_temporal"] == 1, rep
+    fit3, rep3 = _fit(scene, scene.kp, wearer=wearer,
+                      opts={"weights": {"L_ic": 1e4}, "temporal_rounds": 3})
+    assert rep3["mean_rounds_temporal"] == 3
+    _, est3 = _joint_err_mm(scene, fit3)
+    depth3 = np.array([interpenetration(est3.vertices[f], WV[f], scene.model.faces).depth
+                       for f in range(F)])
+    assert np.all(depth3 < truth_depth) and depth3.mean() < 0.5 * truth_depth.mean()
 
 
 def _contact_json(rmap, regions=(("l_palm", "r_palm"),), start=2, end=4, fr=3):
@@ -564,17 +575,18 @@ def test_a_limb_seen_in_one_view_is_not_ground_truth(scene):
     assert rep["joints_observed"]["per_joint"]["r_wrist"] == pytest.approx(2 / F_SYN, abs=1e-3)
 
 
-def test_the_light_first_fit_leaves_out_only_the_temporal_pass_and_the_costly_hooks():
+def test_the_light_first_fit_leaves_out_only_the_temporal_pass_rounds_and_costly_hooks():
     """The fit that places the second pass's crops (stages.partner_fit.first_fit_options):
-    "light" drops the temporal pass, L_sc and L_sil and keeps every other option and weight
-    as given; "full" is the final fit's options; anything else is refused."""
+    "light" drops the temporal pass, the outer rounds after the first, L_sc and L_sil and
+    keeps every other option and weight as given; "full" is the final fit's options; anything
+    else is refused."""
     import dataclasses
 
     from stages.partner_fit import LIGHT_FIRST_FIT, Options, first_fit_options
 
-    o = Options(weights={"L_ic": 5e3}, temporal_passes=2, max_iters=7)
+    o = Options(weights={"L_ic": 5e3}, temporal_passes=2, max_iters=7, outer_rounds=4)
     light = first_fit_options(o)
-    assert light.temporal_passes == 0 and light.max_iters == 7
+    assert light.temporal_passes == 0 and light.max_iters == 7 and light.outer_rounds == 1
     assert light.weights["L_sc"] == 0 and light.weights["L_sil"] == 0
     kept = {k: v for k, v in o.weights.items() if k not in LIGHT_FIRST_FIT["weights"]}
     assert kept and all(light.weights[k] == v for k, v in kept.items())
@@ -583,4 +595,3 @@ def test_the_light_first_fit_leaves_out_only_the_temporal_pass_and_the_costly_ho
     assert first_fit_options(full) is full
     with pytest.raises(ValueError, match="first_fit"):
         Options(first_fit="half")
-
