@@ -38,6 +38,7 @@ WRISTS = (IDX["l_wrist"], IDX["r_wrist"])
 MIN_HAND_KP = 5  # a hand with fewer confident keypoints is missing
 RATE_BODY_KP = 12  # detection_rates: a body counts as detected with this many of 23
 RATE_CONF = 0.2  # ... keypoints at least this confident (the partner fit's min_conf)
+N_BODY = len(range(layout.N)[layout.BODY])  # the body keypoints of KP65
 
 
 @dataclass
@@ -141,20 +142,23 @@ def refine_partner(source: FrameSource, factory: DetectorFactory, frames: np.nda
                 continue
             redone[c, i] = True
             first = out[c, i]
-            cand, _ = _find_wearer(img, hints, det, o, c, fr, True)
             new = first.copy()
-            if _n_body(cand, conf) > _n_body(first, conf) and not _is_wearer(
-                    cand, projected[c, i], kp[c, i, 0], conf):
-                new[layout.BODY] = cand[layout.BODY]
-                improved[c, i] = True
+            # only what can be bettered is detected again (the detector runs on stills, so a
+            # call left out changes no other): a body with every keypoint cannot be replaced
+            # by one with more, a hand the first pass found is kept
+            if _n_body(first, conf) < N_BODY:
+                cand, _ = _find_wearer(img, hints, det, o, c, fr, True)
+                if _n_body(cand, conf) > _n_body(first, conf) and not _is_wearer(
+                        cand, projected[c, i], kp[c, i, 0], conf):
+                    new[layout.BODY] = cand[layout.BODY]
+                    improved[c, i] = True
             if o.hands:
                 before = new.copy()
-                _hands(img, new, hints.hand_boxes, hints.wrists, det, o, c, fr,
+                found = [(before[sl, 2] >= conf).sum() >= MIN_HAND_KP for sl in layout.HANDS]
+                boxes = np.where(np.array(found)[:, None], np.nan, hints.hand_boxes)
+                _hands(img, new, boxes, hints.wrists, det, o, c, fr,
                        avoid=kp[c, i, 0], avoid_wrists=kp[c, i, 0, list(WRISTS), :2],
                        radius=o.near_frac * float(hints.box[3] - hints.box[1]))
-                for sl in layout.HANDS:  # keep what the first pass found for a hand
-                    if (before[sl, 2] >= conf).sum() >= 5:
-                        new[sl] = before[sl]
                 improved[c, i] |= not np.array_equal(new, before)
             out[c, i] = new
     finally:

@@ -77,3 +77,23 @@ def test_detection_rates_count_bodies_and_hands():
     kp[0, layout.HANDS[1], 2] = 0.0  # the right hand missing in the first
     r = detection_rates(kp)
     assert r == {"body": 0.5, "hands": 0.25}  # left 1/2, right 0/2
+
+
+def test_only_what_can_be_bettered_is_detected_again():
+    """A view with the partner's whole body and its left hand but not its right: the body and
+    the left hand cannot be bettered, so the pass spends one hand call (the right hand's crop)
+    and no body call, and finds the right hand."""
+    w, p, truth, img = _scene(partner_at=(420.0, 210.0))
+    kp = _first_pass(w)
+    kp[0, 0, 1] = p
+    kp[0, 0, 1, layout.HANDS[1]] = 0.0
+    proj = p[:, :2][None, None]
+    need = views_to_redo(kp[:, :, 1], proj, SHAPE)
+    assert need.all()
+    r = refine_partner(ArraySource(img, (0,)), Painted(truth, (0,)), np.array([0]), kp, proj,
+                       proj.copy(), need)
+    assert r.calls.get("body", 0) == 0 and r.calls["hands"] == 1, r.calls
+    got = r.kp[0, 0]
+    assert r.improved.all() and (got[layout.HANDS[1], 2] > 0.5).sum() >= 5
+    np.testing.assert_array_equal(got[layout.BODY], p[layout.BODY].astype(np.float32))
+    np.testing.assert_array_equal(got[layout.HANDS[0]], p[layout.HANDS[0]].astype(np.float32))
