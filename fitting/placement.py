@@ -455,8 +455,7 @@ def slides_and_offsets(model, betas, pl: Placement, template: Placement):
 def _markers_at(model, skel, betas, pl, X):
     rest = rest_state(model, betas)
     u, _ = skinned.reduced_offsets(model, rest, skel)
-    Hm = marker_coeffs(model, rest, skel, pl)
-    return np.stack([Hm.positions(skel, u, x) for x in X])
+    return marker_coeffs(model, rest, skel, pl).positions(skel, u, X)  # all frames at once
 
 
 def _markers_and_jacobian(skel, u, Hm, x, sub):

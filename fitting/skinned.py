@@ -110,33 +110,36 @@ def vertex_coeffs(model: BodyModel, rest: RestState, skel: FitSkeleton, weights:
     A = rest.bind_rot[0] if rest.bind_rot is not None else None
     H = np.zeros((W.shape[0], len(skel.joints), 4))
     Wc = W.tocoo()
-    for i, j, w in zip(Wc.row, Wc.col, Wc.data, strict=True):
-        d = pts[i] - h[j]
-        if A is not None:
-            d = A[j] @ d
-        q = skel.owner[j]
-        H[i, q, :3] += w * (d + s[j])
-        H[i, q, 3] += w
+    i, j, w = Wc.row, Wc.col, Wc.data
+    d = pts[i] - h[j]
+    if A is not None:
+        d = np.einsum("nab,nb->na", A[j], d)
+    q = np.asarray(skel.owner)[j]
+    np.add.at(H, (i, q), np.concatenate([w[:, None] * (d + s[j]), w[:, None]], axis=1))
     return H
 
 
 def slot_positions_np(skel: FitSkeleton, u: np.ndarray, H: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """numpy twin of the graph: world positions (S, 3) of slots ``H (S, Q, 4)`` at unknowns x."""
+    """numpy twin of the graph: world positions (..., S, 3) of slots ``H (S, Q, 4)`` at
+    unknowns x (..., n) (leading axes: frames)."""
     G, t = _fk_np(skel, u, x)
-    return np.einsum("qab,sqb->sa", G, H[..., :3]) + np.einsum("qa,sq->sa", t, H[..., 3])
+    return np.einsum("...qab,sqb->...sa", G, H[..., :3]) + np.einsum("...qa,sq->...sa", t, H[..., 3])
 
 
 def _fk_np(skel: FitSkeleton, u: np.ndarray, x: np.ndarray):
+    """(G (..., Q, 3, 3), t (..., Q, 3)): the fit joints' world frames at unknowns x (..., n)."""
+    x = np.asarray(x, dtype=float)
+    lead = x.shape[:-1]
     Q = len(skel.joints)
-    D = rodrigues(np.asarray(x[6:], dtype=float).reshape(Q - 1, 3))
-    G = np.zeros((Q, 3, 3))
-    t = np.zeros((Q, 3))
-    G[0] = rodrigues(np.asarray(x[:3], dtype=float))
-    t[0] = u[0] + x[3:6]
+    D = rodrigues(x[..., 6:].reshape(lead + (Q - 1, 3)))
+    G = np.zeros(lead + (Q, 3, 3))
+    t = np.zeros(lead + (Q, 3))
+    G[..., 0, :, :] = rodrigues(x[..., :3])
+    t[..., 0, :] = u[0] + x[..., 3:6]
     for i in range(1, Q):
         p = skel.parents[i]
-        G[i] = G[p] @ D[i - 1]
-        t[i] = t[p] + G[p] @ u[i]
+        G[..., i, :, :] = G[..., p, :, :] @ D[..., i - 1, :, :]
+        t[..., i, :] = t[..., p, :] + G[..., p, :, :] @ u[i]
     return G, t
 
 
@@ -452,12 +455,15 @@ class SkinnedPoints:
         return len(self.corners)
 
     def corner_positions(self, skel: FitSkeleton, u: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """(N, 3, 3) posed corners at unknowns x (numpy twin of :func:`corners_cs`)."""
+        """(..., N, 3, 3) posed corners at unknowns x (..., n) (numpy twin of
+        :func:`corners_cs`)."""
         N, _, Q, _ = self.corners.shape
-        return slot_positions_np(skel, u, self.corners.reshape(3 * N, Q, 4), x).reshape(N, 3, 3)
+        return slot_positions_np(skel, u, self.corners.reshape(3 * N, Q, 4), x).reshape(
+            np.shape(x)[:-1] + (N, 3, 3))
 
     def positions(self, skel: FitSkeleton, u: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """(N, 3) world positions at unknowns x (numpy twin of :func:`surface_points_cs`)."""
+        """(..., N, 3) world positions at unknowns x (..., n) (numpy twin of
+        :func:`surface_points_cs`)."""
         return points_on_corners(self.corner_positions(skel, u, x), self.bary, self.offset)
 
 

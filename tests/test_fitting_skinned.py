@@ -170,10 +170,14 @@ def test_surface_points_equal_forward_and_marker_positions():
                         rng.uniform(-0.01, 0.05, T))
     Hm = skinned.surface_coeffs(model, rest, skel, skinned.SurfacePoints(ms.faces, ms.bary,
                                                                           ms.offsets))
-    for _ in range(3):
-        x = rng.normal(0, 0.6, skel.n)
+    X, wants = rng.normal(0, 0.6, (3, skel.n)), []
+    for x in X:
         pose = np.zeros((1, model.num_joints, 3))
         pose[0, skel.joints[1:]] = x[6:].reshape(-1, 3)
         out = forward(model, betas, pose, rodrigues(x[:3])[None], x[3:6][None], rest=rest)
-        want = marker_positions(out.vertices[0], model.faces, ms)
-        np.testing.assert_allclose(Hm.positions(skel, u, x), want, atol=1e-12)
+        wants.append(marker_positions(out.vertices[0], model.faces, ms))
+        np.testing.assert_allclose(Hm.positions(skel, u, x), wants[-1], atol=1e-12)
+    # frames batched on a leading axis: the same positions in one call
+    np.testing.assert_allclose(Hm.positions(skel, u, X), np.stack(wants), atol=1e-12)
+    np.testing.assert_allclose(Hm.positions(skel, u, X.reshape(3, 1, -1))[:, 0], np.stack(wants),
+                               atol=1e-12)
