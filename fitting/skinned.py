@@ -123,7 +123,10 @@ def slot_positions_np(skel: FitSkeleton, u: np.ndarray, H: np.ndarray, x: np.nda
     """numpy twin of the graph: world positions (..., S, 3) of slots ``H (S, Q, 4)`` at
     unknowns x (..., n) (leading axes: frames)."""
     G, t = _fk_np(skel, u, x)
-    return np.einsum("...qab,sqb->...sa", G, H[..., :3]) + np.einsum("...qa,sq->...sa", t, H[..., 3])
+    S, Q = H.shape[:2]
+    Gr = np.swapaxes(G, -3, -2).reshape(G.shape[:-3] + (3, 3 * Q))  # [..., a, (q, b)]
+    out = Gr @ H[..., :3].reshape(S, 3 * Q).T + np.swapaxes(t, -1, -2) @ H[..., 3].T
+    return np.swapaxes(out, -1, -2)  # two matrix products (an einsum here was ~10x slower)
 
 
 def _fk_np(skel: FitSkeleton, u: np.ndarray, x: np.ndarray):
