@@ -71,10 +71,7 @@ def bind_rotations(model: BodyModel, betas: np.ndarray) -> np.ndarray | None:
     """A_j(betas) (B, J, 3, 3) for models with bind-rotation data (Anny), else None."""
     if model.orient_template is None:
         return None
-    b = np.atleast_2d(np.asarray(betas, dtype=float))
-    n = int(np.max(np.flatnonzero(np.any(b != 0, axis=0)), initial=-1)) + 1  # skip trailing 0s
-    M = model.orient_template[None] + np.einsum("jxys,bs->bjxy", model.orient_shapedirs[..., :n],
-                                                b[:, :n])
+    M = model.orient_template[None] + np.einsum("jxys,bs->bjxy", model.orient_shapedirs, betas)
     return model.ref_orient[None] @ np.swapaxes(special_procrustes(M), -1, -2)
 
 
