@@ -84,11 +84,10 @@ def project_to_surface(rest_vertices: np.ndarray, faces: np.ndarray, points: np.
     import igl
 
     if tree is None:
-        _, fidx, closest = igl.point_mesh_squared_distance(points, rest_vertices, faces)
-    else:
-        _, fidx, closest = tree.squared_distance(
-            np.ascontiguousarray(rest_vertices, float), np.ascontiguousarray(faces, np.int64),
-            np.ascontiguousarray(points, float).reshape(-1, 3))
+        tree = surface_tree(rest_vertices, faces)
+    _, fidx, closest = tree.squared_distance(
+        np.ascontiguousarray(rest_vertices, float), np.ascontiguousarray(faces, np.int64),
+        np.ascontiguousarray(points, float).reshape(-1, 3))
     fidx = np.asarray(fidx, dtype=np.int64)
     tri = rest_vertices[faces[fidx]]
     bary = igl.barycentric_coordinates(closest, tri[:, 0].copy(), tri[:, 1].copy(), tri[:, 2].copy())

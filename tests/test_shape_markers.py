@@ -62,9 +62,12 @@ def _v2v(model, b1, b2) -> float:
     return float(np.linalg.norm((a - a.mean(0)) - (b - b.mean(0)), axis=1).mean() * 1000)
 
 
-def test_a_surface_tree_projects_as_a_fresh_query_does(anny):
-    """project_to_surface with a prebuilt tree (fitting.placement.surface_tree, built once per
-    rest mesh) returns exactly what a query that builds its own returns, one point or many."""
+def test_a_surface_tree_projects_as_libigls_own_query_does(anny):
+    """project_to_surface (one libigl AABB tree per rest mesh, fitting.placement.surface_tree,
+    built once or per call) finds the faces and closest points that libigl's one-off query
+    (igl.point_mesh_squared_distance, the peer) finds, one point or many."""
+    import igl
+
     from body.lbs import rest_state
     from fitting import placement as P
 
@@ -74,12 +77,13 @@ def test_a_surface_tree_projects_as_a_fresh_query_does(anny):
     pts = rest[rng.integers(0, len(rest), 40)] + rng.normal(0, 0.03, (40, 3))
     tree = P.surface_tree(rest, faces)
     for q in (pts, pts[7:8]):
-        for a, b in zip(P.project_to_surface(rest, faces, q), P.project_to_surface(rest, faces, q, tree),
-                        strict=True):
-            np.testing.assert_array_equal(a, b)
-    f, bary, off = P.project_to_surface(rest, faces, pts, tree)
-    surf = np.einsum("mk,mkd->md", bary, rest[faces[f]])
-    assert np.all(np.abs(off) <= np.linalg.norm(pts - surf, axis=1) + 1e-12)
+        _, want_f, want_c = igl.point_mesh_squared_distance(q, rest, faces)
+        for t in (None, tree):
+            f, bary, off = P.project_to_surface(rest, faces, q, t)
+            np.testing.assert_array_equal(f, want_f)
+            surf = np.einsum("mk,mkd->md", bary, rest[faces[f]])
+            np.testing.assert_allclose(surf, want_c, atol=1e-9)
+            assert np.all(np.abs(off) <= np.linalg.norm(q - surf, axis=1) + 1e-12)
 
 
 @pytest.fixture(scope="module")
