@@ -50,7 +50,9 @@ LIMITS = {
         "the machine, not the scheduling: the workers are busy ~95% of the run "
         "(dask.busy_fraction_2w), but each fit runs ~25% slower when two run at once "
         "(dask.task_slowdown_2w; the two vCPUs were shared with other jobs, dask.loadavg_1m); "
-        "and eight tasks of unequal length (8-12 s) leave one worker idle at the end."),
+        "and eight tasks of unequal length (8-12 s) leave one worker idle at the end. The "
+        "figure moves between runs of the same code on this machine (1.45, 1.68 and 2.09 in "
+        "session 17): read one run's value against dask.task_slowdown_2w, not alone."),
     "dask.overhead_s_per_task": (
         "a task's round trip client -> scheduler -> worker -> client, plus the worker-side "
         "lock, manifest and fsync that the serial run pays too."),
