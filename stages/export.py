@@ -15,7 +15,10 @@ wearer, person 1 = the partner; P = 1 on a sequence without partner):
   when not: ``artifacts.INVALID_REASONS`` of the fit; else ``qa:<reason>`` where the stage
   ``qa`` flagged the frame for a reason of the option ``withhold`` (the reasons that mean the
   fit is wrong, ``qa.constants.FIT_WRONG`` by default: :func:`qa_withheld`; a ``<person>.``
-  metric withholds that person, a pair metric both); else ``not_converted`` where convert
+  metric withholds that person, a pair metric both, except that with ``trust_markers`` the
+  reasons ``qa.constants.MARKER_FIT_SPARED`` (cross-view reprojection, interpenetration,
+  contact) spare the marker-fitted wearer when the partner is fitted from the video: they
+  fall on the video fit); else ``not_converted`` where convert
   marks the SMPL-X frame not valid. Every file's arrays are dense (frames that are not valid
   are written too): the mask says which are ground truth;
 - ``interaction_contact_signature.json``: this action's entry with the signature in every
@@ -69,10 +72,16 @@ class Options:
     withhold : QA reasons (``qa.metrics.QAOptions`` threshold names, ``qa.metrics.REASON_KINDS``)
     for which a frame the stage ``qa`` flags is published not valid (reason ``qa:<name>``) for
     the person the metric is about (both people for the pair metrics); default
-    ``DEFAULT_WITHHOLD``; empty: QA withholds nothing."""
+    ``DEFAULT_WITHHOLD``; empty: QA withholds nothing.
+    trust_markers : a person fitted to markers (the wearer) is not withheld for the reasons
+    ``qa.constants.MARKER_FIT_SPARED`` (cross-view reprojection, interpenetration, contact)
+    when the other person is fitted from the video alone: those fall on the video fit (its
+    own marker reasons judge the wearer's fit). False: every reason withholds everyone it is
+    about."""
 
     contact_regions: str | None = None
     withhold: tuple[str, ...] = DEFAULT_WITHHOLD
+    trust_markers: bool = True
 
     def __post_init__(self):
         from qa.metrics import REASON_KINDS
@@ -124,7 +133,7 @@ def frame_index(fit_frames, frames, file, who: str) -> np.ndarray:
     return idx
 
 
-def qa_withheld(qa, frames, roles, withhold) -> np.ndarray:
+def qa_withheld(qa, frames, roles, withhold, marker_fitted=()) -> np.ndarray:
     """(P, F) str: per exported person (``roles``: ``"wearer"`` / ``"partner"`` in person
     order) and frame (``frames``: video frame indices) the QA reason it is withheld for,
     ``"qa:<name>"`` (``formats.release.QA_REASON_PREFIX``), or ``""``. ``qa``: the sequence's
@@ -132,7 +141,10 @@ def qa_withheld(qa, frames, roles, withhold) -> np.ndarray:
     flagged reason (a metric name) counts when its threshold name
     (``qa.metrics.threshold_name``) is in ``withhold``, for the people it is about
     (``qa.metrics.reason_people``: a ``<person>.`` metric that person, the others both). Of
-    several, the first in ``withhold``'s order. Frames QA did not measure are not withheld."""
+    several, the first in ``withhold``'s order. Frames QA did not measure are not withheld.
+    ``marker_fitted``: the roles fitted to markers; when another person is not, the reasons
+    ``qa.constants.MARKER_FIT_SPARED`` (cross-view reprojection, the pair reasons) withhold
+    only the video-fitted people (option ``trust_markers``)."""
     from formats.release import QA_REASON_PREFIX
     from qa.metrics import reason_people, threshold_name
 
@@ -145,6 +157,7 @@ def qa_withheld(qa, frames, roles, withhold) -> np.ndarray:
         else np.zeros(len(frames), bool)
     flagged = np.asarray(m.flagged, bool)
     reasons = [str(r) for r in m.reasons]
+    spared = set(marker_fitted) if set(roles) - set(marker_fitted) else set()
     for kind in reversed(tuple(withhold)):  # the first in withhold's order is written last
         for c, r in enumerate(reasons):
             if threshold_name(r) != kind:
@@ -152,9 +165,17 @@ def qa_withheld(qa, frames, roles, withhold) -> np.ndarray:
             hit = np.zeros(len(frames), bool)
             hit[ok] = flagged[rows[ok], c]
             for p, role in enumerate(roles):
+                if role in spared and kind in QK.MARKER_FIT_SPARED:
+                    continue
                 if role in reason_people(r):
                     out[p, hit] = QA_REASON_PREFIX + kind
     return out.astype(str)
+
+
+def marker_fitted(fits, roles) -> tuple[str, ...]:
+    """The roles whose ``artifacts.BodyFit`` was fitted to markers (it carries marker names)."""
+    return tuple(r for f, r in zip(fits, roles, strict=True)
+                 if getattr(f, "marker_names", None) is not None and len(f.marker_names))
 
 
 def validity(fits_valid, fits_reason, converted=None, withheld=None) -> tuple[np.ndarray, np.ndarray]:
@@ -299,7 +320,9 @@ def run(ctx: StageContext) -> None:
     withheld = withhold = None
     if qa_art is not None:
         withhold = o.withhold
-        withheld = qa_withheld(QAResult.load(qa_art), frames, ["wearer", "partner"][:P], withhold)
+        withheld = qa_withheld(QAResult.load(qa_art), frames, ["wearer", "partner"][:P], withhold,
+                               marker_fitted(fits, ["wearer", "partner"][:P]) if o.trust_markers
+                               else ())
     else:
         absent["qa"] = "no qa artifact: no frame withheld for a QA flag"
     valid, reason = validity([f.valid[i] for f, i in zip(fits, idx, strict=True)],

@@ -87,6 +87,40 @@ def test_pair_reasons_withhold_both_and_the_fit_reason_comes_first():
     assert (qa_withheld(qa, np.array([11, 13]), ["wearer"], DEFAULT_WITHHOLD) == "").all()
 
 
+def test_a_marker_fitted_wearer_is_withheld_by_its_own_reasons_not_the_video_fits():
+    """trust_markers: the pair reasons and the cross-view reprojection fall on the person
+    fitted from the video; the wearer's marker reasons and its other fit reasons still hold it
+    back; with no video-fitted person (or trust_markers off) every reason withholds as before."""
+    from types import SimpleNamespace as NS
+
+    from qa import constants as K
+    from stages.export import DEFAULT_WITHHOLD, Options, marker_fitted, qa_withheld
+
+    frames = np.arange(6)
+    qa = _metrics(frames, ["penetration_mm", "wearer.reproj_views_body_px",
+                           "wearer.marker_max_mm", "wearer.self_penetration_mm",
+                           "partner.reproj_views_body_px"],
+                  {"penetration_mm": [1], "wearer.reproj_views_body_px": [2],
+                   "wearer.marker_max_mm": [3], "wearer.self_penetration_mm": [4],
+                   "partner.reproj_views_body_px": [5]})
+    roles = ["wearer", "partner"]
+    fits = [NS(marker_names=np.array(["LFHD", "RFHD"])), NS(marker_names=None)]
+    assert marker_fitted(fits, roles) == ("wearer",)
+    held = qa_withheld(qa, frames, roles, DEFAULT_WITHHOLD, marker_fitted(fits, roles))
+    assert held[0].tolist() == ["", "", "", "qa:marker_max_mm", "qa:self_penetration_mm", ""]
+    assert held[1].tolist() == ["", "qa:penetration_mm", "", "", "", "qa:reproj_views_body_px"]
+    # the old rule: everyone a reason is about
+    old = qa_withheld(qa, frames, roles, DEFAULT_WITHHOLD)
+    assert old[0].tolist() == ["", "qa:penetration_mm", "qa:reproj_views_body_px",
+                               "qa:marker_max_mm", "qa:self_penetration_mm", ""]
+    assert (old[1] == held[1]).all()
+    # nobody fitted from the video alone: nothing is spared
+    assert (qa_withheld(qa, frames, roles, DEFAULT_WITHHOLD, ("wearer", "partner")) == old).all()
+    assert Options().trust_markers and not Options(trust_markers=False).trust_markers
+    assert set(K.MARKER_FIT_SPARED) <= set(K.FIT_WRONG)
+    assert not {"marker_max_mm", "marker_median_mm"} & set(K.MARKER_FIT_SPARED)
+
+
 def test_every_qa_reason_is_classified_once_with_why():
     import dataclasses as dc
 
