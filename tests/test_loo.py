@@ -116,7 +116,8 @@ def test_fast_refits_match_refitting_the_sequence_per_marker(anny, capture):
     own previous frame moved by the full fit's motion) gives the per-marker errors of calling
     ``fit_markers`` once per held marker (``reference=True``) once the reference has settled,
     a misplaced marker (a large held-out error) included: the same frames scored and, from
-    the 10th fitted frame on, every error within 0.01 mm (measured: 0.005 mm at most). Before,
+    the 10th fitted frame on, every error within 0.05 mm (measured: 0.015 mm at most with
+    ``REFIT_FTOL`` 3e-4, 0.005 mm with 1e-6). Before,
     the reference is still in its start-up transient (its refit's first frame is searched from
     the initial pose: LTHI 35-37 mm worse in the first two frames, settling over ~8 frames),
     and the default path is not worse there."""
@@ -129,7 +130,7 @@ def test_fast_refits_match_refitting_the_sequence_per_marker(anny, capture):
         new = leave_one_out(anny, sf, tpl, m, clock, np.arange(F), held=HELD, stride=2)
         a, b = ref["error_mm"], new["error_mm"]
         assert np.array_equal(np.isnan(a), np.isnan(b)) and a.shape == (F // 2, len(HELD))
-        assert np.nanmax(np.abs(a[10:] - b[10:])) < 0.01, np.abs(a - b)
+        assert np.nanmax(np.abs(a[10:] - b[10:])) < 0.05, np.abs(a - b)
         assert np.nanmean(b[:10]) <= np.nanmean(a[:10])
         assert new["fps_per_cpu_s"] == pytest.approx(F / new["cpu_s"])
     wrong = _moved(anny, tpl, WRONG, 0.03)[0]

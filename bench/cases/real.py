@@ -54,8 +54,10 @@ LIMITS = {"marker_loo.fps_per_core": (
     "each refit started from its own previous frame moved as the full fit moved; about 1 "
     "CPU-s per call builds the compiled graph. Starting the refits from the full fit's pose "
     "was measured and rejected: that pose saw the held-out marker (pyCGM LANK 39 -> 19 mm), "
-    "so the figure would flatter the fit. Measured outside the bench (helper run, loaded "
-    "machine): pyCGM 51-55, demo Push 46-47 frames per CPU-s at stride 2")}
+    "so the figure would flatter the fit. A refit stops below a relative cost decrease of "
+    "REFIT_FTOL = 3e-4 (1e-6 before: half the speed, medians within 0.02 mm; a looser 1e-3 "
+    "drifts the figure towards the full fit's: fitting/loo.py, _Refits). The fast serves (ktk, "
+    "ktk2) are the slowest: their refits move most between strided frames")}
 for _t in TAGS.values():
     GOALS.update({f"real.{_t}.residual_median_mm": ("<=", 2.5),
                   f"real.{_t}.residual_p90_mm": ("<=", 6.0),
