@@ -178,6 +178,14 @@ def marker_fitted(fits, roles) -> tuple[str, ...]:
                  if getattr(f, "marker_names", None) is not None and len(f.marker_names))
 
 
+def withheld_by_qa(qa, frames, fits, roles, o: "Options") -> np.ndarray:
+    """:func:`qa_withheld` under the export options ``o`` (its ``withhold`` reasons; with
+    ``trust_markers``, the marker-fitted people of ``fits`` spared the video fit's reasons):
+    the rule the export applies, and the one the bench's qa case counts published frames by."""
+    return qa_withheld(qa, frames, roles, o.withhold,
+                       marker_fitted(fits, roles) if o.trust_markers else ())
+
+
 def validity(fits_valid, fits_reason, converted=None, withheld=None) -> tuple[np.ndarray, np.ndarray]:
     """(P, F) valid and reason names from each person's fit (``valid``, ``invalid_reason``
     codes at the exported frames), the QA reasons it is withheld for (``withheld`` (P, F) str,
@@ -320,9 +328,7 @@ def run(ctx: StageContext) -> None:
     withheld = withhold = None
     if qa_art is not None:
         withhold = o.withhold
-        withheld = qa_withheld(QAResult.load(qa_art), frames, ["wearer", "partner"][:P], withhold,
-                               marker_fitted(fits, ["wearer", "partner"][:P]) if o.trust_markers
-                               else ())
+        withheld = withheld_by_qa(QAResult.load(qa_art), frames, fits, ["wearer", "partner"][:P], o)
     else:
         absent["qa"] = "no qa artifact: no frame withheld for a QA flag"
     valid, reason = validity([f.valid[i] for f, i in zip(fits, idx, strict=True)],

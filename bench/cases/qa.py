@@ -233,13 +233,12 @@ def published(outputs: Path, session: str, unit: str, res, frames: np.ndarray, o
     ``stages.export.Options``; ``stages.export.qa_withheld`` and ``validity``, the export's own
     rules; the conversion's mask left out)."""
     from artifacts import BodyFit
-    from stages.export import marker_fitted, qa_withheld, validity
+    from stages.export import validity, withheld_by_qa
 
     fits = [BodyFit.load(outputs / session / unit / s) for s in ("marker_fit", "partner_fit")]
     ix = [np.searchsorted(f.frames, frames) for f in fits]
     roles = ["wearer", "partner"]
-    held = qa_withheld(res, frames, roles, opts.withhold,
-                       marker_fitted(fits, roles) if opts.trust_markers else ())
+    held = withheld_by_qa(res, frames, fits, roles, opts)
     valid, _ = validity([f.valid[i] for f, i in zip(fits, ix, strict=True)],
                         [f.invalid_reason[i] for f, i in zip(fits, ix, strict=True)], None, held)
     return valid
