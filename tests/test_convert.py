@@ -284,3 +284,27 @@ def test_surface_distance_matches_libigl_away_from_contact(anny, target_path, ta
     close = np.abs(walk - exact) < 1e-6
     assert close.mean() > 0.85, close.mean()
     assert (walk - exact).mean() < 2e-4
+
+
+def test_shape_blocks_match_their_einsum_and_cross_product_form():
+    """The betas' normal-equation blocks of the subject's rest fit
+    (``fitting.convert.shape_blocks``, matrix products) equal their definition written with
+    ``np.einsum`` and ``np.cross`` (the form the fit used before), on random inputs of the
+    rig's shapes, a rotation per joint and sparse per-joint parts."""
+    from body.rotations import rodrigues
+    from fitting.convert import shape_blocks
+
+    rng = np.random.default_rng(3)
+    K, N, Q = 10, 57, 7
+    G0 = rodrigues(rng.normal(size=(Q, 3)))
+    dc = rng.normal(size=(K, N, Q, 3))
+    p = rng.normal(size=(N, Q, 3)) * (rng.random((N, Q, 1)) < 0.3)
+    ws, r0 = rng.random(N), rng.normal(size=(N, 3))
+    B = np.einsum("qab,knqb->nak", G0, dc)
+    want = (np.einsum("nak,nal->kl", B, B),
+            np.cross(p[:, :, :, None], B[:, None, :, :], axis=2).sum(0),
+            np.einsum("n,nak->ak", ws, B), np.einsum("nak,na->k", B, r0))
+    got = shape_blocks(G0, dc, p, ws, r0)
+    for g, w in zip(got, want, strict=True):
+        assert g.shape == w.shape
+        np.testing.assert_allclose(g, w, rtol=1e-10, atol=1e-10)
