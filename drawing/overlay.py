@@ -439,7 +439,8 @@ def draw_overlays(cams: list[Camera], videos: list[Path], vertices: list[np.ndar
                   png_scale: float = 0.5, video_path: Path | None = None, video_frames=(),
                   video_fps: float = 25.0, video_scale: float = 0.25, webm: bool = True,
                   video_mesh: tuple[list[np.ndarray], np.ndarray] | None = None,
-                  colors=None, progress=None) -> tuple[dict[int, Path], Path | None]:
+                  colors=None, progress=None, feed: FrameFeed | None = None,
+                  feed_consumer: str = "overlay") -> tuple[dict[int, Path], Path | None]:
     """The QA overlays in one sequential pass over the videos, drawn by :func:`raster_people`:
     a PNG per frame of ``png_frames`` (``png_dir/overlay_<frame:06d>.png``, views at
     ``png_scale``, title ``titles[frame]``: what :func:`render_overlays` writes) and the video
@@ -448,7 +449,9 @@ def draw_overlays(cams: list[Camera], videos: list[Path], vertices: list[np.ndar
     frame is decoded once, each view drawn once per scale. vertices: per person (F, V', 3) of
     the mesh ``faces`` (e.g. a decimated one) on the QA frame axis, ``frame_index`` video
     frame -> row; a person whose row is not finite is left out; video_mesh : ``(vertices,
-    faces)`` of a coarser mesh for the video's smaller views (default the same). Returns
+    faces)`` of a coarser mesh for the video's smaller views (default the same); feed : the
+    frames from a :class:`FrameFeed` (as ``feed_consumer``; it must hold every frame drawn, at
+    ``png_scale`` and ``video_scale``) instead of reading ``videos`` here. Returns
     ``({frame: png}, video path or None)``."""
     png_frames = sorted({int(f) for f in png_frames})
     video_frames = [int(f) for f in video_frames]
@@ -476,9 +479,19 @@ def draw_overlays(cams: list[Camera], videos: list[Path], vertices: list[np.ndar
     want_png, want_video = set(png_frames), set(video_frames)
     pngs: dict[int, Path] = {}
     if not frames:
+        if feed is not None:
+            feed.done(feed_consumer)
         return pngs, None
-    readers = _open_videos(cams, videos)
-    vfps = readers[0].info.fps
+    if feed is not None:
+        for s in (png_scale,) * bool(png_frames) + (video_scale,) * bool(video_frames):
+            if float(s) not in feed.scales:
+                feed.done(feed_consumer)
+                raise ValueError(f"feed: keeps scales {feed.scales}, not {s}")
+        readers = []
+        vfps = feed.fps
+    else:
+        readers = _open_videos(cams, videos)
+        vfps = readers[0].info.fps
     out = _VideoOut(video_path, video_fps, webm) if video_frames else None
     try:
         it = frames if progress is None else progress(frames, total=len(frames), desc="overlays")
@@ -494,6 +507,8 @@ def draw_overlays(cams: list[Camera], videos: list[Path], vertices: list[np.ndar
                 people, outl = _people_at(vv, ff, rows[f], cols)
                 scene = RasterScene(people)
                 views = []
+                if feed is not None:
+                    images = feed.get(feed_consumer, f, s)  # already at the scale
                 for cam, img in zip(cams, images, strict=True):
                     size = scaled_size(cam, s)
                     small = img if size == (img.shape[1], img.shape[0]) else _resize(img, size)
@@ -510,6 +525,8 @@ def draw_overlays(cams: list[Camera], videos: list[Path], vertices: list[np.ndar
     finally:
         for rd in readers:
             rd.close()
+        if feed is not None:
+            feed.done(feed_consumer)
         if out is not None:
             out.close()
     return pngs, (Path(video_path) if video_frames else None)
@@ -520,3 +537,128 @@ def _resize(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
     interp = cv2.INTER_AREA if size[0] < img.shape[1] else cv2.INTER_LINEAR
     return cv2.resize(img, size, interpolation=interp)
+
+
+class FrameFeed:
+    """The video frames the QA drawings need, each decoded once: a thread reads ``frames``
+    (ascending) of every view in order (one :class:`formats.video.VideoReader` per camera,
+    padded to the calibration's size, reading on from where it stopped: no seek per frame) and
+    keeps each at every one of ``scales`` (``scaled_size``, ``cv2.INTER_AREA`` from the full
+    frame: what :func:`draw_overlays` and ``formats.foxglove_scene.write_scene`` do to it)
+    until every consumer has gone past it. The decoding runs beside the caller (OpenCV
+    releases the GIL while decoding and resizing), e.g. while the QA metrics are computed.
+
+    ``consumers``: the names of the readers, given up front; each takes frames in ascending
+    order with :meth:`get` (taking frame ``f`` releases its frames before ``f``) and says
+    :meth:`done` when it needs no more. At most ``ahead`` frames are held: a consumer that
+    falls behind holds the decoding back (so every consumer must run: one that runs only after
+    another has finished must not be one of them). A decoding error comes out of :meth:`get`.
+    :meth:`close` stops the thread and closes the videos."""
+
+    def __init__(self, cams: list[Camera], videos: list[Path], frames, scales, consumers,
+                 ahead: int = 32):
+        import threading
+
+        if len(videos) != len(cams):
+            raise ValueError(f"videos: {len(videos)} for {len(cams)} cameras")
+        if ahead < 1:
+            raise ValueError(f"ahead: expected >= 1, got {ahead}")
+        self.cams = list(cams)
+        self.frames = sorted({int(f) for f in frames})
+        self.scales = sorted({float(s) for s in scales})
+        if not self.scales or not all(s > 0 for s in self.scales):
+            raise ValueError(f"scales: expected values > 0, got {scales}")
+        self.ahead = int(ahead)
+        self._cursor = {str(c): -1 for c in consumers}
+        self._store: dict[int, dict[float, list[np.ndarray]]] = {}
+        self._cond = threading.Condition()
+        self._error: BaseException | None = None
+        self._finished = False
+        self._stop = False
+        self._readers = _open_videos(cams, videos)
+        self.fps = self._readers[0].info.fps  # the first view's (titles of the video)
+        self._thread = threading.Thread(target=self._run, name="qa-frames", daemon=True)
+        self._thread.start()
+
+    def _low(self) -> float:
+        return min(self._cursor.values(), default=math.inf)
+
+    def _release(self) -> None:  # under the lock
+        low = self._low()
+        for f in [f for f in self._store if f < low]:
+            del self._store[f]
+        self._cond.notify_all()
+
+    def _run(self) -> None:
+        try:
+            for f in self.frames:
+                with self._cond:
+                    while not self._stop and len(self._store) >= self.ahead:
+                        self._cond.wait()
+                    if self._stop or f < self._low():  # stopped, or nobody needs it any more
+                        if self._stop or self._low() == math.inf:
+                            return
+                        continue
+                imgs = [rd[f] for rd in self._readers]
+                scaled = {}
+                for s in self.scales:
+                    scaled[s] = [img if scaled_size(cam, s) == (img.shape[1], img.shape[0])
+                                 else _resize(img, scaled_size(cam, s))
+                                 for cam, img in zip(self.cams, imgs, strict=True)]
+                with self._cond:
+                    self._store[f] = scaled
+                    self._cond.notify_all()
+        except BaseException as e:  # noqa: BLE001 - handed to the consumers
+            with self._cond:
+                self._error = e
+        finally:
+            with self._cond:
+                self._finished = True
+                self._cond.notify_all()
+
+    def get(self, consumer: str, frame: int, scale: float) -> list[np.ndarray]:
+        """Frame ``frame`` of every view at ``scale`` (one of the feed's; (h, w, 3) uint8 RGB,
+        ``(w, h) = scaled_size(cam, scale)``), waiting for it to be decoded. Frames before it
+        are released for ``consumer``. The arrays are shared: do not write into them."""
+        frame, scale = int(frame), float(scale)
+        if scale not in self.scales:
+            raise ValueError(f"scale {scale}: the feed keeps {self.scales}")
+        with self._cond:
+            if consumer not in self._cursor:
+                raise ValueError(f"consumer {consumer!r}: not one of {list(self._cursor)}")
+            if frame < self._cursor[consumer]:
+                raise ValueError(f"{consumer}: frame {frame} after frame {self._cursor[consumer]} "
+                                 "(frames are taken in ascending order)")
+            self._cursor[consumer] = frame
+            self._release()
+            while frame not in self._store:
+                if self._error is not None:
+                    raise self._error
+                if self._finished or self._stop:
+                    raise ValueError(f"frame {frame}: not one of the feed's frames")
+                self._cond.wait()
+            return self._store[frame][scale]
+
+    def done(self, consumer: str) -> None:
+        """``consumer`` needs no more frames."""
+        with self._cond:
+            if consumer in self._cursor:
+                self._cursor[consumer] = math.inf
+                self._release()
+
+    def close(self) -> None:
+        """Stop the decoding thread, close the videos, drop the frames."""
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        self._thread.join()
+        for rd in self._readers:
+            rd.close()
+        self._readers = []
+        self._store.clear()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

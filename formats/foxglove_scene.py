@@ -276,7 +276,8 @@ def write_scene(path: Path, fps: float, frames: np.ndarray, meshes: list[MeshTra
     vertices + faces (pass decimated meshes, :func:`decimate_for_scene`, to keep the file
     small); cameras: their transforms and calibrations; markers: (F, M, 3) NaN = gap, with
     optional marker_names (M,); points3d: {name: (F, K, 3)} NaN = none; images: {camera name:
-    callable(video frame index) -> (H, W, 3) uint8 RGB of the camera's full size, or None};
+    callable(video frame index) -> (H, W, 3) uint8 RGB of the camera's full size (or already
+    resized to ``image_scale``: ``scaled_intrinsics``' size, ``cv2.INTER_AREA``), or None};
     metrics: {name: (F,)} NaN = null; flags: (F,) bool.
 
     Returns ``{"topics": {topic: message count}, "bytes": file size, "frames": F}``.
@@ -410,9 +411,11 @@ def write_scene(path: Path, fps: float, frames: np.ndarray, meshes: list[MeshTra
                 if img is None:
                     continue
                 img = np.asarray(img)
-                if img.shape != (int(c.height), int(c.width), 3) or img.dtype != np.uint8:
+                if img.shape not in ((int(c.height), int(c.width), 3), (h2, w2, 3)) \
+                        or img.dtype != np.uint8:
                     raise InputError(path, f"images[{c.name}]", f"expected ({c.height}, {c.width}, 3) "
-                                     f"uint8 RGB, got {img.shape} {img.dtype}", frame=int(frames[j]))
+                                     f"uint8 RGB (or ({h2}, {w2}, 3): already at image_scale), got "
+                                     f"{img.shape} {img.dtype}", frame=int(frames[j]))
                 small = img if (w2, h2) == (img.shape[1], img.shape[0]) else cv2.resize(
                     img, (w2, h2), interpolation=cv2.INTER_AREA)
                 ok, buf = cv2.imencode(".jpg", cv2.cvtColor(small, cv2.COLOR_RGB2BGR),

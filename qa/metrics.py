@@ -820,10 +820,25 @@ def _proxy(model, ProxyMesh):
     return hit
 
 
-def _foot_vertices(model) -> list[np.ndarray]:
-    from body.regions import region_map
+_RMAPS: dict = {}  # model content digest -> its body.regions.region_map: one per model and process
 
-    rm = region_map(model)
+
+def qa_region_map(model):
+    """``body.regions.region_map(model)`` (~0.1 s), built once per model content in this
+    process (as :func:`_proxy`: each sequence's stage loads the model anew)."""
+    key = _model_digest(model)
+    hit = _RMAPS.get(key)
+    if hit is None:
+        from body.regions import region_map
+
+        hit = region_map(model)
+        _RMAPS.clear()  # keep one: the session's model
+        _RMAPS[key] = hit
+    return hit
+
+
+def _foot_vertices(model) -> list[np.ndarray]:
+    rm = qa_region_map(model)
     faces = np.asarray(model.faces)
     out = []
     for side in ("l", "r"):
@@ -890,17 +905,96 @@ PARALLEL_MIN_FRAMES = 48   # per worker: fewer frames run in one process (a work
                            # costs ~1-2 CPU-s of imports, about 10 frames of this pass)
 
 
+class _SelfPenetration:
+    """``fitting.collision.self_collisions(proxy, points).deepest`` (the same candidates, the
+    same kept faces per region, the same winding and nearest-point calls, so the same number
+    up to the summation order of the exact winding numbers), faster for the QA: the kept and
+    left-out faces of each region are found once per proxy, and the exact winding numbers of
+    every candidate against its region's left-out faces are summed in one vectorised pass over
+    the (point, face) pairs instead of one call per region; nothing but the depth is made."""
+
+    def __init__(self, proxy):
+        from fitting.collision import SELF_RINGS, _neighbours
+
+        if proxy.face_region is None or proxy.region_adjacency is None:
+            raise ValueError("proxy: built without regions")
+        self.proxy = proxy
+        self.faces = np.ascontiguousarray(proxy.faces, np.int64)
+        near_r = _neighbours(proxy.region_adjacency, SELF_RINGS)
+        fr = np.asarray(proxy.face_region)
+        self.far, self.rest = {}, {}
+        for r in np.unique(proxy.vertex_region[proxy.vertex_region >= 0]):
+            kept = (fr >= 0) & ~near_r[r][np.maximum(fr, 0)]
+            self.far[int(r)] = np.flatnonzero(kept)
+            self.rest[int(r)] = np.flatnonzero(~kept)
+
+    def __call__(self, points: np.ndarray) -> float:
+        """The deepest self-penetration (m) of the proxy points (P, 3), 0 when none."""
+        from fitting.collision import INSIDE_WINDING, SELF_CANDIDATE_WINDING
+        from geometry.queries import nearest_surface, winding_number
+
+        p = np.asarray(points, dtype=float)
+        proxy, faces = self.proxy, self.faces
+        if p.shape != (proxy.num_vertices, 3):
+            raise ValueError(f"points: expected ({proxy.num_vertices}, 3), got {p.shape}")
+        w_all = winding_number(p, p, faces)
+        vr = proxy.vertex_region
+        cand = np.flatnonzero((w_all > SELF_CANDIDATE_WINDING) & (vr >= 0))
+        if not len(cand):
+            return 0.0
+        groups = [(int(r), cand[vr[cand] == r]) for r in np.unique(vr[cand])]
+        groups = [(r, pts) for r, pts in groups if len(self.far[r])]
+        if not groups:
+            return 0.0
+        # the (candidate, left-out face) pairs of every region, one exact winding pass
+        qi = np.concatenate([np.repeat(np.arange(len(pts)) + sum(len(q) for _, q in groups[:k]),
+                                       len(self.rest[r])) for k, (r, pts) in enumerate(groups)])
+        fi = np.concatenate([np.tile(self.rest[r], len(pts)) for r, pts in groups])
+        allpts = np.concatenate([pts for _, pts in groups])
+        w_rest = np.zeros(len(allpts))
+        if len(fi):
+            q = p[allpts][qi]
+            f = faces[fi]
+            a, b, c = p[f[:, 0]] - q, p[f[:, 1]] - q, p[f[:, 2]] - q
+            la, lb, lc = (np.sqrt(np.einsum("nd,nd->n", x, x)) for x in (a, b, c))
+            bxc = np.stack([b[:, 1] * c[:, 2] - b[:, 2] * c[:, 1],
+                            b[:, 2] * c[:, 0] - b[:, 0] * c[:, 2],
+                            b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0]], 1)
+            det = np.einsum("nd,nd->n", a, bxc)
+            den = (la * lb * lc + np.einsum("nd,nd->n", a, b) * lc
+                   + np.einsum("nd,nd->n", b, c) * la + np.einsum("nd,nd->n", c, a) * lb)
+            w_rest = np.bincount(qi, np.arctan2(det, den), len(allpts)) / (2 * np.pi)
+        w_far = w_all[allpts] - w_rest
+        deepest, k = 0.0, 0
+        for r, pts in groups:
+            hit = pts[w_far[k:k + len(pts)] > INSIDE_WINDING]
+            k += len(pts)
+            if len(hit):
+                d = nearest_surface(p[hit], p, faces[self.far[r]]).distance
+                deepest = max(deepest, float(d.max()))
+        return deepest
+
+
+_SELF: dict = {}  # id(proxy) -> (proxy, its _SelfPenetration)
+
+
+def _self_penetration(proxy) -> _SelfPenetration:
+    hit = _SELF.get(id(proxy))
+    if hit is None or hit[0] is not proxy:
+        _SELF.clear()
+        hit = _SELF[id(proxy)] = (proxy, _SelfPenetration(proxy))
+    return hit[1]
+
+
 def _geometry_frames(g: dict, rows, verts, frames) -> list[tuple]:
     """Per frame: (row, self-penetration m per person, deepest interpenetration m, volume m^3,
     closest distance m, contact gap m; NaN = not measured). ``g`` the static part (proxy,
     faces, contact, sel, lo, hi); ``verts`` one (len(rows), V, 3) array per person and
     ``frames`` (len(rows),) the rows' frame numbers."""
-    from fitting.collision import self_collisions
-
+    selfpen = _self_penetration(g["proxy"])  # = fitting.collision.self_collisions(...).deepest
     out = []
     for k, i in enumerate(rows):
-        sp = [self_collisions(g["proxy"], g["proxy"].points(V[k].astype(float))).deepest
-              for V in verts]
+        sp = [selfpen(g["proxy"].points(V[k].astype(float))) for V in verts]
         pen = vol = near = gap = np.nan
         if len(verts) == 2:
             f = int(frames[k])
@@ -1000,10 +1094,22 @@ def marker_track(markers, clock):
     return track
 
 
+def qa_frames(wearer, partner) -> np.ndarray:
+    """(F,) int64 the QA frames (:func:`sequence_metrics`): the partner's frames that the
+    wearer's fit also has (all of them without a wearer), else the wearer's frames."""
+    if partner is not None:
+        frames = np.asarray(partner.frames)
+        if wearer is not None:
+            frames = frames[_rows(np.asarray(wearer.frames), frames) >= 0]
+    else:
+        frames = np.asarray(wearer.frames)
+    return frames.astype(np.int64)
+
+
 def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, fps: float,
                      opts: QAOptions = QAOptions(), progress=None,
                      repaired: np.ndarray | None = None, marker_track=None,
-                     workers: int = 1) -> QAMetrics:
+                     workers: int = 1, pool=None) -> QAMetrics:
     """Every per-frame metric of a sequence (module doc), with the thresholds they are flagged
     against.
 
@@ -1017,7 +1123,10 @@ def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, f
     ``marker_track(video frames float (n,)) -> (n, M, 3)`` the wearer's cleaned capture on the
     video clock (NaN = gap), which the sync check follows between fit frames; workers : the
     per-frame geometry (self-penetration, interpenetration, contact) in this many forked
-    processes (1: in this one; the numbers are the same). QA frames: the partner's frames that
+    processes (1: in this one; the numbers are the same); pool : an executor (e.g. a process
+    pool's, ``pipeline.procs.process_pool``) that runs the per-frame geometry as one task,
+    submitted as soon as the bodies are posed, while this process computes the other metrics,
+    unless ``workers`` would run it in several processes (the numbers are the same). QA frames: the partner's frames that
     the wearer's fit also has (all of them without a wearer), else the wearer's frames."""
     from fitting.collision import ProxyMesh
 
@@ -1025,13 +1134,7 @@ def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, f
         raise ValueError("sequence_metrics: no fit (wearer and partner are both None)")
     if not fps > 0:
         raise ValueError(f"fps: expected > 0, got {fps!r}")
-    if partner is not None:
-        frames = np.asarray(partner.frames)
-        if wearer is not None:
-            frames = frames[_rows(np.asarray(wearer.frames), frames) >= 0]
-    else:
-        frames = np.asarray(wearer.frames)
-    frames = frames.astype(np.int64)
+    frames = qa_frames(wearer, partner)
     F = len(frames)
     values: dict[str, np.ndarray] = {}
     units: dict[str, str] = {}
@@ -1040,7 +1143,7 @@ def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, f
     _POSED.clear()
     proxy = _proxy(model, ProxyMesh)
     feet = _foot_vertices(model) if ground is not None else []
-    verts, people = [], []
+    verts, people, posed = [], [], []
     seq["people"] = []
     for person, fit in fits:
         rows = _rows(np.asarray(fit.frames), frames)
@@ -1048,6 +1151,25 @@ def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, f
         _POSED[id(fit)] = (fit, rows, P3)
         verts.append(V)
         people.append(person)
+        posed.append((rows, V, P3))
+    # per frame geometry: self-penetration of each, and between the two (given to ``pool``
+    # now, when there is one)
+    geom = {"verts": verts, "proxy": proxy, "faces": np.asarray(model.faces), "frames": frames,
+            "contact": contact, "sel": [], "lo": None, "hi": None}
+    if len(verts) == 2:
+        if contact is not None and contact.has_contact:
+            rm = qa_region_map(model)
+            geom["sel"] = [(rm.faces_of(int(a)), rm.faces_of(int(b))) for a, b in contact.region_pairs]
+        if contact is not None:
+            geom["lo"] = contact.interval[0] - opts.contact_margin_frames
+            geom["hi"] = contact.interval[1] + opts.contact_margin_frames
+    pending = None
+    if pool is not None and min(int(workers), F // PARALLEL_MIN_FRAMES) <= 1:
+        # (enough frames for several workers: :func:`_geometry`'s own processes, below)
+        pending = pool.submit(_geometry_frames,
+                              {k: v for k, v in geom.items() if k not in ("verts", "frames")},
+                              np.arange(F), verts, frames)
+    for (person, fit), (rows, V, P3) in zip(fits, posed, strict=True):
         if person == "wearer" and fit.has_markers:
             _marker_metrics(fit, rows, values, units)
             if repaired is not None:
@@ -1068,26 +1190,18 @@ def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, f
             values[f"sync_offset_frames.{cam}"] = np.full(F, float(s))
             units[f"sync_offset_frames.{cam}"] = "frames"
     _POSED.clear()
-    # per frame geometry: self-penetration of each, and between the two
     pen = np.full(F, np.nan)
     vol = np.full(F, np.nan)
     gap = np.full(F, np.nan)
     unexp = np.full(F, np.nan)
-    geom = {"verts": verts, "proxy": proxy, "faces": np.asarray(model.faces), "frames": frames,
-            "contact": contact, "sel": [], "lo": None, "hi": None}
     if len(verts) == 2:
-        if contact is not None and contact.has_contact:
-            from body.regions import region_map
-
-            rm = region_map(model)
-            geom["sel"] = [(rm.faces_of(int(a)), rm.faces_of(int(b))) for a, b in contact.region_pairs]
         if contact is not None:
-            geom["lo"] = contact.interval[0] - opts.contact_margin_frames
-            geom["hi"] = contact.interval[1] + opts.contact_margin_frames
             seq["contact"] = {"interval": [int(x) for x in contact.interval],
                               "has_contact": bool(contact.has_contact),
                               "margin_frames": int(opts.contact_margin_frames)}
-    for i, sp, p, v, near, g in _geometry(geom, F, max(1, int(workers)), progress):
+    res = (pending.result() if pending is not None
+           else _geometry(geom, F, max(1, int(workers)), progress))
+    for i, sp, p, v, near, g in res:
         for person, d in zip(people, sp, strict=True):
             values[f"{person}.self_penetration_mm"][i] = d * 1000.0
         if len(verts) == 2:

@@ -147,12 +147,27 @@ def summary(m, flags) -> dict:
 
 # ------------------------------------------------------------------------------------- stage
 def run(ctx: StageContext) -> None:
+    import contextlib
+
+    # what _run starts beside itself (the video frames' decoding thread, the plot's worker
+    # process) is stopped when it ends, in any case
+    with contextlib.ExitStack() as beside:
+        _run(ctx, beside)
+
+
+def _run(ctx: StageContext, beside) -> None:
     from artifacts import BodyFit, QAMetrics, QAResult
     from artifacts.keypoints import Keypoints2D
     from artifacts.qa import QAFiles, QASpan, QASummary
-    from drawing.qa_plots import qa_plot
     from fitting.contact_signature import load_contact
-    from qa.metrics import capture_repairs, flag_frames, marker_track, sequence_metrics
+    from qa.metrics import (
+        capture_repairs,
+        flag_frames,
+        marker_track,
+        qa_frames,
+        qa_region_map,
+        sequence_metrics,
+    )
     from qa.report import write_sequence_report
 
     t_start, c_start = time.perf_counter(), _cpu_s()
@@ -168,7 +183,8 @@ def run(ctx: StageContext) -> None:
         action = ctx.unit.split("/", 1)[1]
         family = "smplx" if model.name == "smplx" else "anny"
         contact = load_contact(ctx.raw["contact"], action, model,
-                               common.video_length(videos)[0], family=family)  # the shortest
+                               common.video_length(videos)[0], family=family,  # the shortest
+                               rmap=qa_region_map(model))  # its default, built once per process
     people = common.fitted_people(ctx)  # markerless: both from partner_fit
     wearer = BodyFit.load(people[0][0])
     partner = BodyFit.load(people[1][0]) if len(people) > 1 else None
@@ -190,13 +206,35 @@ def run(ctx: StageContext) -> None:
                                    wearer.frames, clock)
     fps = float(clock.fps)
     qo = thresholds(o)
+    parallel = geometry_workers(ctx.cores) > 1
+    # a worker process when there is a second core, for the metrics' per-frame geometry (while
+    # this process computes the other metrics) and then the plot (libigl and matplotlib hold
+    # the GIL: in a thread they would take turns with the rest); spawned now, it imports
+    # what they need while this process reads the inputs
+    worker = None
+    if parallel:
+        from pipeline.procs import process_pool
+
+        worker = beside.enter_context(process_pool(1, initializer=_worker_init))
+        worker.submit(int, 0)  # start it now
+    # the video frames the overlays, the video and the scene's images show: decoded once, in a
+    # thread that starts now (beside the metrics), kept at the scales drawn
+    feed = None
+    scene_feed = parallel and o.scene and o.scene_images
+    if has_video and (o.video or scene_feed):
+        from drawing.overlay import FrameFeed
+
+        feed = FrameFeed(cams, videos, qa_frames(wearer, partner),
+                         {o.image_scale} | ({o.video_scale} if o.video else set()),
+                         ["overlay"] + (["scene"] if scene_feed else []))
+        beside.callback(feed.close)
 
     t0 = time.perf_counter()
     m = sequence_metrics(model, wearer, partner, keypoints, cams if has_video else [], contact,
                          ground, fps, qo, progress=ctx.progress, repaired=repaired,
                          marker_track=marker_track(markers, clock)
                          if has_video and markers is not None else None,
-                         workers=geometry_workers(ctx.cores))
+                         workers=geometry_workers(ctx.cores), pool=worker)
     flags = flag_frames(m, qo)
     metrics_s = time.perf_counter() - t0
     F = len(m.frames)
@@ -212,21 +250,30 @@ def run(ctx: StageContext) -> None:
             + (": " + ", ".join(sorted({r for s in flags.spans for r in s.reasons}))
                if flags.spans else ""))
 
-    # the plot and the 3D scene: in a thread beside the overlays when there is a second core
-    # (each writes its own files; the timings are measured where they run)
+    # the 3D scene and the plot: in a thread beside the overlays when there is a second core,
+    # the plot in its worker process (each writes its own files; the timings are measured
+    # where they run). The scene first: it takes its images from the feed while the overlays do.
+    plot_args = (out / "qa.png", np.asarray(m.frames), fps, m.values, m.units, m.thresholds,
+                 [(s.start, s.end, ", ".join(s.reasons)) for s in flags.spans],
+                 f"{ctx.unit}: {int(flags.any.sum())}/{F} frames flagged")
+    plot_future = worker.submit(_plot, *plot_args) if worker is not None else None
+
     def plot_and_scene():
-        t = time.perf_counter()
-        qa_plot(out / "qa.png", np.asarray(m.frames), fps, m.values, m.units, m.thresholds,
-                [(s.start, s.end, ", ".join(s.reasons)) for s in flags.spans],
-                f"{ctx.unit}: {int(flags.any.sum())}/{F} frames flagged")
         t_scene = time.perf_counter()
         scene = None
-        if o.scene and m.vertices:
-            scene = _write_scene(out / "scene.mcap", model, m, flags, cams, videos, has_video,
-                                 keypoints, markers, clock, fps, o)
-        return scene, t_scene - t, time.perf_counter() - t_scene
+        try:
+            if o.scene and m.vertices:
+                scene = _write_scene(out / "scene.mcap", model, m, flags, cams, videos,
+                                     has_video, keypoints, markers, clock, fps, o,
+                                     feed=feed if scene_feed else None)
+        finally:
+            if feed is not None:
+                feed.done("scene")
+        t = time.perf_counter()
+        plot_s = plot_future.result() if plot_future is not None else _plot(*plot_args)
+        return scene, plot_s, t - t_scene
 
-    side = _Beside(plot_and_scene, geometry_workers(ctx.cores) > 1)
+    side = _Beside(plot_and_scene, parallel)
     t1 = time.perf_counter()
 
     try:
@@ -251,14 +298,18 @@ def run(ctx: StageContext) -> None:
                 png_dir=out / "overlays", titles=titles, png_scale=o.image_scale,
                 video_path=out / "overlay.mp4", video_frames=[int(m.frames[i]) for i in pick],
                 video_fps=fps / step * (len(pick) / F if F else 1), video_scale=o.video_scale,
-                webm=True, video_mesh=(coarse[1], coarse[0]), progress=ctx.progress)
+                webm=True, video_mesh=(coarse[1], coarse[0]), progress=ctx.progress, feed=feed)
             rendered["overlays"] = len(images)
             rendered["video_frames"] = len(pick)
             rendered["overlay_faces_per_body"] = int(len(faces))
             rendered["video_faces_per_body"] = int(len(coarse[0]))
+        if feed is not None:
+            feed.done("overlay")  # nothing drawn (no mesh): the feed must not wait for it
         draw_s = time.perf_counter() - t1
 
         scene, plot_s, scene_s = side.result()
+        if worker is not None:  # done: reaped now, its CPU seconds count in the timing
+            worker.shutdown(wait=True)
     finally:
         side.close()
 
@@ -324,6 +375,28 @@ def run(ctx: StageContext) -> None:
                       span_frames=tuple(span_frames), sample_frames=tuple(sample_frames),
                       video="overlay.mp4" if (out / "overlay.mp4").exists() else None,
                       scene=scene["file"] if scene else None)).save(ctx.out)
+
+
+def _plot(*args) -> float:
+    """``drawing.qa_plots.qa_plot(*args)``; returns its wall seconds."""
+    from drawing.qa_plots import qa_plot
+
+    t = time.perf_counter()
+    qa_plot(*args)
+    return time.perf_counter() - t
+
+
+def _worker_init() -> None:
+    """The worker process's imports (the geometry's, the plot's), done on its start."""
+    import igl  # noqa: F401
+    import matplotlib.backends.backend_agg  # noqa: F401
+    import matplotlib.figure  # noqa: F401
+    import scipy.spatial  # noqa: F401
+
+    import drawing.qa_plots  # noqa: F401
+    import fitting.collision  # noqa: F401
+    import geometry.queries  # noqa: F401
+    import qa.metrics  # noqa: F401
 
 
 class _Beside:
@@ -430,9 +503,11 @@ def wearer_markers(ctx, videos):
 
 
 def _write_scene(path: Path, model, m, flags, cams, videos, has_video, keypoints, markers, clock,
-                 fps, o):
+                 fps, o, feed=None):
     """The Foxglove scene: decimated bodies, the wearer's markers at the QA frames, both
-    people's body keypoints triangulated, the cameras with their images, the metrics."""
+    people's body keypoints triangulated, the cameras with their images (from ``feed``, a
+    ``drawing.overlay.FrameFeed`` with the consumer ``scene`` and ``o.image_scale``, when
+    given; else read here), the metrics."""
     from calib.convert import convert_distortion
     from calib.geometry import triangulate
     from fitting.mocap import video_observations
@@ -464,7 +539,10 @@ def _write_scene(path: Path, model, m, flags, cams, videos, has_video, keypoints
                                 np.array([*cv.k[:2], *cv.p, cv.k[2]]), int(c.width), int(c.height)))
     images = None
     readers = []
-    if has_video and o.scene_images:
+    if has_video and o.scene_images and feed is not None:  # already at image_scale
+        images = {c.name: (lambda f, k=k: feed.get("scene", int(f), o.image_scale)[k])
+                  for k, c in enumerate(cams)}
+    elif has_video and o.scene_images:
         readers = [VideoReader(v, size=(c.width, c.height))  # padded to the calibration's
                    for v, c in zip(videos, cams, strict=True)]
         images = {c.name: (lambda f, r=r: r[int(f)]) for c, r in zip(cams, readers, strict=True)}

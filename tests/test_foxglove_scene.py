@@ -262,3 +262,21 @@ def test_decimate_anny_within_a_few_mm_and_on_budget():
     assert np.array_equal(ids2, np.arange(6)) and np.array_equal(f2, OCTA_FACES)
     with pytest.raises(InputError, match="faces"):
         decimate_for_scene(V, Fc + len(V))
+
+
+def test_images_given_at_the_scaled_size_are_written_as_the_full_ones(tmp_path):
+    """An image callable may hand the image already resized to ``image_scale`` (what the QA
+    stage's frame feed keeps): the file is byte for byte the one written from the full
+    images; another size is an InputError naming it."""
+    _cams, views = cameras()
+    w2, h2 = scaled_intrinsics(np.eye(3), W, H, 0.5)[1:]
+    rng = np.random.default_rng(4)
+    full = {f: rng.integers(0, 255, (H, W, 3), dtype=np.uint8) for f in FRAMES}
+    small = {f: cv2.resize(img, (w2, h2), interpolation=cv2.INTER_AREA) for f, img in full.items()}
+    a, b = tmp_path / "full.mcap", tmp_path / "small.mcap"
+    write_scene(a, FPS, FRAMES, [], views, images={"c0": full.__getitem__}, image_scale=0.5)
+    write_scene(b, FPS, FRAMES, [], views, images={"c0": small.__getitem__}, image_scale=0.5)
+    assert a.read_bytes() == b.read_bytes()
+    with pytest.raises(InputError, match=r"images\[c0\] \[frame 10\]: expected \(30, 40, 3\)"):
+        write_scene(tmp_path / "c.mcap", FPS, FRAMES, [], views,
+                    images={"c0": lambda f: np.zeros((h2 + 1, w2, 3), np.uint8)}, image_scale=0.5)

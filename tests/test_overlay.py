@@ -295,6 +295,109 @@ def test_draw_overlays_decodes_each_frame_once(tmp_path, monkeypatch):
     assert np.abs(cell[w, u].astype(int) - 110).max() <= 8  # not in the video: grey
 
 
+def _box_session(tmp_path, n=5):
+    """Four small cameras around a box moving along x, their videos (frame j grey 30 + 40 j)."""
+    import trimesh
+
+    from calib import look_at
+    from formats import video as FV
+
+    cams = [look_at(f"c{i}", [3 * np.cos(a), 3 * np.sin(a), 1.5], [0, 0, 1], (150, 150),
+                    (80, 60), 160, 120, k=(-0.2, 0.05, 0.0))
+            for i, a in enumerate(np.deg2rad([45, 135, 225, 315]))]
+    videos = [FV.write_mp4(tmp_path / f"v{c.name}.mp4",
+                           (np.full((120, 160, 3), 30 + 40 * j, np.uint8) for j in range(n)), 25.0)
+              for c in cams]
+    box = trimesh.creation.box((0.3, 0.3, 0.6))
+    verts = np.stack([box.vertices + [0.2 * i, 0, 1.0] for i in range(n)])
+    return cams, videos, verts, np.asarray(box.faces)
+
+
+def test_frame_feed_decodes_each_frame_once_for_every_consumer(tmp_path, monkeypatch):
+    """``FrameFeed``: each frame of each view decoded once, in increasing order, in its own
+    thread; every consumer gets it at each kept scale (the full frame resized as the
+    overlays resize it); a consumer that falls behind holds the decoding back (at most
+    ``ahead`` frames kept) until it takes its frames or says done; a frame the feed does not
+    hold, a scale it does not keep and a frame taken out of order are errors, and a decoding
+    error comes out of ``get``."""
+    import threading
+    import time
+
+    from drawing.overlay import FrameFeed, _resize, scaled_size
+    from formats import video as FV
+
+    cams, videos, _verts, _faces = _box_session(tmp_path, n=6)
+    reads = []
+    get = FV.VideoReader.__getitem__
+    monkeypatch.setattr(FV.VideoReader, "__getitem__", lambda self, i: reads.append(
+        (self.path.name, int(i), threading.get_ident())) or get(self, i))
+    with FrameFeed(cams, videos, [0, 1, 2, 3, 5], [0.5, 1.0], ["a", "b"], ahead=2) as feed:
+        full = feed.get("a", 1, 1.0)
+        half = feed.get("a", 1, 0.5)
+        assert [im.shape for im in full] == [(120, 160, 3)] * 4
+        with FV.VideoReader(videos[2]) as rd:
+            want = _resize(get(rd, 1), scaled_size(cams[2], 0.5))  # (not counted)
+        np.testing.assert_array_equal(half[2], want)
+        assert abs(int(full[0][5, 5, 0]) - 70) <= 6
+        time.sleep(0.3)  # "b" has not taken frame 0: two frames kept, the third not decoded
+        assert {i for _n, i, _t in reads} == {0, 1}
+        feed.get("b", 2, 0.5)  # "b" moves on: frames 0, 1 are released for both
+        for f in (2, 3):
+            assert abs(int(feed.get("a", f, 1.0)[3][5, 5, 0]) - (30 + 40 * f)) <= 6
+        feed.done("b")  # else "b" (at frame 2) would hold frame 5 back: 2 and 3 are kept
+        assert abs(int(feed.get("a", 5, 1.0)[3][5, 5, 0]) - 230) <= 6
+        with pytest.raises(ValueError, match="ascending"):
+            feed.get("a", 3, 1.0)
+        with pytest.raises(ValueError, match="scale 0.25"):
+            feed.get("a", 5, 0.25)
+    for v in videos:  # once each, in order, in one thread that is not this one
+        mine = [(i, t) for n, i, t in reads if n == v.name]
+        assert [i for i, _ in mine] == [0, 1, 2, 3, 5]
+        assert {t for _, t in mine} != {threading.get_ident()} and len({t for _, t in mine}) == 1
+    with FrameFeed(cams, videos, [1, 4], [1.0], ["a"]) as feed:
+        with pytest.raises(ValueError, match="frame 2: not one of the feed's frames"):
+            feed.get("a", 2, 1.0)
+    with FrameFeed(cams, videos, [1, 9], [1.0], ["a"]) as feed:  # 9: past the end
+        feed.get("a", 1, 1.0)
+        with pytest.raises(FV.InputError):
+            feed.get("a", 9, 1.0)
+
+
+def test_draw_overlays_from_a_frame_feed_draws_the_same_pictures(tmp_path):
+    """``draw_overlays`` given a ``FrameFeed`` (frames already at the PNG's and the video's
+    scales) writes the PNGs and the video it writes when it reads the videos itself."""
+    import cv2
+
+    from drawing.overlay import FrameFeed, draw_overlays
+    from formats import video as FV
+
+    cams, videos, verts, faces = _box_session(tmp_path)
+    out = {}
+    for how in ("read", "feed"):
+        feed = FrameFeed(cams, videos, range(5), [0.5, 0.25], ["overlay"]) if how == "feed" else None
+        try:
+            out[how] = draw_overlays(cams, videos, [verts], faces, {j: j for j in range(5)},
+                                     png_frames=[1, 3], png_dir=tmp_path / how, png_scale=0.5,
+                                     video_path=tmp_path / how / "o.mp4", video_frames=[0, 2, 3],
+                                     video_fps=10.0, video_scale=0.25, webm=False, feed=feed)
+        finally:
+            if feed is not None:
+                feed.close()
+    (pa, va), (pb, vb) = out["read"], out["feed"]
+    assert sorted(pa) == sorted(pb) == [1, 3]
+    for f in pa:
+        np.testing.assert_array_equal(cv2.imread(str(pa[f])), cv2.imread(str(pb[f])))
+    with FV.VideoReader(va) as ra, FV.VideoReader(vb) as rb:
+        assert len(ra) == len(rb) == 3
+        for i in range(3):
+            np.testing.assert_array_equal(ra[i], rb[i])
+    with pytest.raises(ValueError, match="keeps scales"):
+        with FrameFeed(cams, videos, range(5), [0.5], ["overlay"]) as feed:
+            draw_overlays(cams, videos, [verts], faces, {j: j for j in range(5)},
+                          video_path=tmp_path / "x.mp4", video_frames=[0], video_scale=0.25,
+                          feed=feed)
+
+
 def test_video_encoder_error_comes_out_of_close(tmp_path):
     """The overlay video is encoded in a thread: frames come out in order, and an encoder
     that fails makes ``close`` raise its error (not a silently short video)."""

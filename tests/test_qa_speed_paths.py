@@ -237,3 +237,69 @@ def test_grid_blocks_give_the_cells_of_testing_every_cell(anny):
             assert not QM._grid_inside(WB, G, n, np.zeros(len(G), bool)).any()
     finally:
         QM.GRID_BLOCK = old
+
+
+def test_self_penetration_is_the_deepest_of_self_collisions(anny):
+    """The QA's self-penetration (kept faces per region found once, the exact winding numbers
+    of all candidates in one pass) is ``fitting.collision.self_collisions(...).deepest``,
+    number for number, with an arm pushed into the own body (a depth > 0) and without."""
+    from body import forward
+    from fitting.collision import self_collisions
+
+    proxy = QM.body_proxy(anny)
+    sp = QM._self_penetration(proxy)
+    assert QM._self_penetration(proxy) is sp  # one per proxy
+    rng = np.random.default_rng(7)
+    depths = []
+    for k in range(4):
+        pose = rng.normal(0, 0.1, (1, anny.num_joints, 3))
+        if k >= 2:
+            pose[0, anny.joint_index("upperarm01.L")] = [0.0, 1.5, 0.0]  # into the torso
+        V = forward(anny, np.zeros(1), pose, np.eye(3)[None], np.zeros((1, 3))).vertices[0]
+        P = proxy.points(V)
+        want = self_collisions(proxy, P).deepest
+        assert sp(P) == want
+        depths.append(want)
+    assert depths[2] > 0.02 and depths[3] > 0.02
+
+
+def test_geometry_in_a_given_pool_gives_the_same_metrics(anny):
+    """``sequence_metrics(pool=...)``: the per-frame geometry runs as one task of the pool
+    (here a thread pool), submitted before the other metrics, with the values of the run
+    without it."""
+    import concurrent.futures as cf
+
+    from test_qa_metrics import _fit
+
+    F = 4
+    z0 = 1.0
+    wearer = _fit(anny, np.stack([np.zeros(F), np.zeros(F), np.full(F, z0)], 1))
+    pt = np.tile([1.45, 0.0, z0], (F, 1))
+    pt[1, 0] = 0.65  # the wearer's forearm in the partner's chest
+    partner = _fit(anny, pt)
+    a = QM.sequence_metrics(anny, wearer, partner, None, [], NoContact(), None, 25.0)
+    submitted = []
+
+    class Pool(cf.ThreadPoolExecutor):
+        def submit(self, fn, *args, **kw):
+            submitted.append(fn)
+            return super().submit(fn, *args, **kw)
+
+    with Pool(1) as pool:
+        b = QM.sequence_metrics(anny, wearer, partner, None, [], NoContact(), None, 25.0,
+                                pool=pool)
+    assert submitted == [QM._geometry_frames]
+    assert list(a.values) == list(b.values)
+    for n in a.values:
+        np.testing.assert_array_equal(a.values[n], b.values[n], err_msg=n)
+    assert a.values["penetration_mm"][1] > 20
+
+
+def test_region_map_is_built_once_per_model(anny):
+    from body import load_model
+    from body.regions import region_map
+
+    QM._RMAPS.clear()
+    r = QM.qa_region_map(anny)
+    assert QM.qa_region_map(load_model("anny")) is r
+    np.testing.assert_array_equal(r.face_region, region_map(anny).face_region)
