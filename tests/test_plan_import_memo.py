@@ -46,3 +46,52 @@ def test_shared_modules_parsed_once_and_again_when_edited(tmp_path, monkeypatch)
     assert parsed.count("util.py") == 2 and "extra.py" in parsed and h2 != ha
     _write(tmp_path, "mhelp/extra.py", "Y = 2\n")
     assert P.source_hash(_stage(tmp_path, "mstages.a")) != h2
+
+
+def test_imports_found_wherever_a_statement_can_hold_them():
+    """The key follows an import in any statement body (a function, a method, if / else,
+    try / except / else / finally, with, for / else, while, match), as ``ast.walk`` over every
+    node finds them, and ignores the text ``import`` in strings and comments."""
+    import ast
+
+    src = textwrap.dedent('''
+        import a0
+        def f():
+            import a1
+            class C:
+                from a2 import b
+                def m(self):
+                    import a3
+        if X:
+            import a4
+        else:
+            from . import a5
+        try:
+            import a6
+        except ImportError:
+            import a7
+        else:
+            import a8
+        finally:
+            import a9
+        with ctx():
+            import a10
+        for i in y:
+            pass
+        else:
+            import a11
+        while False:
+            import a12
+        match v:
+            case 1:
+                import a13
+        s = "import nothing"  # import nothing either
+        async def g():
+            async with z:
+                import a14
+    ''')
+    tree = ast.parse(src)
+    walk = sorted(ast.dump(n) for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom)))
+    mine = sorted(ast.dump(n) for n in P._statements(tree)
+                  if isinstance(n, (ast.Import, ast.ImportFrom)))
+    assert mine == walk and len(mine) == 15
