@@ -153,6 +153,25 @@ class ProxyMesh:
         v = np.asarray(vertices, dtype=float)
         return (v[..., self.corners, :] * self.bary[..., None]).sum(-2)
 
+    def self_regions(self, rings: int = SELF_RINGS) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """Per region r of a proxy vertex: (the proxy faces a point of r can collide with:
+        those of regions more than ``rings`` adjacency steps away, the rest of the faces),
+        face ids each. Found once per proxy and ``rings`` (the proxy is immutable), for
+        :func:`self_collisions` and :func:`self_penetration`."""
+        if self.face_region is None or self.region_adjacency is None:
+            raise ValueError("proxy: built without regions (use ProxyMesh.from_model or pass "
+                             "face_region and region_adjacency)")
+        memo = self.__dict__.setdefault("_self_regions", {})
+        if rings not in memo:
+            near_r = _neighbours(self.region_adjacency, rings)
+            fr = np.asarray(self.face_region)
+            out = {}
+            for r in np.unique(self.vertex_region[self.vertex_region >= 0]):
+                kept = (fr >= 0) & ~near_r[r][np.maximum(fr, 0)]
+                out[int(r)] = (np.flatnonzero(kept), np.flatnonzero(~kept))
+            memo[rings] = out
+        return memo[rings]
+
 
 class Collisions(NamedTuple):
     """Query points inside a surface and where each must go.
@@ -252,43 +271,52 @@ def _neighbours(adjacency: np.ndarray, rings: int) -> np.ndarray:
     return R
 
 
+def _self_hits(proxy: ProxyMesh, p: np.ndarray, rings: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per region with a colliding point: (the region's collidable faces, its proxy points
+    inside them). A candidate is a point the whole proxy's winding number puts inside; winding
+    numbers add up over faces, so the collidable part's number is the whole's minus the rest's
+    (exact, in numpy over the few candidates and the small rest: no hierarchy per region)."""
+    regions = proxy.self_regions(rings)
+    if p.shape != (proxy.num_vertices, 3):
+        raise ValueError(f"points: expected ({proxy.num_vertices}, 3), got {p.shape}")
+    vr = proxy.vertex_region
+    w_all = winding_number(p, p, proxy.faces)
+    cand = np.flatnonzero((w_all > SELF_CANDIDATE_WINDING) & (vr >= 0))
+    out = []
+    for r in np.unique(vr[cand]):
+        far, rest = regions[int(r)]
+        if not len(far):
+            continue
+        pts = cand[vr[cand] == r]
+        w_far = w_all[pts] - winding_number_exact(p[pts], p, proxy.faces[rest])
+        hit = pts[w_far > INSIDE_WINDING]
+        if len(hit):
+            out.append((far, hit))
+    return out
+
+
 def self_collisions(proxy: ProxyMesh, points: np.ndarray, rings: int = SELF_RINGS,
                     margin: float = MARGIN_M) -> Collisions:
     """Proxy points (P, 3) (``proxy.points(V)``) inside the own body, counting only the faces
     of regions more than ``rings`` adjacency steps away from the point's region; ``target`` =
     the nearest point on those faces (pushed out by ``margin``), ``face`` a proxy face.
     Points and faces without a region (-1) never collide."""
-    if proxy.face_region is None or proxy.region_adjacency is None:
-        raise ValueError("proxy: built without regions (use ProxyMesh.from_model or pass "
-                         "face_region and region_adjacency)")
     p = np.asarray(points, dtype=float)
-    if p.shape != (proxy.num_vertices, 3):
-        raise ValueError(f"points: expected ({proxy.num_vertices}, 3), got {p.shape}")
-    w_all = winding_number(p, p, proxy.faces)
-    cand = np.flatnonzero((w_all > SELF_CANDIDATE_WINDING) & (proxy.vertex_region >= 0))
-    if not len(cand):
-        return _empty()
-    near_r = _neighbours(proxy.region_adjacency, rings)
-    fr = proxy.face_region
-    out = []
-    for r in np.unique(proxy.vertex_region[cand]):
-        pts = cand[proxy.vertex_region[cand] == r]
-        kept = (fr >= 0) & ~near_r[r][np.maximum(fr, 0)]
-        far = np.flatnonzero(kept)
-        if not len(far):
-            continue
-        Ffar = proxy.faces[far]
-        # winding numbers add up over faces: the kept part's = all - the rest's (exact, in
-        # numpy over the few candidates and the small rest: no hierarchy built per region)
-        w_far = w_all[pts] - winding_number_exact(p[pts], p, proxy.faces[~kept])
-        hit = pts[w_far > INSIDE_WINDING]
-        if len(hit):
-            out.append(_collisions(p, hit, p, Ffar, margin, face_ids=far))
+    out = [_collisions(p, hit, p, proxy.faces[far], margin, face_ids=far)
+           for far, hit in _self_hits(proxy, p, rings)]
     if not out:
         return _empty()
     c = Collisions(*[np.concatenate(x) for x in zip(*out, strict=True)])
     order = np.argsort(c.index)
     return Collisions(*[x[order] for x in c])
+
+
+def self_penetration(proxy: ProxyMesh, points: np.ndarray, rings: int = SELF_RINGS) -> float:
+    """The deepest self-penetration (m) of the proxy points (P, 3), 0 when none: the
+    ``deepest`` of :func:`self_collisions` without its targets (the QA's per-frame figure)."""
+    p = np.asarray(points, dtype=float)
+    return max((float(nearest_surface(p[hit], p, proxy.faces[far]).distance.max())
+                for far, hit in _self_hits(proxy, p, rings)), default=0.0)
 
 
 def ground_candidates(points: np.ndarray, normal, offset: float, k: int = GROUND_K) -> np.ndarray:

@@ -791,7 +791,7 @@ def _contact_gap(VA, VB, faces, sel):
     return max(float(facet_distances(VA, faces, a, VB, faces, b).a_to_b.min()) for a, b in sel)
 
 
-_PROXIES: dict = {}  # model content digest -> its proxy: one decimation per model and process
+_PER_MODEL: dict = {}  # (model content digest, what) -> built once per process (one model kept)
 
 
 def _model_digest(model) -> str:
@@ -807,34 +807,30 @@ def _model_digest(model) -> str:
     return h.hexdigest()
 
 
+def _per_model(model, what, build):
+    """``build()``, once per model content and ``what`` in this process: the engine runs the
+    qa stage of every sequence in one process, each loading the model anew (a new object, the
+    same content). Only the latest model's are kept (a session has one)."""
+    digest = _model_digest(model)
+    if any(k[0] != digest for k in _PER_MODEL):
+        _PER_MODEL.clear()
+    key = (digest, what)
+    if key not in _PER_MODEL:
+        _PER_MODEL[key] = build()
+    return _PER_MODEL[key]
+
+
 def _proxy(model, ProxyMesh):
-    """The model's ``ProxyMesh`` of ``K.PROXY_VERTICES`` (``igl.qslim``: ~0.7 s), built once
-    per model content in this process (the engine runs the qa stage of every sequence in one
-    process, each with the model loaded anew)."""
-    key = (_model_digest(model), ProxyMesh)
-    hit = _PROXIES.get(key)
-    if hit is None:
-        hit = ProxyMesh.from_model(model, K.PROXY_VERTICES)
-        _PROXIES.clear()  # keep one: the session's model
-        _PROXIES[key] = hit
-    return hit
-
-
-_RMAPS: dict = {}  # model content digest -> its body.regions.region_map: one per model and process
+    """The model's ``ProxyMesh`` of ``K.PROXY_VERTICES`` (``igl.qslim``: ~0.7 s), once per
+    model content in this process."""
+    return _per_model(model, ProxyMesh, lambda: ProxyMesh.from_model(model, K.PROXY_VERTICES))
 
 
 def qa_region_map(model):
-    """``body.regions.region_map(model)`` (~0.1 s), built once per model content in this
-    process (as :func:`_proxy`: each sequence's stage loads the model anew)."""
-    key = _model_digest(model)
-    hit = _RMAPS.get(key)
-    if hit is None:
-        from body.regions import region_map
+    """``body.regions.region_map(model)`` (~0.1 s), once per model content in this process."""
+    from body.regions import region_map
 
-        hit = region_map(model)
-        _RMAPS.clear()  # keep one: the session's model
-        _RMAPS[key] = hit
-    return hit
+    return _per_model(model, "region_map", lambda: region_map(model))
 
 
 def _foot_vertices(model) -> list[np.ndarray]:
@@ -905,96 +901,17 @@ PARALLEL_MIN_FRAMES = 48   # per worker: fewer frames run in one process (a work
                            # costs ~1-2 CPU-s of imports, about 10 frames of this pass)
 
 
-class _SelfPenetration:
-    """``fitting.collision.self_collisions(proxy, points).deepest`` (the same candidates, the
-    same kept faces per region, the same winding and nearest-point calls, so the same number
-    up to the summation order of the exact winding numbers), faster for the QA: the kept and
-    left-out faces of each region are found once per proxy, and the exact winding numbers of
-    every candidate against its region's left-out faces are summed in one vectorised pass over
-    the (point, face) pairs instead of one call per region; nothing but the depth is made."""
-
-    def __init__(self, proxy):
-        from fitting.collision import SELF_RINGS, _neighbours
-
-        if proxy.face_region is None or proxy.region_adjacency is None:
-            raise ValueError("proxy: built without regions")
-        self.proxy = proxy
-        self.faces = np.ascontiguousarray(proxy.faces, np.int64)
-        near_r = _neighbours(proxy.region_adjacency, SELF_RINGS)
-        fr = np.asarray(proxy.face_region)
-        self.far, self.rest = {}, {}
-        for r in np.unique(proxy.vertex_region[proxy.vertex_region >= 0]):
-            kept = (fr >= 0) & ~near_r[r][np.maximum(fr, 0)]
-            self.far[int(r)] = np.flatnonzero(kept)
-            self.rest[int(r)] = np.flatnonzero(~kept)
-
-    def __call__(self, points: np.ndarray) -> float:
-        """The deepest self-penetration (m) of the proxy points (P, 3), 0 when none."""
-        from fitting.collision import INSIDE_WINDING, SELF_CANDIDATE_WINDING
-        from geometry.queries import nearest_surface, winding_number
-
-        p = np.asarray(points, dtype=float)
-        proxy, faces = self.proxy, self.faces
-        if p.shape != (proxy.num_vertices, 3):
-            raise ValueError(f"points: expected ({proxy.num_vertices}, 3), got {p.shape}")
-        w_all = winding_number(p, p, faces)
-        vr = proxy.vertex_region
-        cand = np.flatnonzero((w_all > SELF_CANDIDATE_WINDING) & (vr >= 0))
-        if not len(cand):
-            return 0.0
-        groups = [(int(r), cand[vr[cand] == r]) for r in np.unique(vr[cand])]
-        groups = [(r, pts) for r, pts in groups if len(self.far[r])]
-        if not groups:
-            return 0.0
-        # the (candidate, left-out face) pairs of every region, one exact winding pass
-        qi = np.concatenate([np.repeat(np.arange(len(pts)) + sum(len(q) for _, q in groups[:k]),
-                                       len(self.rest[r])) for k, (r, pts) in enumerate(groups)])
-        fi = np.concatenate([np.tile(self.rest[r], len(pts)) for r, pts in groups])
-        allpts = np.concatenate([pts for _, pts in groups])
-        w_rest = np.zeros(len(allpts))
-        if len(fi):
-            q = p[allpts][qi]
-            f = faces[fi]
-            a, b, c = p[f[:, 0]] - q, p[f[:, 1]] - q, p[f[:, 2]] - q
-            la, lb, lc = (np.sqrt(np.einsum("nd,nd->n", x, x)) for x in (a, b, c))
-            bxc = np.stack([b[:, 1] * c[:, 2] - b[:, 2] * c[:, 1],
-                            b[:, 2] * c[:, 0] - b[:, 0] * c[:, 2],
-                            b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0]], 1)
-            det = np.einsum("nd,nd->n", a, bxc)
-            den = (la * lb * lc + np.einsum("nd,nd->n", a, b) * lc
-                   + np.einsum("nd,nd->n", b, c) * la + np.einsum("nd,nd->n", c, a) * lb)
-            w_rest = np.bincount(qi, np.arctan2(det, den), len(allpts)) / (2 * np.pi)
-        w_far = w_all[allpts] - w_rest
-        deepest, k = 0.0, 0
-        for r, pts in groups:
-            hit = pts[w_far[k:k + len(pts)] > INSIDE_WINDING]
-            k += len(pts)
-            if len(hit):
-                d = nearest_surface(p[hit], p, faces[self.far[r]]).distance
-                deepest = max(deepest, float(d.max()))
-        return deepest
-
-
-_SELF: dict = {}  # id(proxy) -> (proxy, its _SelfPenetration)
-
-
-def _self_penetration(proxy) -> _SelfPenetration:
-    hit = _SELF.get(id(proxy))
-    if hit is None or hit[0] is not proxy:
-        _SELF.clear()
-        hit = _SELF[id(proxy)] = (proxy, _SelfPenetration(proxy))
-    return hit[1]
-
-
 def _geometry_frames(g: dict, rows, verts, frames) -> list[tuple]:
     """Per frame: (row, self-penetration m per person, deepest interpenetration m, volume m^3,
     closest distance m, contact gap m; NaN = not measured). ``g`` the static part (proxy,
     faces, contact, sel, lo, hi); ``verts`` one (len(rows), V, 3) array per person and
     ``frames`` (len(rows),) the rows' frame numbers."""
-    selfpen = _self_penetration(g["proxy"])  # = fitting.collision.self_collisions(...).deepest
+    from fitting.collision import self_penetration
+
+    proxy = g["proxy"]
     out = []
     for k, i in enumerate(rows):
-        sp = [selfpen(g["proxy"].points(V[k].astype(float))) for V in verts]
+        sp = [self_penetration(proxy, proxy.points(V[k].astype(float))) for V in verts]
         pen = vol = near = gap = np.nan
         if len(verts) == 2:
             f = int(frames[k])

@@ -40,7 +40,7 @@ def test_proxy_is_built_once_per_model(anny):
             calls.append(model)
             return ProxyMesh.from_model(model, n_vertices, rmap)
 
-    QM._PROXIES.clear()
+    QM._PER_MODEL.clear()
     a = QM._proxy(anny, Counting)
     assert QM._proxy(anny, Counting) is a and len(calls) == 1
     again = load_model("anny")
@@ -240,15 +240,14 @@ def test_grid_blocks_give_the_cells_of_testing_every_cell(anny):
 
 
 def test_self_penetration_is_the_deepest_of_self_collisions(anny):
-    """The QA's self-penetration (kept faces per region found once, the exact winding numbers
-    of all candidates in one pass) is ``fitting.collision.self_collisions(...).deepest``,
-    number for number, with an arm pushed into the own body (a depth > 0) and without."""
+    """The QA's self-penetration (``fitting.collision.self_penetration``: the region faces
+    found once per proxy, no targets made) is ``self_collisions(...).deepest`` number for
+    number, with an arm pushed into the own body (a depth > 0) and without; the cached region
+    faces are those found afresh."""
     from body import forward
-    from fitting.collision import self_collisions
+    from fitting.collision import SELF_RINGS, _neighbours, self_collisions, self_penetration
 
     proxy = QM.body_proxy(anny)
-    sp = QM._self_penetration(proxy)
-    assert QM._self_penetration(proxy) is sp  # one per proxy
     rng = np.random.default_rng(7)
     depths = []
     for k in range(4):
@@ -258,9 +257,18 @@ def test_self_penetration_is_the_deepest_of_self_collisions(anny):
         V = forward(anny, np.zeros(1), pose, np.eye(3)[None], np.zeros((1, 3))).vertices[0]
         P = proxy.points(V)
         want = self_collisions(proxy, P).deepest
-        assert sp(P) == want
+        assert self_penetration(proxy, P) == want
         depths.append(want)
-    assert depths[2] > 0.02 and depths[3] > 0.02
+    assert depths[0] == 0.0 and depths[2] > 0.02 and depths[3] > 0.02
+    regions = proxy.self_regions(SELF_RINGS)
+    assert proxy.self_regions(SELF_RINGS) is regions  # once per proxy
+    near = _neighbours(proxy.region_adjacency, SELF_RINGS)
+    fr = np.asarray(proxy.face_region)
+    for r, (far, rest) in regions.items():
+        kept = (fr >= 0) & ~near[r][np.maximum(fr, 0)]
+        np.testing.assert_array_equal(far, np.flatnonzero(kept))
+        np.testing.assert_array_equal(rest, np.flatnonzero(~kept))
+    assert set(regions) == set(np.unique(proxy.vertex_region[proxy.vertex_region >= 0]).tolist())
 
 
 def test_geometry_in_a_given_pool_gives_the_same_metrics(anny):
@@ -299,7 +307,7 @@ def test_region_map_is_built_once_per_model(anny):
     from body import load_model
     from body.regions import region_map
 
-    QM._RMAPS.clear()
+    QM._PER_MODEL.clear()
     r = QM.qa_region_map(anny)
     assert QM.qa_region_map(load_model("anny")) is r
     np.testing.assert_array_equal(r.face_region, region_map(anny).face_region)
