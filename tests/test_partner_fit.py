@@ -595,3 +595,60 @@ def test_the_light_first_fit_leaves_out_only_the_temporal_pass_rounds_and_costly
     assert first_fit_options(full) is full
     with pytest.raises(ValueError, match="first_fit"):
         Options(first_fit="half")
+
+
+def test_a_bystander_is_dropped_where_one_view_sees_the_partner(scene):
+    """The partner is seen by one view only (hidden behind the wearer in the others, as in a
+    hug) and another view's detection is a bystander 1.2 m away: one view agreeing with the
+    estimate is enough to drop the bystander's (on the bench's Hug it pulled the fit 1.25 m
+    onto the bystander when two agreeing views were required); with no view agreeing nothing
+    is dropped (the partner may have moved)."""
+    from calib import project
+    from fitting.partner_fit import check_views
+    from formats.skeletons import KP65_FLIP
+
+    f = 3
+    pred = scene.kp3[f]
+    uv, conf = scene.kp[:, f, 1, :, :2].copy(), scene.kp[:, f, 1, :, 2].copy()
+    conf[[1, 3]] = 0.0
+    uv[2] = project(scene.cams[2], _shifted_kp(scene, (-0.8, 0.9, 0.0))[f])
+    flip = np.asarray(KP65_FLIP)
+    vc = check_views(scene.cams, pred, uv, conf, flip, far_px=80.0, support=1)
+    assert vc.far.tolist() == [False, False, True, False] and not vc.conf[2].any()
+    assert np.array_equal(vc.conf[0], conf[0])
+    old = check_views(scene.cams, pred, uv, conf, flip, far_px=80.0, support=2)
+    assert not old.far.any() and np.array_equal(old.conf, conf)
+    alone = conf.copy()
+    alone[0] = 0.0  # only the far view: nothing to tell it from a partner who moved
+    assert not check_views(scene.cams, pred, uv, alone, flip, far_px=80.0, support=1).far.any()
+    # in the fit: after two clean frames, views 1 and 3 lose the partner and view 2 sees the
+    # bystander; it is dropped in those frames only
+    kp = scene.kp.copy()
+    kp[[1, 3], 2:, 1, :, 2] = 0.0
+    kp[2, 2:, 1, :, :2] = project(scene.cams[2], _shifted_kp(scene, (-0.8, 0.9, 0.0))[2:])
+    fit, rep = _fit(scene, kp)
+    byst = rep["per_frame"]["views_bystander"]
+    assert byst[2:, 2].all() and not byst[:, [0, 1, 3]].any() and not byst[:2].any()
+    assert rep["views_dropped_as_bystander"] == F_SYN - 2
+
+
+def test_the_frames_before_the_first_initialisation_are_fitted_backwards(scene):
+    """No torso keypoint (shoulders, hips) in the first three frames: the triangulated start
+    fails there though 19 body keypoints are seen in four views. The fit starts at frame 3 and
+    then fits frames 2, 1, 0 backwards from it, each from its own keypoints; with ``backfill``
+    off they are held at frame 3's pose and not valid."""
+    from artifacts import INVALID_REASONS
+    from fitting.init_pose import TORSO
+
+    kp = scene.kp.copy()
+    kp[:, :3, 1, list(TORSO), 2] = 0.0
+    fit, rep = _fit(scene, kp)
+    assert rep["first_fitted_frame"] == int(scene.frames[0]) and rep["frames_backfilled"] == 3
+    assert rep["initialisations"] == 1
+    assert fit.valid.all(), rep["frames_not_valid"]
+    err, _ = _joint_err_mm(scene, fit)
+    assert err[:3].max() < 40.0, err
+    held, rep_h = _fit(scene, kp, opts={"backfill": False})
+    names = [INVALID_REASONS[c] for c in held.invalid_reason[:4]]
+    assert names == ["held_before_first_keypoints"] * 3 + ["fitted"], names
+    assert rep_h["frames_backfilled"] == 0 and rep_h["first_fitted_frame"] == int(scene.frames[3])
