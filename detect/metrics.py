@@ -77,11 +77,27 @@ def _body_only(kp: np.ndarray, truth_uv: np.ndarray) -> tuple[np.ndarray, np.nda
             np.asarray(truth_uv, dtype=np.float64)[..., layout.BODY, :], layout.FLIP[layout.BODY])
 
 
+#: a person's detection farther than this (median px) from both people's truth is somebody
+#: else's (a bystander, an operator), not a swap of the two
+OTHER_PX = 100.0
+
+
+def _distances(kp, tr, flip, p, ok):
+    """(own, other): median px of person p's detection to its own and the other person's truth,
+    each the better of as labelled and mirrored."""
+    own = np.fmin(_median_dist(kp[:, :, p], tr[:, :, p], ok),
+                  _median_dist(kp[:, :, p], tr[:, :, p][..., flip, :], ok))
+    other = np.fmin(_median_dist(kp[:, :, p], tr[:, :, 1 - p], ok),
+                    _median_dist(kp[:, :, p], tr[:, :, 1 - p][..., flip, :], ok))
+    return own, other
+
+
 def identity_swaps(kp: np.ndarray, truth_uv: np.ndarray, min_conf: float = K.MIN_CONF,
-                   min_kp: int = 4) -> np.ndarray:
+                   min_kp: int = 4, other_px: float = OTHER_PX) -> np.ndarray:
     """(C, F) bool: in that view and frame a person's body keypoints lie nearer (median) the
     other person's truth than its own truth, read either way round (left/right as labelled,
-    or mirrored: a left/right flip of the right person is :func:`lr_flips`, not a swap).
+    or mirrored: a left/right flip of the right person is :func:`lr_flips`, not a swap), and
+    within ``other_px`` of it (farther from both, it is somebody else: :func:`somebody_else`).
 
     kp : (C, F, 2, K, 3); truth_uv : (C, F, 2, K, 2). A person with fewer than ``min_kp``
     confident body keypoints (with finite truth for both people) is not judged.
@@ -90,25 +106,38 @@ def identity_swaps(kp: np.ndarray, truth_uv: np.ndarray, min_conf: float = K.MIN
     swaps = np.zeros(kp.shape[:2], bool)
     for p in (0, 1):
         ok = _judged(kp, tr, p, min_conf)
-        own = np.fmin(_median_dist(kp[:, :, p], tr[:, :, p], ok),
-                      _median_dist(kp[:, :, p], tr[:, :, p][..., flip, :], ok))
-        other = np.fmin(_median_dist(kp[:, :, p], tr[:, :, 1 - p], ok),
-                        _median_dist(kp[:, :, p], tr[:, :, 1 - p][..., flip, :], ok))
-        swaps |= (ok.sum(-1) >= min_kp) & (other < own)
+        own, other = _distances(kp, tr, flip, p, ok)
+        swaps |= (ok.sum(-1) >= min_kp) & (other < own) & (other <= other_px)
     return swaps
+
+
+def somebody_else(kp: np.ndarray, truth_uv: np.ndarray, min_conf: float = K.MIN_CONF,
+                  min_kp: int = 4, other_px: float = OTHER_PX) -> np.ndarray:
+    """(C, F, 2) bool: the person's body keypoints lie farther than ``other_px`` (median) from
+    both people's truth, either way round: the detector found somebody else (a bystander in
+    the background) in that person's place. Arguments as :func:`identity_swaps`."""
+    kp, tr, flip = _body_only(kp, truth_uv)
+    out = np.zeros(kp.shape[:3], bool)
+    for p in (0, 1):
+        ok = _judged(kp, tr, p, min_conf)
+        own, other = _distances(kp, tr, flip, p, ok)
+        out[:, :, p] = (ok.sum(-1) >= min_kp) & (np.fmin(own, other) > other_px)
+    return out
 
 
 def lr_flips(kp: np.ndarray, truth_uv: np.ndarray, min_conf: float = K.MIN_CONF,
              min_kp: int = 4) -> np.ndarray:
     """(C, F, 2) bool: the person's body keypoints match its own truth clearly better mirrored
     (left and right labels swapped: median error under half that as labelled; in profile views
-    both readings fit about as well and nothing is counted), and are not an identity swap."""
+    both readings fit about as well and nothing is counted), and are neither an identity swap
+    nor somebody else."""
     swapped = identity_swaps(kp, truth_uv, min_conf=min_conf, min_kp=min_kp)
+    others = somebody_else(kp, truth_uv, min_conf=min_conf, min_kp=min_kp)
     kp, tr, flip = _body_only(kp, truth_uv)
     out = np.zeros(kp.shape[:3], bool)
     for p in (0, 1):
         ok = _judged(kp, tr, p, min_conf)
         d = _median_dist(kp[:, :, p], tr[:, :, p], ok)
         df = _median_dist(kp[:, :, p], tr[:, :, p][..., flip, :], ok)
-        out[:, :, p] = (ok.sum(-1) >= min_kp) & (df < 0.5 * d) & ~swapped
+        out[:, :, p] = (ok.sum(-1) >= min_kp) & (df < 0.5 * d) & ~swapped & ~others[:, :, p]
     return out

@@ -208,7 +208,13 @@ def test_wearer_hints_boxes_contain_projected_markers():
 
 
 def test_metrics_errors_groups_and_swaps():
-    from detect.metrics import group_summary, identity_swaps, keypoint_errors, lr_flips
+    from detect.metrics import (
+        group_summary,
+        identity_swaps,
+        keypoint_errors,
+        lr_flips,
+        somebody_else,
+    )
 
     rng = np.random.default_rng(5)
     truth = np.zeros((1, 2, 2, layout.N, 2))
@@ -234,6 +240,17 @@ def test_metrics_errors_groups_and_swaps():
     kp[0, 0, 1] = kp[0, 0, 1, layout.FLIP]  # frame 0: the partner's left and right swapped
     assert not identity_swaps(kp, truth).any()
     assert lr_flips(kp, truth).tolist() == [[[False, True], [False, False]]]
+    kp[0, 0, 1] = kp[0, 0, 1, layout.FLIP]
+    assert not somebody_else(kp, truth).any()
+    # frame 1: the partner's place holds somebody 300 px from both people (a bystander,
+    # a little nearer the wearer): neither a swap nor a flip, somebody else
+    kp[0, 1, 1, :, :2] = truth[0, 1, 0] + [0.0, 300.0]
+    assert not identity_swaps(kp, truth).any() and not lr_flips(kp, truth).any()
+    assert somebody_else(kp, truth).tolist() == [[[False, False], [False, True]]]
+    # ... and 60 px from the wearer, nearer it than its own truth: a swap
+    kp[0, 1, 1, :, :2] = truth[0, 1, 0] + [0.0, 60.0]
+    assert identity_swaps(kp, truth).tolist() == [[False, True]]
+    assert not somebody_else(kp, truth).any()
 
 
 def test_select_partner_coherence_guard_keeps_out_a_bystander():
