@@ -70,6 +70,16 @@ LIMITS = {
         "session: the largest residual of a confident detection (conf >= 0.9) above 100 px "
         "catches 4 of the 23 and withholds 6 of 86 right frames; above 60 px at conf >= 0.5, 14 "
         "of 23 against 40 of 86): the fit, not the QA, has to get them right."),
+    "qa.s_per_frame": (
+        "per 20-frame bench sequence ~4.7 s of stage wall (session 20's breakdown): the "
+        "per-frame metrics ~2.9 s, waiting for the geometry (each person's self-penetration and "
+        "the pair's interpenetration, winding numbers and nearest points on the 2,000-vertex "
+        "proxies and the full meshes, in one worker process beside the other metrics; Hug, "
+        "whose bodies overlap in every frame, ~5 s), the overlays and the video ~1.5 s (each "
+        "frame decoded once and drawn at two scales, ~100k cv2.fillConvexPoly calls a "
+        "sequence), the 3D scene ~0.6 s; the plot (~1.5 s) runs off the main path. Left to "
+        "try: a numpy z-buffer for the overlays (~0.3 s a sequence) and the pair test on the "
+        "proxy points near the other body only."),
 }
 
 SWAP_SEQUENCE, SWAP = "s01/Push 1", ("LKNE", "RKNE")
