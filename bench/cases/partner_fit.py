@@ -145,6 +145,24 @@ LIMITS = {
         "the extra terms' points and 4 hooks (winding numbers on the proxies, 20-40 ms); "
         "Hug's frames (all re-initialised) cost most."),
 }
+_HUG = ("the partner is hidden behind the wearer: in each frame one or two views see it, their "
+        "detections 10-50 px off (median), and a third view's partner slot holds the bystander "
+        "(keypoints.somebody_else_partner); the first frames' torso does not triangulate "
+        "(the start is frame 30, 0.17 m off; frames 0-24 are fitted backwards from it). The "
+        "frames the fit calls valid are 80-140 mm off (the QA withheld every one in session "
+        "20's run; qa.defect_frames_clean counts any it publishes). Until session 21 the fit followed the bystander, 1.25 m "
+        "away, from frame 54 on (228 mm on this machine's session; 126 in the table before, on "
+        "another machine's render of the same studio code).")
+LIMITS.update({
+    "partner_fit.mpjpe_mm_hug": _HUG, "partner_fit.frames_valid_fraction_hug": _HUG,
+    "partner_fit.frames_valid_fraction": (
+        "Hug alone (0.3 valid; every other class 1.0): see frames_valid_fraction_hug."),
+    "partner_fit.mpjpe_mm_posing": (
+        "the raised arm, read 50-100 px off in every view that sees it, 0.3 m off until L_G "
+        "pulls the hand to the annotated shoulder; and from frame 48 the partner slot of view "
+        "65906101 holds the bystander at the image's edge (the fit drops that view: "
+        "partner_fit.check_views)."),
+})
 VARIANTS = {  # the paper's Table 3 ablation: stage option overrides of each row (every row
     "full": {},  # but the full method's with second_pass off: see the module doc)
     "first_pass": {},
