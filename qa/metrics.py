@@ -32,7 +32,7 @@
   winding number; their depth is exact, to the other's full mesh); ``penetration_volume_cm3``:
   the cells of a ``VOLUME_CELL_M`` grid (coarser beyond ``VOLUME_MAX_CELLS`` cells) over the
   bounding box of the penetrating points that lie inside both proxies;
-- ``<person>.self_penetration_mm``: ``fitting.collision.self_collisions`` on the body's proxy
+- ``<person>.self_penetration_mm``: ``fitting.collision.self_penetration`` on the body's proxy
   (``PROXY_VERTICES`` vertices: a subsample of the surface, depth to the proxy surface);
 - ``<person>.ground_penetration_mm``: the lowest vertex below the ground plane (0 above);
 - ``<person>.foot_skate_m_s``: the median horizontal speed of the foot vertices (sole, heel,
