@@ -9,8 +9,15 @@ cost is the fitting speed. What DESIGN.md measured and this module follows:
 - Observations, masks and model arrays are *parameters* ``p``: the symbolic graph depends only
   on the model topology and the term set, so one compiled library serves every frame,
   sequence and subject.
-- Compiled with ``gcc -O1`` (``-O2`` builds much slower for little gain on generated code);
-  the library is cached on disk under ``assets/cache/casadi/`` keyed by a hash of the
+- Compiled with ``gcc -O2 -march=native``. Measured on the real-capture marker graph (39
+  markers, 117 residuals x 69 unknowns, 4.7 MB of C; one evaluation, best of 5 x 2,000, a
+  noisy 2-core VM): ``-O1`` 0.14-0.23 ms, 27 s to compile; ``-O2`` / ``-O3`` 0.18-0.23 /
+  0.14-0.18 ms, 47 / 54 s; ``-O1 -march=native`` 0.07-0.09 ms, 21 s; ``-O2 -march=native``
+  0.044-0.051 ms, 28 s (results within 1e-15 of ``-O1``'s: contracted multiply-adds).
+  A library built for one CPU may not run on another (a cluster's older node would die of an
+  illegal instruction), so the host's resolved target (:func:`native_target`: what the
+  compiler turns ``-march=native`` into) is part of every key; a compiler that rejects
+  ``-march=native`` compiles without it. The library is cached on disk under ``assets/cache/casadi/`` keyed by a hash of the
   generated C source, the compiler and its flags, like any artifact (write to a temporary
   file, then ``os.replace``). Beside each library a small ``<name>_<key>.fn`` index names it
   under a hash of the CasADi function serialized (:func:`function_key`): a later build of the
@@ -29,8 +36,10 @@ Shapes: ``x (n,) float64``, ``p (q,) float64``, residuals ``r (m,)``, Jacobian n
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -50,6 +59,7 @@ from pipeline.procs import pid_alive
 DEFAULT_CACHE = Path(__file__).resolve().parents[1] / "assets" / "cache" / "casadi"
 CACHE_ENV = "CASADI_CACHE_DIR"  # overrides the cache folder when set
 KEY_CHARS = 20
+NATIVE = "-march=native"  # tune for the host CPU (the resolved target joins the cache key)
 GEN_PREFIX = ".gen-"     # work folders: .gen-<pid>-<random>
 STALE_LEGACY_S = 3600.0  # a .gen-* folder without a pid (older code) is stale after this long
 
@@ -77,17 +87,18 @@ class CompileOptions:
         when compiling is impossible; ``interpreted`` never compiles.
     cache_dir : where compiled libraries live; None: ``$CASADI_CACHE_DIR`` or
         ``assets/cache/casadi``.
-    compiler, flags : the C compiler command and its optimisation flags.
+    compiler, flags : the C compiler command and its optimisation flags (``-march=native``
+        is dropped for a compiler that rejects it, and keys the library by the host's CPU).
     max_source_mb : in ``auto`` mode, generated C larger than this runs interpreted unless
-        already compiled and cached (measured: the 52-joint graph with 42 hand keypoints in 4
-        views is 14 MB of C, 250 s to compile, and only 1.6x faster than interpreted; the
-        22-joint marker graph is 1.4 MB, 10-15 s, and 2-3x faster).
+        already compiled and cached (measured with ``-O1``: the 52-joint graph with 42 hand
+        keypoints in 4 views is 14 MB of C, 250 s to compile, and only 1.6x faster than
+        interpreted; the 22-joint marker graph is 1.4 MB, 10-15 s, and 2-3x faster).
     """
 
     mode: Literal["auto", "compiled", "interpreted"] = "auto"
     cache_dir: Path | None = None
     compiler: str = "gcc"
-    flags: tuple[str, ...] = ("-O1",)
+    flags: tuple[str, ...] = ("-O2", NATIVE)
     max_source_mb: float = 6.0
 
 
@@ -161,6 +172,41 @@ class ResidualFunction:
 def find_compiler(opts: CompileOptions) -> str | None:
     """Path of the C compiler, or None."""
     return shutil.which(opts.compiler)
+
+
+_TARGET_TOKEN = re.compile(r"-march=\S+|-mtune=\S+|-m[a-z0-9][a-z0-9.-]*|--param=l[12]-\S+"
+                           r"|-target-(?:cpu|feature) \S+")
+
+
+@functools.lru_cache(maxsize=8)
+def native_target(compiler: str) -> str | None:
+    """What ``compiler`` makes of ``-march=native`` on this host: its CPU and feature options
+    as it passes them to its back end (the ``cc1`` line of ``-v``; gcc: ``-march=icelake-client
+    -mavx512f ...``; clang: ``-target-cpu ... -target-feature ...``), paths left out. None when the compiler rejects
+    ``-march=native`` (or cannot be run). Asked once per process and compiler (~20 ms)."""
+    try:
+        out = subprocess.run([compiler, NATIVE, "-E", "-v", "-x", "c", os.devnull, "-o",
+                              os.devnull], capture_output=True, text=True, timeout=60)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    if out.returncode != 0:
+        return None
+    back_end = [ln for ln in out.stderr.splitlines() if re.search(r"(^|[/\s-])cc1(\s|$)", ln)]
+    found = [t for ln in back_end for t in _TARGET_TOKEN.findall(ln)]
+    return " ".join(found) if found else None
+
+
+def effective_flags(compiler: str, flags: tuple[str, ...]) -> tuple[tuple[str, ...], str]:
+    """(the flags to compile with, the text that keys the library): ``NATIVE`` is kept when
+    the compiler accepts it, and then the host's resolved target joins the key, so a cache
+    shared between machines never hands a library to a CPU it was not built for."""
+    if NATIVE not in flags:
+        return tuple(flags), " ".join(flags)
+    target = native_target(compiler)
+    if target is None:
+        plain = tuple(f for f in flags if f != NATIVE)
+        return plain, " ".join(plain)
+    return tuple(flags), " ".join(flags) + " [" + target + "]"
 
 
 def _generate_source(func: ca.Function, workdir: Path) -> str:
@@ -248,16 +294,21 @@ def clean_stale(folder: Path) -> list[Path]:
     return gone
 
 
-def library_key(source: str, compiler: str, flags: tuple[str, ...]) -> str:
-    """Cache key of a compiled library: hash of the C source, compiler name, flags, CasADi."""
+def library_key(source: str, compiler: str, flags: tuple[str, ...] | str) -> str:
+    """Cache key of a compiled library: hash of the C source, compiler name, flags (or the key
+    text of :func:`effective_flags`), CasADi."""
     h = hashlib.sha256()
-    for part in (source, Path(compiler).name, " ".join(flags), ca.__version__):
+    for part in (source, Path(compiler).name, _flag_text(flags), ca.__version__):
         h.update(part.encode())
         h.update(b"\0")
     return h.hexdigest()[:KEY_CHARS]
 
 
-def function_key(func: ca.Function, compiler: str, flags: tuple[str, ...]) -> str | None:
+def _flag_text(flags: tuple[str, ...] | str) -> str:
+    return flags if isinstance(flags, str) else " ".join(flags)
+
+
+def function_key(func: ca.Function, compiler: str, flags: tuple[str, ...] | str) -> str | None:
     """Key of a function's compiled library *before* generating its C: a hash of the function
     serialized (CasADi's exact description of the graph, ~0.2-0.3 s for the marker graph, where
     generating the C source takes ~0.6 s), its name, the compiler, the flags and CasADi's
@@ -267,7 +318,7 @@ def function_key(func: ca.Function, compiler: str, flags: tuple[str, ...]) -> st
     except RuntimeError:
         return None
     h = hashlib.sha256()
-    for part in (ser, func.name(), Path(compiler).name, " ".join(flags), ca.__version__):
+    for part in (ser, func.name(), Path(compiler).name, _flag_text(flags), ca.__version__):
         h.update(part.encode())
         h.update(b"\0")
     return h.hexdigest()[:KEY_CHARS]
@@ -338,7 +389,8 @@ def build(
     gone = clean_stale(folder)
     if gone and log:
         log(f"{name}: removed {len(gone)} leftover(s) of killed builds from {folder}")
-    fkey = function_key(func, compiler, opts.flags)
+    flags, flag_key = effective_flags(compiler, opts.flags)
+    fkey = function_key(func, compiler, flag_key)
     known = _indexed_library(folder, name, fkey)
     if known is not None:
         try:
@@ -349,7 +401,7 @@ def build(
     with tempfile.TemporaryDirectory(dir=folder, prefix=f"{GEN_PREFIX}{os.getpid()}-") as tmpd:
         work = Path(tmpd)
         source = _generate_source(func, work)
-        key = library_key(source, compiler, opts.flags)
+        key = library_key(source, compiler, flag_key)
         lib = folder / f"{name}_{key}.so"
         too_big = len(source) > opts.max_source_mb * 1e6
         if not lib.exists() and opts.mode == "auto" and too_big:
@@ -360,8 +412,8 @@ def build(
         if not lib.exists():
             if log:
                 log(f"{name}: compiling {len(source) // 1024} kB of C with {opts.compiler} "
-                    f"{' '.join(opts.flags)} (once; cached in {folder})")
-            _compile(work / f"{name}.c", lib, compiler, opts.flags)
+                    f"{' '.join(flags)} (once; cached in {folder})")
+            _compile(work / f"{name}.c", lib, compiler, flags)
     try:
         ext = ca.external(name, str(lib))
     except RuntimeError:  # a corrupt cache entry: delete and rebuild once

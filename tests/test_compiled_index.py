@@ -79,3 +79,38 @@ def test_stale_or_corrupt_entries_rebuild(opts):
     assert f4.library.stat().st_size > 100
     x, p = np.array([0.3, -0.7]), np.array([2.0, 0.5])
     np.testing.assert_array_equal(f4(x, p)[0], f1(x, p)[0])
+
+
+def test_native_tuning_keys_the_library_by_the_host_cpu(opts, monkeypatch, tmp_path):
+    """-march=native is in the default flags; the host's resolved target joins the key (a
+    cache shared with a machine of another CPU never hands it this library), and a compiler
+    that rejects -march=native compiles without it."""
+    assert compiled.NATIVE in compiled.CompileOptions().flags
+    gcc = compiled.find_compiler(opts)
+    target = compiled.native_target(gcc)
+    flags, key = compiled.effective_flags(gcc, ("-O2", compiled.NATIVE))
+    if target is None:  # this compiler rejects -march=native: dropped, key without it
+        assert flags == ("-O2",) and key == "-O2"
+    else:
+        assert flags == ("-O2", compiled.NATIVE) and target in key and "/" not in target
+    f1 = compiled.build("idx", *_graph(), opts)
+    # the same function on a CPU the compiler resolves differently: another library
+    monkeypatch.setattr(compiled, "native_target", lambda c: "-march=some-other-cpu -mno-avx")
+    f2 = compiled.build("idx", *_graph(), opts)
+    assert f2.compiled and f2.library != f1.library
+    x, p = np.array([0.3, -0.7]), np.array([2.0, 0.5])
+    np.testing.assert_allclose(f2(x, p)[0], f1(x, p)[0], rtol=1e-14)
+    assert compiled.effective_flags(gcc, ("-O1",)) == (("-O1",), "-O1")  # untouched without it
+    # a compiler that rejects -march=native (it exits 1): the flag is dropped, not fatal
+    monkeypatch.undo()
+    fake = tmp_path / "cc-no-native"
+    fake.write_text("#!/bin/sh\nfor a in \"$@\"; do [ \"$a\" = -march=native ] && exit 1; done\n"
+                    f"exec {gcc} \"$@\"\n")
+    fake.chmod(0o755)
+    assert compiled.native_target(str(fake)) is None
+    assert compiled.effective_flags(str(fake), ("-O1", compiled.NATIVE)) == (("-O1",), "-O1")
+    f3 = compiled.build("idx", *_graph(), compiled.CompileOptions(
+        mode="compiled", cache_dir=tmp_path / "plain", compiler=str(fake),
+        flags=("-O1", compiled.NATIVE)))
+    assert f3.compiled
+    np.testing.assert_allclose(f3(x, p)[0], f1(x, p)[0], rtol=1e-14)
