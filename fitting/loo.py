@@ -319,11 +319,14 @@ def _batched_lm(S, x_full: np.ndarray, x0: np.ndarray, obs: np.ndarray, vis_all:
     kv = np.maximum(np.count_nonzero(vis > 0, axis=1), 1)
     sigma = o.sigma_marker_m * np.sqrt(w["L_3d"] / kv)  # FrameSolver.groups, factor 1
     rows = S.rows_m  # (M, 3): one group per marker, every row of r (no keypoints)
+    # the quadratic terms of problem b: the prior q (shared) + L_s toward x_prev[b], i.e.
+    # H_b = q.H + sprev_b I, g_b = q.g + sprev_b x_prev[b] (never formed per problem)
     q = S.quad_prior
+    qH = np.ascontiguousarray(q.H)
     sprev = has_prev * max(w["L_s"], 0.0)  # (B,) L_s weight per problem
-    Hq = q.H[None] + sprev[:, None, None] * np.eye(n)[None]
     gq = q.g[None] + sprev[:, None] * x_prev
     cq = q.c + sprev * np.sum(x_prev * x_prev, axis=1)
+    diag = np.arange(n)
     box = S.box
     scale = S.row_scale
     flat = fun._flat
@@ -345,7 +348,7 @@ def _batched_lm(S, x_full: np.ndarray, x0: np.ndarray, obs: np.ndarray, vis_all:
         wm = (s2 / (s2 + s)) ** 2  # fitting.robust.weight
         wr = np.ones((len(idx), m))
         wr[:, rows] = wm[:, :, None]
-        c += ((xs[:, None, :] @ Hq[idx] @ xs[:, :, None])[:, 0, 0]
+        c += (np.sum((xs @ qH) * xs, axis=1) + sprev[idx] * np.sum(xs * xs, axis=1)
               - 2.0 * np.sum(gq[idx] * xs, axis=1) + cq[idx])  # lm.Quadratic.cost
         if box is not None:
             rb = _box_residual(box, xs)
@@ -394,16 +397,15 @@ def _batched_lm(S, x_full: np.ndarray, x0: np.ndarray, obs: np.ndarray, vis_all:
             Jw[:, flat] = J[nb] * sw[:, jrows]
             Jw = Jw.reshape(len(nb), m, n)
             JwT = Jw.transpose(0, 2, 1)
-            Hn = JwT @ Jw + Hq[nb]
+            Hn = JwT @ Jw
+            Hn += qH
+            Hn[:, diag, diag] += sprev[nb, None]
             gn = (JwT @ (r[nb] * sw)[:, :, None])[:, :, 0]
-            gn += (Hq[nb] @ x[nb][:, :, None])[:, :, 0] - gq[nb]
-            if box is not None:
+            gn += x[nb] @ qH + sprev[nb, None] * x[nb] - gq[nb]  # qH is symmetric
+            if box is not None:  # lm's hinge: active coordinates only (rb is 0 elsewhere)
                 rb = _box_residual(box, x[nb])
-                for j in range(len(nb)):
-                    a = rb[j] != 0
-                    ii = box.idx[a]
-                    Hn[j, ii, ii] += box.weight
-                    gn[j, ii] += np.sqrt(box.weight) * rb[j, a]
+                Hn[:, box.idx, box.idx] += box.weight * (rb != 0)
+                gn[:, box.idx] += np.sqrt(box.weight) * rb
             H[nb], g[nb] = Hn, gn
             active[nb[np.max(np.abs(gn), axis=1) < lmo.gtol]] = False
             d[nb] = np.maximum(np.diagonal(Hn, axis1=1, axis2=2), DIAG_FLOOR)
