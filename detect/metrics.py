@@ -92,6 +92,20 @@ def _distances(kp, tr, flip, p, ok):
     return own, other
 
 
+def _whose(kp, truth_uv, min_conf, min_kp):
+    """(judged, own, other), each (C, F, 2): whether each person's detection is judged (at
+    least ``min_kp`` confident body keypoints with finite truth for both people) and its
+    :func:`_distances` to its own and the other person's truth."""
+    kp, tr, flip = _body_only(kp, truth_uv)
+    judged, own, other = (np.zeros(kp.shape[:3], bool), np.zeros(kp.shape[:3]),
+                          np.zeros(kp.shape[:3]))
+    for p in (0, 1):
+        ok = _judged(kp, tr, p, min_conf)
+        judged[:, :, p] = ok.sum(-1) >= min_kp
+        own[:, :, p], other[:, :, p] = _distances(kp, tr, flip, p, ok)
+    return judged, own, other
+
+
 def identity_swaps(kp: np.ndarray, truth_uv: np.ndarray, min_conf: float = K.MIN_CONF,
                    min_kp: int = 4, other_px: float = OTHER_PX) -> np.ndarray:
     """(C, F) bool: in that view and frame a person's body keypoints lie nearer (median) the
@@ -102,13 +116,8 @@ def identity_swaps(kp: np.ndarray, truth_uv: np.ndarray, min_conf: float = K.MIN
     kp : (C, F, 2, K, 3); truth_uv : (C, F, 2, K, 2). A person with fewer than ``min_kp``
     confident body keypoints (with finite truth for both people) is not judged.
     """
-    kp, tr, flip = _body_only(kp, truth_uv)
-    swaps = np.zeros(kp.shape[:2], bool)
-    for p in (0, 1):
-        ok = _judged(kp, tr, p, min_conf)
-        own, other = _distances(kp, tr, flip, p, ok)
-        swaps |= (ok.sum(-1) >= min_kp) & (other < own) & (other <= other_px)
-    return swaps
+    judged, own, other = _whose(kp, truth_uv, min_conf, min_kp)
+    return np.any(judged & (other < own) & (other <= other_px), axis=-1)
 
 
 def somebody_else(kp: np.ndarray, truth_uv: np.ndarray, min_conf: float = K.MIN_CONF,
@@ -116,13 +125,8 @@ def somebody_else(kp: np.ndarray, truth_uv: np.ndarray, min_conf: float = K.MIN_
     """(C, F, 2) bool: the person's body keypoints lie farther than ``other_px`` (median) from
     both people's truth, either way round: the detector found somebody else (a bystander in
     the background) in that person's place. Arguments as :func:`identity_swaps`."""
-    kp, tr, flip = _body_only(kp, truth_uv)
-    out = np.zeros(kp.shape[:3], bool)
-    for p in (0, 1):
-        ok = _judged(kp, tr, p, min_conf)
-        own, other = _distances(kp, tr, flip, p, ok)
-        out[:, :, p] = (ok.sum(-1) >= min_kp) & (np.fmin(own, other) > other_px)
-    return out
+    judged, own, other = _whose(kp, truth_uv, min_conf, min_kp)
+    return judged & (np.fmin(own, other) > other_px)
 
 
 def lr_flips(kp: np.ndarray, truth_uv: np.ndarray, min_conf: float = K.MIN_CONF,

@@ -1067,18 +1067,25 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
     views = (conf[:, :, :N_BODY] > 0).any(2).sum(1)
     enough = (det >= opts.min_keypoints) & (views >= opts.min_views)
 
-    def fit_frame(f, x0, x_ref, start):
-        """Frame f solved from x0 (tied to x_ref by L_s; None: a start frame, no check of the
-        views against an estimate) and recorded; returns its solution."""
-        uvf, cf = uv[f], conf[f]
-        other = None if WK is None else WK[f]
-        if opts.check_views and not start:  # against the neighbouring frame's solution
-            vc = check_views(cams, slots(x0), uvf, cf, flipK, other, far_px=opts.bystander_px,
-                             support=opts.bystander_views)
-            uvf, cf = vc.uv, vc.conf
+    def checked(f, x, uvf, cf):
+        """``check_views`` of frame f's detections against the partner at x, its findings
+        recorded."""
+        vc = check_views(cams, slots(x), uvf, cf, flipK, None if WK is None else WK[f],
+                         far_px=opts.bystander_px, support=opts.bystander_views)
+        if vc.changed:
             flipped[f] |= vc.flipped
             dropped[f] |= vc.dropped
             far[f] |= vc.far
+        return vc
+
+    def fit_frame(f, x0, x_ref):
+        """Frame f solved from x0 (tied to x_ref by L_s; None: a start frame, whose views are
+        not checked against an estimate) and recorded; returns its solution."""
+        start = x_ref is None
+        uvf, cf = uv[f], conf[f]
+        if opts.check_views and not start:  # against the neighbouring frame's solution
+            vc = checked(f, x0, uvf, cf)
+            uvf, cf = vc.uv, vc.conf
         first = start
         if gate or occluder is not None:  # a first solve from the body keypoints alone
             cb = cf.copy()
@@ -1097,12 +1104,8 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
         res, blocks, nr = solver.solve(x0, uvf, cf, f, x_ref, first=first)
         rounds.append(nr)
         if opts.check_views:  # and against this frame's own solution
-            vc = check_views(cams, slots(res.x), uvf, cf, flipK, other, far_px=opts.bystander_px,
-                             support=opts.bystander_views)
+            vc = checked(f, res.x, uvf, cf)
             if vc.changed:
-                flipped[f] |= vc.flipped
-                dropped[f] |= vc.dropped
-                far[f] |= vc.far
                 uvf, cf = vc.uv, vc.conf
                 res, blocks, _ = solver.solve(res.x, uvf, cf, f, x_ref)
         uv[f], conf[f] = uvf, cf
@@ -1139,7 +1142,7 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
                     reason[f] = REASON_CODE["held_before_first_keypoints"]
                 miss += 1
                 continue
-            x = fit_frame(f, x0, None if start else x_prev, start)
+            x = fit_frame(f, x0, None if start else x_prev)
             miss = 0
             first_fit = f if first_fit is None else first_fit
             x_prev = x
@@ -1153,7 +1156,7 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
                     reason[f] = REASON_CODE["too_few_keypoints"]
                     miss += 1
                     continue
-                x_next, miss, first_fit = fit_frame(f, x_next, x_next, False), 0, f
+                x_next, miss, first_fit = fit_frame(f, x_next, x_next), 0, f
                 backfilled += 1
             reason[:first_fit] = REASON_CODE["held_before_first_keypoints"]  # a run at the start
         if opts.temporal_passes and F >= 3:  # both directions: each frame against both neighbours

@@ -1039,12 +1039,13 @@ def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, f
     (:func:`capture_repairs`), giving ``wearer.markers_repaired``; marker_track :
     ``marker_track(video frames float (n,)) -> (n, M, 3)`` the wearer's cleaned capture on the
     video clock (NaN = gap), which the sync check follows between fit frames; workers : the
-    per-frame geometry (self-penetration, interpenetration, contact) in this many forked
+    per-frame geometry (self-penetration, interpenetration, contact) in this many spawned
     processes (1: in this one; the numbers are the same); pool : an executor (e.g. a process
     pool's, ``pipeline.procs.process_pool``) that runs the per-frame geometry as one task,
     submitted as soon as the bodies are posed, while this process computes the other metrics,
-    unless ``workers`` would run it in several processes (the numbers are the same). QA frames: the partner's frames that
-    the wearer's fit also has (all of them without a wearer), else the wearer's frames."""
+    unless ``workers`` would run it in several processes (the numbers are the same). QA
+    frames: the partner's frames that the wearer's fit also has (all of them without a
+    wearer), else the wearer's frames."""
     from fitting.collision import ProxyMesh
 
     if wearer is None and partner is None:

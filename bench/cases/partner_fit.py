@@ -150,8 +150,8 @@ _HUG = ("the partner is hidden behind the wearer: in each frame one or two views
         "(keypoints.somebody_else_partner); the first frames' torso does not triangulate "
         "(the start is frame 30, 0.17 m off; frames 0-24 are fitted backwards from it). The "
         "frames the fit calls valid are 80-140 mm off (the QA withheld every one in session "
-        "20's run; qa.defect_frames_clean counts any it publishes). Until session 21 the fit followed the bystander, 1.25 m "
-        "away, from frame 54 on (228 mm on this machine's session; 126 in the table before, on "
+        "20's run; qa.defect_frames_clean counts any it publishes). Until session 21 the fit "
+        "followed the bystander, 1.25 m away, from frame 54 on (228 mm on this machine's session; 126 in the table before, on "
         "another machine's render of the same studio code).")
 LIMITS.update({
     "partner_fit.mpjpe_mm_hug": _HUG, "partner_fit.frames_valid_fraction_hug": _HUG,
