@@ -137,6 +137,19 @@ MIN_HEAD_MARKERS = 2
 #: wearer's face taken for the partner's (a swapped view at stride 1, Hug frame 30).
 PARTNER_FACE_HEAD_M = 0.18
 
+#: A partner detection whose feet, back-projected onto the floor, stand farther than this
+#: (metres, along the floor) from the wearer's markers' centre is somebody else (an operator,
+#: a bystander): close interaction keeps the partner within reach. On the bench truth every
+#: partner joint stays within 1.04 m of the wearer's root (HoldingHands; 0.65-0.94 m in the
+#: other classes) and the bystander at least 2.22 m away (detect.sequence.standing_far). On
+#: session 21's bench keypoints (the detector's raw partner slots, 8 sequences, stride 6) every
+#: reach from 1.0 to 2.5 m caught all 79 views whose partner slot held somebody else; the
+#: partner's own detections flagged: 17 views at 1.0 m, 5 at 1.5, 4 at 2.0, 3 at 2.5 (the
+#: feet of poor detections, two of them 83-97 px off), and 3.0 m caught only 47 of the 79.
+PARTNER_REACH_M = 2.0
+#: The height above the floor (m) of the ankle and heel keypoints those feet are read from.
+FOOT_HEIGHT_M = 0.07
+
 #: Identity check (detect/identity.py): each view's detection of a person judged as a whole
 #: skeleton (medians over its body keypoints, pixels). A pair of views is consistent on the
 #: keypoints its triangulation reprojects into both within IDENTITY_PAIR_PX, at least

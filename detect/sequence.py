@@ -19,6 +19,7 @@ dropped; the partner's left/right-mirrored detections are relabelled.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -144,6 +145,55 @@ def cross_view_guard(cams, kp: np.ndarray, hints, opts: SequenceOptions,
     return outlier | gone
 
 
+FEET = [layout.IDX[n] for n in ("l_ankle", "r_ankle", "l_heel", "r_heel")]
+
+
+def standing_far(cams, kp: np.ndarray, marker_xyz: np.ndarray, ground,
+                 reach_m: float = K.PARTNER_REACH_M, min_conf: float = K.ACCEPT_CONF) -> np.ndarray:
+    """(C, F) bool: in that view the partner's detection stands farther than ``reach_m`` from
+    the wearer, so it is somebody else (an operator or a bystander in the background).
+
+    Where it stands: its confident ankle and heel keypoints (at least two, inside the image)
+    back-projected onto the floor raised by ``K.FOOT_HEIGHT_M`` (``ground``: ``(normal (3,),
+    offset)``, the plane ``normal . x = offset``, normal up), the least of their distances
+    along the floor from the wearer's markers' centre (``marker_xyz (F, M, 3)``, world metres,
+    NaN = unseen): a person stands on at least one foot, and a raised foot's ray meets the
+    floor beyond it (the median flagged a kicking partner, detected within 8 px). One view is
+    enough: a bystander seen by a single camera never meets the
+    cross-view check. Not judged (False) without a wearer marker in the frame, with too few
+    feet, or with rays that do not come down to the floor in front of the camera.
+    kp : (C, F, 2, 65, 3) pixels and confidences."""
+    from calib.camera import rays_from_pixels
+
+    n = np.asarray(ground[0], float)
+    n = n / np.linalg.norm(n)
+    level = float(ground[1]) + K.FOOT_HEIGHT_M
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        centre = np.nanmean(np.asarray(marker_xyz, float), axis=1)  # (F, 3)
+    kp = np.asarray(kp, float)
+    out = np.zeros(kp.shape[:2], bool)
+    for c, cam in enumerate(cams):
+        feet = kp[c, :, 1][:, FEET]  # (F, 4, 3)
+        uv = feet[..., :2]
+        inside = np.all((uv >= 0) & (uv <= np.array([cam.width, cam.height])), axis=-1)
+        ok = (feet[..., 2] >= min_conf) & inside & np.all(np.isfinite(uv), axis=-1)
+        d = rays_from_pixels(cam, np.nan_to_num(uv)) @ cam.R  # world directions (F, 4, 3)
+        down = d @ n
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (level - cam.T @ n) / down
+        ok &= (down < -1e-6) & (t > 0)
+        P = cam.T + np.where(ok, t, 0.0)[..., None] * d
+        v = P - centre[:, None]
+        along = np.linalg.norm(v - (v @ n)[..., None] * n, axis=-1)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            dist = np.nanmin(np.where(ok, along, np.nan), axis=1)  # (F,) the nearest foot
+        judged = (ok.sum(1) >= 2) & np.isfinite(dist)
+        out[c] = judged & (dist > reach_m)
+    return out
+
+
 def identity_guard(cams, kp: np.ndarray, outlier: np.ndarray, hints, frames: np.ndarray,
                    opts: SequenceOptions):
     """:func:`detect.identity.identity_check` of ``kp (C, F, 2, 65, 3)`` (the detector's
@@ -227,7 +277,8 @@ def detect_keypoints(cams: list, source: FrameSource, marker_xyz: np.ndarray,
                      marker_names: list[str], frames: np.ndarray, detector: DetectorFactory,
                      opts: SequenceOptions = SequenceOptions(),
                      progress: Callable[..., Any] = lambda it, **_: it,
-                     log: Callable[[str], None] = lambda _msg: None) -> tuple[Keypoints2D, dict]:
+                     log: Callable[[str], None] = lambda _msg: None,
+                     ground=None) -> tuple[Keypoints2D, dict]:
     """Both people's keypoints in every view of every frame in ``frames``.
 
     cams : C :class:`calib.Camera` (their ``name`` becomes ``Keypoints2D.cameras``), in the
@@ -237,7 +288,11 @@ def detect_keypoints(cams: list, source: FrameSource, marker_xyz: np.ndarray,
         (the stage resamples the C3D onto the video clock). marker_names : M labels
         (Plug-in Gait names, any ``subject:`` prefix). detector : a picklable factory
         (:class:`detect.mediapipe_detector.MediapipeOptions`,
-        :class:`detect.precomputed.PrecomputedDetector`).
+        :class:`detect.precomputed.PrecomputedDetector`). ground : ``(normal, offset)`` of
+        the floor (the recipe's ``ground_plane``) or None: with it, a partner detection that
+        stands out of the wearer's reach (:func:`standing_far`) is somebody else and dropped
+        in that view before the cross-view checks (all its keypoints, ``partner_far_views``
+        in the report).
     Returns the :class:`Keypoints2D` (cross-view outliers at confidence 0; the detector's own
     confidences in ``conf_raw``; the partner's left/right-mirrored detections relabelled,
     ``conf_raw`` with them) and the report's facts (workers, markers, detector calls,
@@ -267,9 +322,14 @@ def detect_keypoints(cams: list, source: FrameSource, marker_xyz: np.ndarray,
     outlier = np.zeros(conf_raw.shape, bool)
     verdicts = None
     t_guard, w_guard = time.process_time(), time.perf_counter()
+    far = np.zeros(kp.shape[:2], bool)  # (C, F): the partner slot holds somebody else
+    if ground is not None:
+        far = standing_far(cams, kp, marker_xyz, ground)
+        outlier[:, :, 1] |= far[..., None] & (conf_raw[:, :, 1] > 0)
+        kp[..., 2][outlier] = 0.0
     if opts.cross_view and len(cams) >= 3:
-        outlier = cross_view_guard(cams, kp, hints, opts,
-                                   head_centre(marker_xyz, list(marker_names)))
+        outlier |= cross_view_guard(cams, kp, hints, opts,
+                                    head_centre(marker_xyz, list(marker_names)))
         kp[..., 2][outlier] = 0.0
         if opts.identity:
             raw = kp.copy()
@@ -277,6 +337,7 @@ def detect_keypoints(cams: list, source: FrameSource, marker_xyz: np.ndarray,
             ic = identity_guard(cams, raw, outlier, hints, frames, opts)
             kp, conf_raw, hand_boxes = relabel_flipped(ic.flip, raw, conf_raw, hand_boxes)
             outlier = ic.outlier
+            outlier[:, :, 1] |= far[..., None] & (conf_raw[:, :, 1] > 0)  # whatever it judged
             kp[..., 2][outlier] = 0.0
             verdicts = ic.verdict
     guard_cpu_s, guard_wall_s = time.process_time() - t_guard, time.perf_counter() - w_guard
@@ -295,6 +356,7 @@ def detect_keypoints(cams: list, source: FrameSource, marker_xyz: np.ndarray,
               "cross_view_outliers": {who: int(outlier[:, :, p].sum())
                                       for p, who in enumerate(("wearer", "partner"))},
               "identity": identity_counts(verdicts),
+              "partner_far_views": int(far.sum()),
               "guard_cpu_s": round(guard_cpu_s, 3),
               **summary(kp, res.cpu_s + guard_cpu_s, res.wall_s + guard_wall_s, len(frames))}
     return out, report

@@ -309,3 +309,45 @@ def test_cross_view_check_confirms_agreeing_views():
     xv = cross_view_check(cams, kp)
     assert xv.confirmed[:, 0].all() and not xv.outlier[:, 0].any()
     assert not xv.confirmed[:, 1].any() and not xv.outlier[:, 1].any()
+
+
+def _feet_in_views(cams, feet_xyz):
+    """(C, F, 2, 65, 3) keypoints with only person 1's ankles and heels, from (F, 4, 3)."""
+    from detect.sequence import FEET
+
+    F = len(feet_xyz)
+    kp = np.zeros((len(cams), F, 2, layout.N, 3))
+    for c, cam in enumerate(cams):
+        person = kp[c, :, 1]  # a view: (F, 65, 3)
+        person[:, FEET, :2] = project(cam, feet_xyz.reshape(-1, 3)).reshape(F, 4, 2)
+        person[:, FEET, 2] = 0.9
+    return kp
+
+
+def test_standing_far_finds_somebody_out_of_the_wearers_reach():
+    """The partner slot's feet back-projected onto the floor: a person 3 m from the wearer is
+    somebody else, the partner 0.8 m away is not, nor is a kicking partner whose raised
+    foot's ray meets the floor far away (the nearest foot counts); no wearer marker in the
+    frame, or feet below the confidence, judge nothing."""
+    from detect.sequence import standing_far
+
+    cams = [look_at(f"c{i}", (4.5 * np.cos(a), 4.5 * np.sin(a), 2.2), (0, 0, 0.9), (900, 900),
+                    (960, 540), 1920, 1080) for i, a in enumerate((0.3, 2.0, 4.1))]
+    markers = np.tile(np.array([[0.0, 0.0, 1.0], [0.1, 0.0, 1.3]]), (4, 1, 1))  # (F, M, 3)
+    markers[3] = np.nan  # frame 3: no wearer marker
+    h = 0.07  # ankle height (K.FOOT_HEIGHT_M)
+    feet = np.array([[[0.0, 0.8, h], [0.2, 0.8, h], [0.0, 0.75, h], [0.2, 0.75, h]],  # partner
+                     [[-3.0, 0.0, h], [-2.8, 0.0, h], [-3.0, -0.05, h], [-2.8, -0.05, h]],  # 3 m
+                     # kicking partner: the right ankle and heel 0.6 m up in front of the wearer
+                     [[0.0, 0.8, h], [0.1, 0.3, 0.6], [0.0, 0.75, h], [0.1, 0.28, 0.6]],
+                     [[-3.0, 0.0, h], [-2.8, 0.0, h], [-3.0, -0.05, h], [-2.8, -0.05, h]]])
+    kp = _feet_in_views(cams, feet)
+    far = standing_far(cams, kp, markers, ((0.0, 0.0, 1.0), 0.0))
+    assert far.shape == (3, 4)
+    assert not far[:, 0].any() and far[:, 1].all() and not far[:, 2].any()
+    assert not far[:, 3].any()  # nothing to compare with
+    near = standing_far(cams, kp, markers, ((0.0, 0.0, 1.0), 0.0), reach_m=3.5)
+    assert not near.any()  # the reach is the knob
+    weak = kp.copy()
+    weak[..., 2] = 0.2
+    assert not standing_far(cams, weak, markers, ((0.0, 0.0, 1.0), 0.0)).any()

@@ -323,6 +323,48 @@ def test_detect_keypoints_is_pure_and_drops_what_other_views_disagree_with(sessi
         detect_keypoints(cams, source, np.full_like(xyz, np.nan), list(m.names), frames, det)
 
 
+def test_detect_keypoints_drops_a_partner_slot_that_holds_somebody_far_away(session):
+    """A bystander 2.5 m behind the pair in one view's partner slot (the detector found the
+    operator, not the partner): with the floor given, that view's partner is dropped whole
+    before the cross-view checks and counted; the other views keep the partner."""
+    from calib import project
+    from detect.precomputed import PrecomputedDetector
+    from detect.run import ArraySource
+    from detect.sequence import SequenceOptions, detect_keypoints
+    from formats.c3d import read_c3d
+    from formats.keypoints import KeypointFrames
+
+    root, truth = session
+    cams = truth["cams"]
+    frames = np.arange(N_FRAMES)
+    m = read_c3d(root / "s01" / "mocap" / "Test 1.c3d")
+    xyz = markers_on_frames(m, frames, VideoClock(FPS, OFFSET))
+    uv = _truth_uv(truth, frames)  # (C, F, 2, 65, 2)
+    away = cams[2].R[2] * np.array([1.0, 1.0, 0.0])  # along the view, on the floor
+    bystander = truth["kp65"][frames][:, 1] + 2.5 * away / np.linalg.norm(away)
+    per_cam = []
+    for c in range(len(cams)):
+        people = np.zeros((N_FRAMES, 2, layout.N, 3), np.float32)
+        people[..., :2] = uv[c]
+        people[..., 2] = 0.9
+        if c == 2:
+            people[:, 1, :, :2] = project(cams[c], bystander)
+        per_cam.append(KeypointFrames(people, frames))
+    det = PrecomputedDetector.from_frames(per_cam)
+    source = ArraySource(np.zeros((len(cams), 0, 1, 1, 3), np.uint8), ())
+    ground = ((0.0, 0.0, 1.0), 0.0)
+    out, rep = detect_keypoints(cams, source, xyz, list(m.names), frames, det, SequenceOptions(),
+                                ground=ground)
+    assert rep["partner_far_views"] == N_FRAMES
+    assert not out.kp[2, :, 1, :, 2].any() and out.cross_view_outlier[2, :, 1].all()
+    assert (out.conf_raw[2, :, 1] > 0).all()  # the detector's own confidences are kept
+    others = np.ones(len(cams), bool)
+    others[2] = False
+    assert (out.kp[others][:, :, 1, :23, 2] > 0).mean() > 0.9  # the partner elsewhere stays
+    _, rep0 = detect_keypoints(cams, source, xyz, list(m.names), frames, det, SequenceOptions())
+    assert rep0["partner_far_views"] == 0  # no floor given: not judged
+
+
 def _compute(path: Path, o: Options):
     from recipes import load_recipe
     from stages import view_for
