@@ -37,6 +37,8 @@ Keys:
   somebody else (the bystander) was found in that person's place;
   ``keypoints.somebody_else_wearer`` / ``_partner`` count those views
   (detect.metrics.somebody_else; counted as swaps before session 21).
+  ``keypoints.partner_far_views``: views where the stage itself dropped the partner slot as
+  somebody else standing out of the wearer's reach (detect.sequence.standing_far).
 
 - ``keypoints.detected_<group>_<person>_<class>``: the same per interaction class (the
   action's name without its number, lower case, as in ``bench/cases/partner_fit.py``).
@@ -82,9 +84,17 @@ LIMITS = {
         "tracked onto the bystander at the image's left edge and stayed there); Hug 8, view "
         "60457274, where the partner is hidden behind the wearer and mediapipe finds the one "
         "person left once the wearer is painted out; HoldingHands 2 and Kick 1 with 4 "
-        "keypoints each. The partner fit drops such a view when one other view agrees with its "
-        "estimate (fitting.partner_fit.check_views); the stage picks each view's detection "
-        "without knowing where the partner is in 3D."),
+        "keypoints each. Since session 22 the stage drops a partner slot whose feet stand more "
+        "than 2 m from the wearer on the floor (detect.sequence.standing_far; "
+        "keypoints.partner_far_views counts them): on session 21's detections it caught all "
+        "79 raw views of somebody else; what is left stands within that reach or shows no "
+        "confident feet (the partner fit's check_views then drops it when one other view "
+        "agrees with its estimate)."),
+    "keypoints.identity_swaps": (
+        "session 21's one swapped frame (HoldingHands frame 18, view 58860488) is the "
+        "wearer's crop locked onto the partner standing right behind it: the two people's truths 48 px apart (median) in that view, the "
+        "detection 11 px from the partner's and 23 from the wearer's, close enough to pass the "
+        "wearer's marker check (detect.people.wearer_check) and the cross-view checks."),
     "keypoints.fps_per_core_clip": (
         "the detector's own cost, and a noisy clock: the same code measured 2.43, 2.82 and "
         "2.97 frames per CPU-second in three runs on this 2-core machine, the highest two "
@@ -172,7 +182,7 @@ def run(work: Path) -> dict[str, float]:
     recipe = load_recipe(recipe_path)
     reg = regressor(load_model("anny"), "kp65")
     errs, swaps, frames_total, cpu, setup, per_seq = [], 0, 0, 0.0, 0.0, {}
-    swap_views = 0
+    swap_views, far_views = 0, 0
     flips, others = np.zeros(2, int), np.zeros(2, int)
     for sid, seq in recipe.sequences.items():
         cls = _class(sid.split("/", 1)[-1])
@@ -190,6 +200,7 @@ def run(work: Path) -> dict[str, float]:
         swap_views += int(sw.sum())
         frames_total += len(res.frames)
         cpu += rep["cpu_s"]
+        far_views += int(rep.get("partner_far_views", 0))
         setup += rep["detector_calls"].get("setup_cpu_s", 0.0)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
@@ -213,7 +224,8 @@ def run(work: Path) -> dict[str, float]:
            "keypoints.lr_flips_wearer": float(flips[0]),
            "keypoints.lr_flips_partner": float(flips[1]),
            "keypoints.somebody_else_wearer": float(others[0]),
-           "keypoints.somebody_else_partner": float(others[1])}
+           "keypoints.somebody_else_partner": float(others[1]),
+           "keypoints.partner_far_views": float(far_views)}
     out.update(clip)
     allv = e[np.isfinite(e)]
     out["keypoints.median_px"] = float(np.median(allv))
