@@ -272,14 +272,13 @@ def test_stage_precomputed_openpose(session, tmp_path):
     np.testing.assert_array_equal(k2.kp, kp)
 
 
-def test_detect_keypoints_is_pure_and_drops_what_other_views_disagree_with(session):
-    """The domain function on in-memory inputs (cameras, markers at the video frames, a
-    precomputed detector, an ArraySource that is never read): both people found; a view whose
-    partner is shifted by 80 px is caught by the cross-view check (confidence 0 there,
-    conf_raw keeps the detector's), and without the check it stays."""
+def _precomputed(session, edit):
+    """The domain function's inputs on in-memory data: (cams, frames, the C3D's markers, their
+    positions at the video frames, the projected truth uv, a precomputed detector whose
+    per-view detections are the truth at confidence 0.9 after ``edit(c, people (F, 2, 65,
+    3))``, an ArraySource that is never read)."""
     from detect.precomputed import PrecomputedDetector
     from detect.run import ArraySource
-    from detect.sequence import SequenceOptions, detect_keypoints
     from formats.c3d import read_c3d
     from formats.keypoints import KeypointFrames
 
@@ -294,11 +293,25 @@ def test_detect_keypoints_is_pure_and_drops_what_other_views_disagree_with(sessi
         people = np.zeros((N_FRAMES, 2, layout.N, 3), np.float32)
         people[..., :2] = uv[c]
         people[..., 2] = 0.9
+        people = edit(c, people)
+        per_cam.append(KeypointFrames(people, frames))
+    source = ArraySource(np.zeros((len(cams), 0, 1, 1, 3), np.uint8), ())
+    return cams, frames, m, xyz, uv, PrecomputedDetector.from_frames(per_cam), source
+
+
+def test_detect_keypoints_is_pure_and_drops_what_other_views_disagree_with(session):
+    """The domain function on in-memory inputs (cameras, markers at the video frames, a
+    precomputed detector, an ArraySource that is never read): both people found; a view whose
+    partner is shifted by 80 px is caught by the cross-view check (confidence 0 there,
+    conf_raw keeps the detector's), and without the check it stays."""
+    from detect.sequence import SequenceOptions, detect_keypoints
+
+    def shift(c, people):
         if c == 1:
             people[:, 1, :, 0] += 80.0  # the partner shifted in one view
-        per_cam.append(KeypointFrames(people[:, ::-1].copy(), frames))  # partner listed first
-    det = PrecomputedDetector.from_frames(per_cam)
-    source = ArraySource(np.zeros((len(cams), 0, 1, 1, 3), np.uint8), ())
+        return people[:, ::-1].copy()  # partner listed first
+
+    cams, frames, m, xyz, uv, det, source = _precomputed(session, shift)
     out, rep = detect_keypoints(cams, source, xyz, list(m.names), frames, det, SequenceOptions())
     assert out.kp.shape == (len(cams), N_FRAMES, 2, layout.N, 3)
     assert out.camera_ids == [c.name for c in cams] and out.frames.tolist() == frames.tolist()
@@ -328,30 +341,19 @@ def test_detect_keypoints_drops_a_partner_slot_that_holds_somebody_far_away(sess
     operator, not the partner): with the floor given, that view's partner is dropped whole
     before the cross-view checks and counted; the other views keep the partner."""
     from calib import project
-    from detect.precomputed import PrecomputedDetector
-    from detect.run import ArraySource
     from detect.sequence import SequenceOptions, detect_keypoints
-    from formats.c3d import read_c3d
-    from formats.keypoints import KeypointFrames
 
-    root, truth = session
-    cams = truth["cams"]
-    frames = np.arange(N_FRAMES)
-    m = read_c3d(root / "s01" / "mocap" / "Test 1.c3d")
-    xyz = markers_on_frames(m, frames, VideoClock(FPS, OFFSET))
-    uv = _truth_uv(truth, frames)  # (C, F, 2, 65, 2)
-    away = cams[2].R[2] * np.array([1.0, 1.0, 0.0])  # along the view, on the floor
-    bystander = truth["kp65"][frames][:, 1] + 2.5 * away / np.linalg.norm(away)
-    per_cam = []
-    for c in range(len(cams)):
-        people = np.zeros((N_FRAMES, 2, layout.N, 3), np.float32)
-        people[..., :2] = uv[c]
-        people[..., 2] = 0.9
+    _, truth = session
+    cam2 = truth["cams"][2]
+    away = cam2.R[2] * np.array([1.0, 1.0, 0.0])  # along the view, on the floor
+    bystander = truth["kp65"][np.arange(N_FRAMES)][:, 1] + 2.5 * away / np.linalg.norm(away)
+
+    def operator(c, people):
         if c == 2:
-            people[:, 1, :, :2] = project(cams[c], bystander)
-        per_cam.append(KeypointFrames(people, frames))
-    det = PrecomputedDetector.from_frames(per_cam)
-    source = ArraySource(np.zeros((len(cams), 0, 1, 1, 3), np.uint8), ())
+            people[:, 1, :, :2] = project(cam2, bystander)
+        return people
+
+    cams, frames, m, xyz, uv, det, source = _precomputed(session, operator)
     ground = ((0.0, 0.0, 1.0), 0.0)
     out, rep = detect_keypoints(cams, source, xyz, list(m.names), frames, det, SequenceOptions(),
                                 ground=ground)
