@@ -183,15 +183,16 @@ def native_target(compiler: str) -> str | None:
     """What ``compiler`` makes of ``-march=native`` on this host: its CPU and feature options
     as it passes them to its back end (the ``cc1`` line of ``-v``; gcc: ``-march=icelake-client
     -mavx512f ...``; clang: ``-target-cpu ... -target-feature ...``), paths left out. None when the compiler rejects
-    ``-march=native`` (or cannot be run). Asked once per process and compiler (~20 ms)."""
-    try:
-        out = subprocess.run([compiler, NATIVE, "-E", "-v", "-x", "c", os.devnull, "-o",
-                              os.devnull], capture_output=True, text=True, timeout=60)
-    except (OSError, subprocess.SubprocessError):
+    ``-march=native`` (or cannot be run). Asked once per process and compiler (~20 ms), under
+    :func:`run_guarded` like a compile (killed with us, or at once on an exception)."""
+    with tempfile.TemporaryFile() as out:  # guarded as a compile is: it dies with us
+        code = run_guarded([compiler, NATIVE, "-E", "-v", "-x", "c", os.devnull, "-o",
+                            os.devnull], out)
+        out.seek(0)
+        text = out.read().decode(errors="replace")
+    if code != 0:
         return None
-    if out.returncode != 0:
-        return None
-    back_end = [ln for ln in out.stderr.splitlines() if re.search(r"(^|[/\s-])cc1(\s|$)", ln)]
+    back_end = [ln for ln in text.splitlines() if re.search(r"(^|[/\s-])cc1(\s|$)", ln)]
     found = [t for ln in back_end for t in _TARGET_TOKEN.findall(ln)]
     return " ".join(found) if found else None
 
