@@ -183,8 +183,9 @@ def native_target(compiler: str) -> str | None:
     """What ``compiler`` makes of ``-march=native`` on this host: its CPU and feature options
     as it passes them to its back end (the ``cc1`` line of ``-v``; gcc: ``-march=icelake-client
     -mavx512f ...``; clang: ``-target-cpu ... -target-feature ...``), paths left out. None when the compiler rejects
-    ``-march=native`` (or cannot be run). Asked once per process and compiler (~20 ms), under
-    :func:`run_guarded` like a compile (killed with us, or at once on an exception)."""
+    ``-march=native`` (or cannot be run). Asked once per process and compiler, under
+    :func:`run_guarded` like a compile (killed with us, or at once on an exception): a Python
+    guard's start-up and the compiler's, ~0.1 s."""
     with tempfile.TemporaryFile() as out:  # guarded as a compile is: it dies with us
         code = run_guarded([compiler, NATIVE, "-E", "-v", "-x", "c", os.devnull, "-o",
                             os.devnull], out)

@@ -31,6 +31,14 @@ def body_model_file(recipe) -> Path:
     return Path(env)
 
 
+def ground_of(view):
+    """The recipe's floor as the domain functions take it: ``(normal (3,) float, offset)``, the
+    plane ``normal . x = offset`` (``view``: a recipe or a stage's recipe view)."""
+    import numpy as np
+
+    return np.asarray(view.ground_plane.normal, float), float(view.ground_plane.offset)
+
+
 def load_body(ctx):
     """The body model of the recipe (kind from the declared view ``body_model.kind``, file from
     the raw input ``body_model``)."""

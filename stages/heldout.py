@@ -129,7 +129,7 @@ def run(ctx: StageContext) -> None:
     cams = common.capture_cameras(ctx, list(rv.cameras))
     keypoints = Keypoints2D.load(ctx.inputs["keypoints"])
     fits = [BodyFit.load(a) for a, _ in common.fitted_people(ctx)]
-    ground = (np.asarray(rv.ground_plane.normal, float), float(rv.ground_plane.offset))
+    ground = common.ground_of(rv)
     fit_opts = FitOptions()  # the partner fit's default terms and weights
     rig = ctx.inputs.get("rig")  # a rig refined from the person: not scored on its frames
     exclude = (np.load(common.artifact_folder(rig) / "refine.npz")["frames"]

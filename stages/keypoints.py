@@ -276,10 +276,9 @@ def compute(view, raw: dict[str, Path], o: Options, *, markers, cams, unit: str 
                                    video=video)
     source = VideoSource(tuple(str(v) for v in videos))
     log(f"keypoints: detector {kind}")
-    ground = (tuple(view.ground_plane.normal), float(view.ground_plane.offset))
     kp, facts = detect_keypoints(cams, source, xyz, list(markers.names), frames, factory,
                                  o.sequence_options(cores), progress=progress, log=log,
-                                 ground=ground)
+                                 ground=common.ground_of(view))
     report = {"detector": kind, "cameras": cam_names, "video_frames": n_video,
               "stride": o.stride, "video_warnings": video_warnings, **facts}
     return Computed(kp, report, source)

@@ -149,7 +149,7 @@ def run(ctx: StageContext) -> None:
     shape = ShapeFit.load(shape_art[partner] if isinstance(shape_art, dict) else shape_art)
     keypoints = Keypoints2D.load(ctx.inputs["keypoints"])
     wearer = BodyFit.load(ctx.inputs["marker_fit"]) if "marker_fit" in ctx.inputs else None
-    ground = (np.asarray(rv.ground_plane.normal, float), float(rv.ground_plane.offset))
+    ground = common.ground_of(rv)
     log = lambda s: ctx.log(f"{ctx.unit}: {s}")  # noqa: E731
     masks = None  # L_sil: the silhouettes stage's masks, when it ran and the weight is > 0
     if "silhouettes" in ctx.inputs and o.weights.get("L_sil", 0) > 0:
@@ -308,7 +308,7 @@ def run_markerless(ctx: StageContext, o: Options, model, cams) -> None:
                                family=family)
     keypoints = Keypoints2D.load(ctx.inputs["keypoints"])
     shape_art = ctx.inputs["shape_fit"]
-    ground = (np.asarray(rv.ground_plane.normal, float), float(rv.ground_plane.offset))
+    ground = common.ground_of(rv)
     shapes, shape_reports, kps = [], [], []
     for p, sid in enumerate(people):
         shape = ShapeFit.load(shape_art[sid] if isinstance(shape_art, dict) else shape_art)

@@ -194,7 +194,7 @@ def _run(ctx: StageContext, beside) -> None:
         keypoints = Keypoints2D.load(pf_art)  # the keypoints the partner fit used
     elif ctx.inputs.get("keypoints") is not None:
         keypoints = Keypoints2D.load(ctx.inputs["keypoints"])
-    ground = (np.asarray(rv.ground_plane.normal, float), float(rv.ground_plane.offset))
+    ground = common.ground_of(rv)
     if rv.sequence.markerless:  # nobody's markers: no marker metrics, no markers in the scene
         from fitting.mocap import VideoClock
 
