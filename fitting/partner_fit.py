@@ -95,6 +95,10 @@ EXTRA_TERMS = ("L_gp", "L_ic", "L_sc", "L_D", "L_N")
 N_BODY = 23  # KP65 body keypoints (COCO-WholeBody order) counted for "enough detections"
 FLIP_MIN_PX = 15.0  # check_views: a view this close to the estimate (median px) is kept as is
 FLIP_RATIO = 0.5  # ... else mirrored / dropped when that fits at least twice as well
+#: check_views' halves of the body, each mirrored back on its own: (the KP65 body keypoints
+#: that judge it, every keypoint it moves): the head and arms with the hands; the legs
+BODY_PARTS = ((np.arange(0, 11), np.r_[0:11, N_BODY:len(KP65)]),
+              (np.arange(11, N_BODY), np.arange(11, N_BODY)))
 # A hand detection (21 keypoints) outweighs the body's one wrist keypoint, so one wrong hand
 # (another person's, a mirrored one) drags the whole arm: on the realistic demo's Push the
 # partner's right hand detected 46-50 px off in one of the two views that saw it held the
@@ -750,10 +754,22 @@ def check_views(cams, pred: np.ndarray, uv: np.ndarray, conf: np.ndarray, flip: 
       (``e_other < ratio * e``, ``e > min_px``; an identity swap) is dropped (conf 0);
     - a view whose detection read mirrored fits ``pred`` better (``e_flip < ratio * e`` and
       ``e > min_px``) is mirrored back (a person seen from behind read as seen from the
-      front: the fit must not follow it).
+      front: the fit must not follow it);
+    - in a view kept as it is, each half of the body (:data:`BODY_PARTS`: the head and arms
+      with the hands, the legs) is judged the same way on its own: the detector mirrors the
+      upper body alone of a partner seen from behind while the legs stay right (bench,
+      Posing, view 60457274 from frame 54 on: the shoulders, elbows and wrists swapped), and
+      the whole view's median, held by the legs, does not see it;
+    - in a view kept, each body keypoint is judged on its own against the wearer: one that
+      lies nearer the wearer's projected keypoint of the same name (either side) than the
+      estimate's (``d_other < ratio * d``, ``d > min_px``) is the wearer's joint read as the
+      partner's and dropped (conf 0; bench, Posing: a second-pass crop put the partner's left
+      elbow on the wearer's elbow, 80-110 px from the truth, at confidence 0.4-0.9). A joint
+      near the wearer's other joints (a hand on the wearer's chest, Push) is kept.
 
     Returns a :class:`ViewCheck` (copies)."""
     uv, conf = np.array(uv, float), np.array(conf, float)
+    flip = np.asarray(flip)
     C, K = conf.shape
     body = np.arange(min(K, N_BODY))
     flipped, dropped, far = np.zeros(C, bool), np.zeros(C, bool), np.zeros(C, bool)
@@ -785,7 +801,33 @@ def check_views(cams, pred: np.ndarray, uv: np.ndarray, conf: np.ndarray, flip: 
         if med(c, pred, flip) < ratio * e[c]:
             uv[c], conf[c] = uv[c, flip], conf[c, flip]
             flipped[c] = True
-    return ViewCheck(uv, conf, flipped, dropped, far)
+    parts = np.zeros((C, len(BODY_PARTS)), bool)
+    kp_dropped = np.zeros((C, K), bool)
+    kept = ~(far | dropped | flipped)
+    for c in np.flatnonzero(kept):
+        for p, (judged, moved) in enumerate(BODY_PARTS):
+            judged = judged[judged < K]
+            ok, okf = conf[c, judged] > 0, conf[c, flip[judged]] > 0
+            if ok.sum() < 4 or okf.sum() < 4:
+                continue
+            pp = project(cams[c], pred[judged])
+            ep = float(np.median(np.linalg.norm(uv[c, judged][ok] - pp[ok], axis=-1)))
+            ef = float(np.median(np.linalg.norm(uv[c, flip[judged]][okf] - pp[okf], axis=-1)))
+            if ep > min_px and ef < ratio * ep:
+                moved = moved[moved < K]
+                uv[c, moved], conf[c, moved] = uv[c, flip[moved]], conf[c, flip[moved]]
+                parts[c, p] = True
+    if other is not None:
+        for c in np.flatnonzero(kept):
+            ok = conf[c, body] > 0
+            d = np.linalg.norm(uv[c, body] - project(cams[c], pred[body]), axis=-1)
+            po = project(cams[c], other[body])
+            d_other = np.minimum(np.linalg.norm(uv[c, body] - po, axis=-1),
+                                 np.linalg.norm(uv[c, body] - po[flip[body]], axis=-1))
+            bad = ok & (d > min_px) & (d_other < ratio * d)
+            conf[c, body[bad]] = 0.0
+            kp_dropped[c, body[bad]] = True
+    return ViewCheck(uv, conf, flipped, dropped, far, parts, kp_dropped)
 
 
 @dataclass(frozen=True)
@@ -799,10 +841,13 @@ class ViewCheck:
     flipped: np.ndarray
     dropped: np.ndarray
     far: np.ndarray
+    parts_flipped: np.ndarray  # (C, 2) bool: the upper / lower half mirrored back alone
+    keypoints_dropped: np.ndarray  # (C, K) bool: the wearer's joints read as the partner's
 
     @property
     def changed(self) -> bool:
-        return bool(self.flipped.any() or self.dropped.any() or self.far.any())
+        return bool(self.flipped.any() or self.dropped.any() or self.far.any()
+                    or self.parts_flipped.any() or self.keypoints_dropped.any())
 
 
 #: KP65 rows of each hand's wrist (the hand detector's) and the body's wrist, left and right
@@ -1018,6 +1063,9 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
     flipped = np.zeros((F, C), bool)
     dropped = np.zeros((F, C), bool)
     far = np.zeros((F, C), bool)
+    halves = np.zeros((F, C, len(BODY_PARTS)), bool)
+    on_wearer = np.zeros((F, C), bool)
+    on_wearer_n = np.zeros((F, C), np.int64)
     gated = np.zeros((F, C, 2), bool)
     gate = opts.use_hands and opts.hand_gate_px > 0
     hidden_n = np.zeros((F, C), np.int64)
@@ -1076,6 +1124,9 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
             flipped[f] |= vc.flipped
             dropped[f] |= vc.dropped
             far[f] |= vc.far
+            halves[f] |= vc.parts_flipped
+            on_wearer[f] |= vc.keypoints_dropped.any(-1)
+            on_wearer_n[f] += vc.keypoints_dropped.sum(-1)
         return vc
 
     def fit_frame(f, x0, x_ref):
@@ -1210,11 +1261,16 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
         "frames_with": {n: int(active[:, i].sum()) for i, n in enumerate(names)},
         "views_mirrored_back": int(flipped.sum()), "views_dropped_as_wearer": int(dropped.sum()),
         "views_dropped_as_bystander": int(far.sum()),
+        "view_halves_mirrored_back": {"upper": int(halves[..., 0].sum()),
+                                      "lower": int(halves[..., 1].sum())},
+        "keypoints_dropped_as_wearer": {"keypoints": int(on_wearer_n.sum()),
+                                        "views": int(on_wearer.sum())},
         "joints_observed": _observed_summary(model, out),
         "keypoints_hidden_by_wearer": int(hidden_n.sum()) if occluder is not None else None,
         "hands_gated": {"views": int(gated.sum()), "gate_px": opts.hand_gate_px if gate else None},
         "per_frame": {"reproj_px": err_px, "views_flipped": flipped, "views_dropped": dropped,
-                      "views_bystander": far, "hands_gated": gated, "keypoints_hidden": hidden_n,
+                      "views_bystander": far, "halves_flipped": halves,
+                      "keypoints_on_wearer": on_wearer_n, "hands_gated": gated, "keypoints_hidden": hidden_n,
                       "detections": det, "term_cost": cost,
                       "term_active": active, "term_points": npts, "frames": frames},
     }

@@ -632,6 +632,65 @@ def test_a_bystander_is_dropped_where_one_view_sees_the_partner(scene):
     assert rep["views_dropped_as_bystander"] == F_SYN - 2
 
 
+def test_an_upper_body_read_mirrored_alone_is_mirrored_back(scene):
+    """mediapipe mirrors the upper body alone of a person seen from behind (bench, Posing:
+    shoulders, elbows and wrists swapped in one view while the legs stay right). The whole
+    view's median, held by the legs, keeps the view; check_views mirrors the upper half back
+    on its own and leaves the legs and the other views untouched."""
+    from calib import project
+    from fitting.partner_fit import BODY_PARTS, check_views
+    from formats.skeletons import KP65_FLIP
+
+    f = 4
+    pred = scene.kp3[f]
+    flip = np.asarray(KP65_FLIP)
+    uv, conf = scene.kp[:, f, 1, :, :2].copy(), scene.kp[:, f, 1, :, 2].copy()
+    judged, moved = BODY_PARTS[0]
+    # the view where the mirrored arms lie farthest from the truth (a side view barely moves)
+    errs = [np.median(np.linalg.norm(project(cam, pred[flip[judged]]) - project(cam, pred[judged]),
+                                      axis=-1)) for cam in scene.cams]
+    c = int(np.argmax(errs))
+    assert errs[c] > 30.0  # the scene: a swap the check must see
+    bad = uv.copy()
+    bad[c, moved] = uv[c, flip[moved]]
+    vc = check_views(scene.cams, pred, bad, conf, flip)
+    assert not vc.flipped.any() and not vc.dropped.any()
+    assert vc.parts_flipped[c].tolist() == [True, False]
+    assert not np.delete(vc.parts_flipped, c, axis=0).any()
+    assert np.allclose(vc.uv, uv) and np.array_equal(vc.conf, conf)
+    assert not check_views(scene.cams, pred, uv, conf, flip).changed  # right as it is
+
+
+def test_a_partner_joint_read_on_the_wearers_joint_is_dropped(scene):
+    """A second-pass crop put the partner's left elbow on the wearer's elbow (bench, Posing:
+    80-110 px from the truth at confidence 0.4-0.9, and the fit followed it along the depth
+    two opposite views leave free). check_views drops that keypoint in that view alone; a
+    partner's wrist on the wearer's shoulder (a push: another joint of the wearer) is kept,
+    and so is everything without the wearer's keypoints."""
+    from calib import project
+    from fitting.partner_fit import check_views
+    from formats.skeletons import KP65, KP65_FLIP
+
+    f = 4
+    pred = scene.kp3[f]
+    el, wr, sh = KP65.index("l_elbow"), KP65.index("r_wrist"), KP65.index("l_shoulder")
+    # the wearer stands so that its left shoulder is where the partner's right wrist is
+    other = _shifted_kp(scene, pred[wr] - pred[sh])[f]
+    flip = np.asarray(KP65_FLIP)
+    uv, conf = scene.kp[:, f, 1, :, :2].copy(), scene.kp[:, f, 1, :, 2].copy()
+    uv[1, el] = project(scene.cams[1], other[KP65.index("r_elbow")][None])[0]
+    vc = check_views(scene.cams, pred, uv, conf, flip, other)
+    assert np.linalg.norm(uv[1, el] - project(scene.cams[1], pred[el][None])[0]) > 15.0
+    assert vc.keypoints_dropped[1, el] and vc.conf[1, el] == 0.0
+    assert vc.keypoints_dropped.sum() == 1 and vc.changed
+    keep = np.ones_like(conf, bool)
+    keep[1, el] = False
+    assert np.array_equal(vc.conf[keep], conf[keep])  # the wrist on the shoulder among them
+    assert not vc.dropped.any() and not vc.flipped.any() and not vc.parts_flipped.any()
+    alone = check_views(scene.cams, pred, uv, conf, flip)  # no wearer: nothing to judge by
+    assert not alone.keypoints_dropped.any() and np.array_equal(alone.conf, conf)
+
+
 def test_the_frames_before_the_first_initialisation_are_fitted_backwards(scene):
     """No torso keypoint (shoulders, hips) in the first three frames: the triangulated start
     fails there though 19 body keypoints are seen in four views. The fit starts at frame 3 and
