@@ -45,13 +45,16 @@ N_BODY = len(range(layout.N)[layout.BODY])  # the body keypoints of KP65
 class Refined:
     """kp (C, F, 65, 3) the partner's keypoints after the pass (unchanged where not redone or
     nothing better was found); redone (C, F) bool views run again; improved (C, F) bool views
-    whose keypoints were replaced; calls: detector calls by kind; cpu_s: CPU seconds of the whole pass."""
+    whose keypoints were replaced; calls: detector calls by kind; cpu_s: CPU seconds of the whole pass;
+    on_wearer (C, F) int: body keypoints of the found person left out as the wearer's
+    (:func:`on_wearer`)."""
 
     kp: np.ndarray
     redone: np.ndarray
     improved: np.ndarray
     calls: dict
     cpu_s: float
+    on_wearer: np.ndarray
 
 
 def _n_body(kp: np.ndarray, conf: float) -> np.ndarray:
@@ -110,6 +113,27 @@ def _is_wearer(cand: np.ndarray, proj: np.ndarray, wearer: np.ndarray, conf: flo
     return bool(dw < dp)
 
 
+def on_wearer(cand: np.ndarray, proj: np.ndarray, wearer: np.ndarray, conf: float,
+              min_px: float = K.REFINE_WEARER_MIN_PX,
+              ratio: float = K.REFINE_WEARER_RATIO) -> np.ndarray:
+    """(23,) bool: the body keypoints of the candidate ``cand (65, 3)`` that are the
+    wearer's joints read as the partner's: farther than ``min_px`` from the first fit's
+    projection ``proj (65, 2)`` and nearer the wearer's detected keypoint of the same name,
+    either side (``wearer (65, 3)``, confident at ``conf``), than ``ratio`` x that distance.
+    Every found candidate keypoint is judged; a joint near the wearer's other joints (a hand
+    on the wearer's chest) is kept."""
+    b = np.arange(N_BODY)
+    c = np.asarray(cand, float)[b]
+    w = np.asarray(wearer, float)
+    d = np.linalg.norm(c[:, :2] - np.asarray(proj, float)[b], axis=-1)
+    d_w = np.full(N_BODY, np.inf)
+    for idx in (b, layout.FLIP[b]):
+        ok = w[idx, 2] >= conf
+        d_w = np.where(ok, np.minimum(d_w, np.linalg.norm(c[:, :2] - w[idx, :2], axis=-1)), d_w)
+    with np.errstate(invalid="ignore"):
+        return (c[:, 2] > 0) & (d > min_px) & (d_w < ratio * d)
+
+
 def refine_partner(source: FrameSource, factory: DetectorFactory, frames: np.ndarray,
                    kp: np.ndarray, projected: np.ndarray, outline: np.ndarray,
                    need: np.ndarray, opts: PeopleOptions | None = None,
@@ -126,8 +150,9 @@ def refine_partner(source: FrameSource, factory: DetectorFactory, frames: np.nda
     C, F = need.shape
     redone = np.zeros((C, F), bool)
     improved = np.zeros((C, F), bool)
+    on_wearer_n = np.zeros((C, F), np.int64)
     if not need.any():
-        return Refined(out, redone, improved, {"body": 0, "hands": 0}, 0.0)
+        return Refined(out, redone, improved, {"body": 0, "hands": 0}, 0.0, on_wearer_n)
     t0 = time.process_time()  # everything: the detector's build, decoding, the calls
     det = _Metered(factory.build())  # the first pass's meter: calls per kind
     reader = source.open() if det.needs_pixels else None
@@ -150,6 +175,9 @@ def refine_partner(source: FrameSource, factory: DetectorFactory, frames: np.nda
                 cand, _ = _find_wearer(img, hints, det, o, c, fr, True)
                 if _n_body(cand, conf) > _n_body(first, conf) and not _is_wearer(
                         cand, projected[c, i], kp[c, i, 0], conf):
+                    bad = on_wearer(cand, projected[c, i], kp[c, i, 0], conf)
+                    cand[layout.BODY][bad, 2] = 0.0
+                    on_wearer_n[c, i] = int(bad.sum())
                     new[layout.BODY] = cand[layout.BODY]
                     improved[c, i] = True
             if o.hands:
@@ -165,4 +193,4 @@ def refine_partner(source: FrameSource, factory: DetectorFactory, frames: np.nda
         if reader is not None:
             reader.close()
         det.close()
-    return Refined(out, redone, improved, dict(det.calls), time.process_time() - t0)
+    return Refined(out, redone, improved, dict(det.calls), time.process_time() - t0, on_wearer_n)

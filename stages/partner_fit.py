@@ -25,7 +25,8 @@ and the partner is fitted again on the merged keypoints. Writes
 - ``keypoints.npz``: the keypoints the fit used (``artifacts.keypoints.Keypoints2D``, the
   partner refined by the second pass; only when it ran);
 - ``report.json``: frames valid / not valid and why, initialisations, reprojection medians,
-  ``second_pass`` (views redone / improved, partner detection rates before and after),
+  ``second_pass`` (views redone / improved, partner detection rates before and after, body
+  keypoints of the found person left out as the wearer's: ``detect.refine.on_wearer``),
   summary figures of penetration, contact distance and ground penetration (mm), speed;
 - ``partner_fit.png``: those curves over the sequence (``drawing.plots.partner_fit_plot``).
 """
@@ -239,7 +240,8 @@ def _second_pass(ctx: StageContext, model, cams, keypoints, fit, o: Options):
     return out, {"run": True, "views_redone": int(ref.redone.sum()),
                  "views_improved": int(ref.improved.sum()), "view_frames": int(need.size),
                  "detected_before": before, "detected_after": after,
-                 "detector_calls": ref.calls, "cpu_s": round(ref.cpu_s, 2)}
+                 "detector_calls": ref.calls, "cpu_s": round(ref.cpu_s, 2),
+                 "keypoints_dropped_as_wearer": int(ref.on_wearer.sum())}
 
 
 class _SubWriter:

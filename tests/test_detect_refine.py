@@ -97,3 +97,47 @@ def test_only_what_can_be_bettered_is_detected_again():
     assert r.improved.all() and (got[layout.HANDS[1], 2] > 0.5).sum() >= 5
     np.testing.assert_array_equal(got[layout.BODY], p[layout.BODY].astype(np.float32))
     np.testing.assert_array_equal(got[layout.HANDS[0]], p[layout.HANDS[0]].astype(np.float32))
+
+
+class _ElbowOnWearer(Painted):
+    """The painted detector, but the partner it finds has its left elbow read on the wearer's
+    left elbow (what mediapipe did in the bench's Posing crops)."""
+
+    def __init__(self, truth, frames, wearer):
+        super().__init__(truth, frames)
+        self.wearer = wearer
+
+    def detect(self, image, *, kind, box=None, cam=0, frame=0):
+        d = super().detect(image, kind=kind, box=box, cam=cam, frame=frame)
+        if kind == "body" and len(d):
+            kp = d.kp.copy()
+            kp[:, layout.IDX["l_elbow"], :2] = self.wearer[layout.IDX["l_elbow"], :2]
+            return type(d)(kp)
+        return d
+
+
+def test_a_partner_joint_read_on_the_wearers_joint_is_left_out():
+    """The crop finds the partner, but its left elbow sits on the wearer's left elbow, far from
+    the first fit's projection: that keypoint alone is left out (counted in ``on_wearer``);
+    the partner's other keypoints, far from the wearer's, are kept as found."""
+    from detect.refine import on_wearer
+
+    w, p, truth, img = _scene(partner_at=(390.0, 210.0))
+    kp = _first_pass(w)
+    proj = p[:, :2][None, None]
+    need = views_to_redo(kp[:, :, 1], proj, SHAPE)
+    r = refine_partner(ArraySource(img, (0,)), _ElbowOnWearer(truth, (0,), w), np.array([0]),
+                       kp, proj, proj.copy(), need)
+    got = r.kp[0, 0]
+    el = layout.IDX["l_elbow"]
+    assert r.improved.all() and r.on_wearer[0, 0] == 1
+    assert got[el, 2] == 0.0
+    ok = got[layout.BODY, 2] > 0.5
+    assert ok.sum() >= 15 and np.abs(got[layout.BODY][ok, :2] - p[layout.BODY][ok, :2]).max() < 1e-3
+    # the rule itself: near the projection, or near only another joint of the wearer: kept
+    cand = p.copy()
+    cand[el, :2] = w[layout.IDX["l_knee"], :2]  # on the wearer's knee, not its elbow
+    assert not on_wearer(cand, p[:, :2], w, 0.3).any()
+    cand[el, :2] = w[el, :2]
+    assert on_wearer(cand, p[:, :2], w, 0.3).tolist() == [i == el for i in range(23)]
+    assert not on_wearer(cand, cand[:, :2], w, 0.3).any()  # where the first fit put it
