@@ -774,11 +774,13 @@ def check_views(cams, pred: np.ndarray, uv: np.ndarray, conf: np.ndarray, flip: 
     body = np.arange(min(K, N_BODY))
     flipped, dropped, far = np.zeros(C, bool), np.zeros(C, bool), np.zeros(C, bool)
 
-    def med(c, target, perm):
-        ok = conf[c, perm][body] > 0
+    def med(c, target, perm, idx=body):
+        """Median px distance of view c's detections ``perm``-ed to ``target``'s projection,
+        over the keypoints ``idx`` (NaN with fewer than 4 detected)."""
+        ok = conf[c, perm][idx] > 0
         if ok.sum() < 4:
             return np.nan
-        d = np.linalg.norm(uv[c, perm][body][ok] - project(cams[c], target[body][ok]), axis=-1)
+        d = np.linalg.norm(uv[c, perm][idx][ok] - project(cams[c], target[idx][ok]), axis=-1)
         return float(np.median(d))
 
     ident = np.arange(K)
@@ -807,13 +809,8 @@ def check_views(cams, pred: np.ndarray, uv: np.ndarray, conf: np.ndarray, flip: 
     for c in np.flatnonzero(kept):
         for p, (judged, moved) in enumerate(BODY_PARTS):
             judged = judged[judged < K]
-            ok, okf = conf[c, judged] > 0, conf[c, flip[judged]] > 0
-            if ok.sum() < 4 or okf.sum() < 4:
-                continue
-            pp = project(cams[c], pred[judged])
-            ep = float(np.median(np.linalg.norm(uv[c, judged][ok] - pp[ok], axis=-1)))
-            ef = float(np.median(np.linalg.norm(uv[c, flip[judged]][okf] - pp[okf], axis=-1)))
-            if ep > min_px and ef < ratio * ep:
+            ep = med(c, pred, ident, judged)
+            if ep > min_px and med(c, pred, flip, judged) < ratio * ep:
                 moved = moved[moved < K]
                 uv[c, moved], conf[c, moved] = uv[c, flip[moved]], conf[c, flip[moved]]
                 parts[c, p] = True
@@ -1064,7 +1061,6 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
     dropped = np.zeros((F, C), bool)
     far = np.zeros((F, C), bool)
     halves = np.zeros((F, C, len(BODY_PARTS)), bool)
-    on_wearer = np.zeros((F, C), bool)
     on_wearer_n = np.zeros((F, C), np.int64)
     gated = np.zeros((F, C, 2), bool)
     gate = opts.use_hands and opts.hand_gate_px > 0
@@ -1125,7 +1121,6 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
             dropped[f] |= vc.dropped
             far[f] |= vc.far
             halves[f] |= vc.parts_flipped
-            on_wearer[f] |= vc.keypoints_dropped.any(-1)
             on_wearer_n[f] += vc.keypoints_dropped.sum(-1)
         return vc
 
@@ -1264,7 +1259,7 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
         "view_halves_mirrored_back": {"upper": int(halves[..., 0].sum()),
                                       "lower": int(halves[..., 1].sum())},
         "keypoints_dropped_as_wearer": {"keypoints": int(on_wearer_n.sum()),
-                                        "views": int(on_wearer.sum())},
+                                        "views": int((on_wearer_n > 0).sum())},
         "joints_observed": _observed_summary(model, out),
         "keypoints_hidden_by_wearer": int(hidden_n.sum()) if occluder is not None else None,
         "hands_gated": {"views": int(gated.sum()), "gate_px": opts.hand_gate_px if gate else None},
