@@ -132,6 +132,11 @@ GROUND_BAND_M = 0.01  # L_gp slots: candidates below the plane or within this ab
 GROUND_K = 300  # L_gp candidates: the lowest vertices (both soles; 20 let a foot tilt under)
 # the reasons (artifacts.body_fit.INVALID_REASONS) a frame of the partner fit can be not valid for
 PARTNER_FIT_REASONS = ("too_few_keypoints", "held_before_first_keypoints", "poor_reprojection")
+# a sequence whose partner keypoints were left out as the wearer's (the second pass's
+# ``detect.refine.on_wearer`` and check_views' per-keypoint check) above this share of the
+# partner's detected body keypoints is reported: the detector reads the wearer in the
+# partner's place there (the bench's sequences: 0.3-5 %)
+WEARER_DROP_WARN_SHARE = 0.10
 
 
 @dataclass(frozen=True)
@@ -735,6 +740,25 @@ def _partner_keypoints(keypoints: Keypoints2D, cams, frames, kidx, min_conf):
     return np.transpose(kp[..., :2], (1, 0, 2, 3)), np.transpose(kp[..., 2], (1, 0, 2)), full
 
 
+def wearer_drop_warnings(detected: int, dropped_check: int, dropped_second: int = 0,
+                         share: float = WEARER_DROP_WARN_SHARE) -> list[str]:
+    """The report's warning when many partner keypoints were left out as the wearer's.
+
+    detected : the partner's body keypoints the fit was given (after the second pass);
+    dropped_check : of those, dropped by :func:`check_views`' per-keypoint wearer check;
+    dropped_second : left out before, by the second pass (``detect.refine.on_wearer``).
+    Returns one line when the dropped share of ``detected + dropped_second`` exceeds ``share``
+    (none otherwise, and none with nothing detected)."""
+    total = int(detected) + int(dropped_second)
+    n = int(dropped_check) + int(dropped_second)
+    if total <= 0 or n <= share * total:
+        return []
+    return [f"{n} of {total} partner body keypoints ({100.0 * n / total:.0f} %, more than "
+            f"{100.0 * share:.0f} %) lay on the wearer's joint of the same name and were left out "
+            f"(second pass {int(dropped_second)}, check_views {int(dropped_check)}): the detector "
+            "reads the wearer in the partner's place; check the partner's overlays"]
+
+
 def check_views(cams, pred: np.ndarray, uv: np.ndarray, conf: np.ndarray, flip: np.ndarray,
                 other: np.ndarray | None = None, min_px: float = FLIP_MIN_PX,
                 ratio: float = FLIP_RATIO, far_px: float = 0.0,
@@ -1260,6 +1284,7 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
                                       "lower": int(halves[..., 1].sum())},
         "keypoints_dropped_as_wearer": {"keypoints": int(on_wearer_n.sum()),
                                         "views": int((on_wearer_n > 0).sum())},
+        "body_keypoints_detected": int(det.sum()),
         "joints_observed": _observed_summary(model, out),
         "keypoints_hidden_by_wearer": int(hidden_n.sum()) if occluder is not None else None,
         "hands_gated": {"views": int(gated.sum()), "gate_px": opts.hand_gate_px if gate else None},

@@ -267,6 +267,7 @@ h1{font-size:22px;margin:18px 0 4px}h2{font-size:18px;margin:28px 0 8px;
 .banner{position:sticky;top:0;z-index:9;background:#c62828;color:#fff;padding:10px 14px;
  font-weight:bold;margin:0 -24px 10px;white-space:pre-wrap}
 .banner.warn{background:#e6a100;color:#1d2733}
+ul.warn li{background:#fff4d6;border-left:4px solid #e6a100;padding:4px 8px;margin:4px 0;list-style:none}
 .figs{display:flex;flex-wrap:wrap;gap:12px}
 .card{background:#fff;border:1px solid #d5dbe3;border-radius:6px;padding:10px 14px}
 .kfig{display:flex;gap:12px;flex-wrap:wrap}.kfig .card{min-width:130px}
@@ -446,6 +447,26 @@ def heldout_html(rep: dict) -> str:
             f'<table class="kv"><tr><th>left out</th>{head}</tr>{rows}</table>')
 
 
+WARNING_KEYS = ("warnings", "video_warnings")  # the stage reports' lists of warning lines
+
+
+def stage_warnings(stage_reports: dict | None) -> list[tuple[str, str]]:
+    """``[(stage, line)]``: every warning line the stage reports carry (their
+    :data:`WARNING_KEYS` lists), in stage order, each line once per stage."""
+    out: list[tuple[str, str]] = []
+    for st, rep in (stage_reports or {}).items():
+        if not isinstance(rep, dict):
+            continue
+        for key in WARNING_KEYS:
+            lines = rep.get(key)
+            if isinstance(lines, str):
+                lines = [lines]
+            for w in lines or ():
+                if (st, str(w)) not in out:
+                    out.append((st, str(w)))
+    return out
+
+
 def write_sequence_report(out_dir: Path, *, sequence: str, title: str, summary: dict,
                           spans: list[dict], figures: list[tuple[str, str]], video: str | None,
                           stage_reports: dict[str, dict], links: dict[str, str] | None = None,
@@ -453,7 +474,8 @@ def write_sequence_report(out_dir: Path, *, sequence: str, title: str, summary: 
     """Write ``out_dir/report.html``: the QA summary, links (the MCAP scene with a line on
     opening it in Foxglove), the tiled video, the figures, the flagged spans with their reasons in
     plain words and overlay images, a "Sample of the rest" (spans with ``"sample": True``) and
-    each stage's report as a collapsible table. Paths are relative to ``out_dir``.
+    each stage's report as a collapsible table; the stage reports' warning lines
+    (:func:`stage_warnings`) are listed at the top. Paths are relative to ``out_dir``.
 
     ``summary`` may carry ``thresholds`` {metric: value} and ``units`` {metric: unit} (the
     stage's ``QAMetrics.thresholds`` / ``.units``) so that reasons read ``= 41 px > 15 px``;
@@ -481,6 +503,11 @@ def write_sequence_report(out_dir: Path, *, sequence: str, title: str, summary: 
              + card(f"{100 * rate:.1f} %" if rate is not None else "–", "flagged share")
              + card(str(len(flagged_spans)), "flagged spans")
              + card(", ".join(map(str, people)) or "–", "people") + "</div>")
+
+    warned = stage_warnings(stage_reports)
+    if warned:
+        b.append(f"<h2>Warnings ({len(warned)})</h2><ul class=\"warn\">" + "".join(
+            f"<li><b>{esc(st)}</b>: {esc(w)}</li>" for st, w in warned) + "</ul>")
 
     b.append("<h2>Why frames are flagged</h2>")
     reasons = summary.get("reasons") or {}

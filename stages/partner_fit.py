@@ -27,7 +27,9 @@ and the partner is fitted again on the merged keypoints. Writes
 - ``report.json``: frames valid / not valid and why, initialisations, reprojection medians,
   ``second_pass`` (views redone / improved, partner detection rates before and after, body
   keypoints of the found person left out as the wearer's: ``detect.refine.on_wearer``),
-  summary figures of penetration, contact distance and ground penetration (mm), speed;
+  ``warnings`` (more than ``fitting.partner_fit.WEARER_DROP_WARN_SHARE`` of the partner's body
+  keypoints left out as the wearer's, by the second pass and ``check_views`` together: the
+  QA report lists it at its top), summary figures of penetration, contact distance and ground penetration (mm), speed;
 - ``partner_fit.png``: those curves over the sequence (``drawing.plots.partner_fit_plot``).
 """
 from __future__ import annotations
@@ -130,7 +132,7 @@ def run(ctx: StageContext) -> None:
     from artifacts.keypoints import Keypoints2D
     from drawing.plots import partner_fit_plot
     from fitting.contact_signature import load_contact
-    from fitting.partner_fit import contact_figures, fit_partner
+    from fitting.partner_fit import contact_figures, fit_partner, wearer_drop_warnings
 
     o: Options = ctx.params or Options()
     rv = ctx.recipe
@@ -174,6 +176,11 @@ def run(ctx: StageContext) -> None:
         keypoints.save(ctx.out)  # the keypoints the fit used (person 1 refined)
     report["second_pass"] = second or {"run": False, "why_not": (
         "option second_pass is off" if not o.second_pass else "precomputed keypoints")}
+    report["warnings"] = wearer_drop_warnings(
+        report["body_keypoints_detected"], report["keypoints_dropped_as_wearer"]["keypoints"],
+        (second or {}).get("keypoints_dropped_as_wearer", 0))
+    for w in report["warnings"]:
+        log(f"WARNING {w}")
     fig = contact_figures(model, fit, wearer, contact, ground)
     per = report.pop("per_frame")
     fit.save(ctx.out)

@@ -346,6 +346,9 @@ def test_stage_writes_fit_terms_report_and_plot(stage_files, tmp_path, scene):
     rep = json.loads((d / "report.json").read_text())
     assert rep["frames_valid"] == F_SYN and rep["contact"]["interval"] == [2, 4]
     assert rep["second_pass"] == {"run": False, "why_not": "precomputed keypoints"}
+    # clean keypoints: all of the partner's body keypoints given, none on the wearer, no warning
+    assert rep["body_keypoints_detected"] == int((scene.kp[:, :, 1, :23, 2] > 0).sum())
+    assert rep["keypoints_dropped_as_wearer"]["keypoints"] == 0 and rep["warnings"] == []
     ct = rep["contact_terms"]
     assert ct["terms"] == ["L_D", "L_N"] and ct["frames"] == 2  # video frames 2 and 4
     assert sorted({f for fs in ct["pairs_too_far"].values() for f in fs}) == [2, 4]
@@ -689,6 +692,22 @@ def test_a_partner_joint_read_on_the_wearers_joint_is_dropped(scene):
     assert not vc.dropped.any() and not vc.flipped.any() and not vc.parts_flipped.any()
     alone = check_views(scene.cams, pred, uv, conf, flip)  # no wearer: nothing to judge by
     assert not alone.keypoints_dropped.any() and np.array_equal(alone.conf, conf)
+
+
+def test_many_keypoints_left_out_as_the_wearers_are_reported():
+    """The report warns when the second pass and check_views together left out more than
+    WEARER_DROP_WARN_SHARE of the partner's body keypoints as the wearer's (the share of what
+    the detector gave: those the fit got plus those the second pass left out)."""
+    from fitting.partner_fit import WEARER_DROP_WARN_SHARE, wearer_drop_warnings
+
+    assert WEARER_DROP_WARN_SHARE == 0.10
+    assert wearer_drop_warnings(1000, 50, 40) == []          # 90 of 1040: 8.7 %
+    assert wearer_drop_warnings(1000, 64, 40) == []          # 104 of 1040: exactly 10 %
+    (w,) = wearer_drop_warnings(1000, 80, 40)                 # 120 of 1040: 11.5 %
+    assert w.startswith("120 of 1040 partner body keypoints (12 %")
+    assert "second pass 40, check_views 80" in w
+    assert wearer_drop_warnings(1000, 80, 40, share=0.2) == []
+    assert wearer_drop_warnings(0, 0, 0) == [] and len(wearer_drop_warnings(0, 0, 5)) == 1
 
 
 def test_the_frames_before_the_first_initialisation_are_fitted_backwards(scene):

@@ -289,3 +289,27 @@ def test_broken_image_is_reported(chromium, report, tmp_path):
     top = img[5:25, 100:1100]                                        # BGR
     red = (top[..., 2] > 170) & (top[..., 1] < 80) & (top[..., 0] < 80)
     assert red.mean() > 0.5, red.mean()
+
+
+def test_stage_warnings_are_listed_at_the_top(tmp_path):
+    """Every stage report's warning lines (``warnings``, the keypoints' ``video_warnings``)
+    come in one list above the flags, naming their stage, escaped, each once; a page whose
+    stages warn of nothing has no such list."""
+    from qa.report import stage_warnings
+
+    reps = {"capture": {"warnings": ["LTHI: 150 samples unswapped", "LTHI: 150 samples unswapped"]},
+            "keypoints": {"video_warnings": ["cam 1: variable frame rate <vfr>"]},
+            "partner_fit": {"warnings": ["120 of 800 partner body keypoints (15 %)"], "frames": 3},
+            "rig": None, "convert": {"warnings": []}}
+    assert stage_warnings(reps) == [("capture", "LTHI: 150 samples unswapped"),
+                                    ("keypoints", "cam 1: variable frame rate <vfr>"),
+                                    ("partner_fit", "120 of 800 partner body keypoints (15 %)")]
+    kw = dict(sequence="s", title="QA", summary={"frames": 3, "flagged": 0}, spans=[],
+              figures=[], video=None)
+    text = write_sequence_report(tmp_path / "a", stage_reports=reps, **kw).read_text()
+    top = text[:text.index("Why frames are flagged")]
+    assert "Warnings (3)" in top and "variable frame rate &lt;vfr&gt;" in top
+    assert top.count("150 samples unswapped") == 1 and "<b>partner_fit</b>" in top
+    quiet = write_sequence_report(tmp_path / "b", stage_reports={"convert": {"warnings": []}},
+                                  **kw).read_text()
+    assert "Warnings (" not in quiet
