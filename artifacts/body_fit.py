@@ -9,6 +9,10 @@ Only valid frames are ground truth. A frame that is not valid carries the code o
   fit; the pose is held at the first solution;
 - ``2 too_few_markers``: fewer than 3 markers visible; the pose is what the prior and the
   previous frame give (held), not measured.
+- ``3 too_few_keypoints``, ``4 held_before_first_keypoints``, ``5 poor_reprojection``,
+  ``6 too_few_views``: the partner fit's (``fitting.partner_fit``): too few detections to fit
+  (held), before its first fitted frame (held), fitted but its median reprojection too large,
+  fitted but seen by fewer views than ``min_valid_views`` (no view left to check the others).
 
 Every later stage honours the mask, and reports say how many frames are not valid and why.
 
@@ -38,7 +42,7 @@ from artifacts.base import (
 
 INVALID_REASONS: tuple[str, ...] = ("fitted", "held_before_first_marker", "too_few_markers",
                                     "too_few_keypoints", "held_before_first_keypoints",
-                                    "poor_reprojection")
+                                    "poor_reprojection", "too_few_views")
 REASON_CODE: dict[str, int] = {n: i for i, n in enumerate(INVALID_REASONS)}
 MARKER_FIELDS = ("marker_names", "marker_residual_m", "marker_weight", "visible")
 

@@ -131,7 +131,11 @@ OCCLUDER_VERTICES = 600
 GROUND_BAND_M = 0.01  # L_gp slots: candidates below the plane or within this above it
 GROUND_K = 300  # L_gp candidates: the lowest vertices (both soles; 20 let a foot tilt under)
 # the reasons (artifacts.body_fit.INVALID_REASONS) a frame of the partner fit can be not valid for
-PARTNER_FIT_REASONS = ("too_few_keypoints", "held_before_first_keypoints", "poor_reprojection")
+PARTNER_FIT_REASONS = ("too_few_keypoints", "held_before_first_keypoints", "poor_reprojection",
+                       "too_few_views")
+# a view sees the partner in a frame when it holds at least this many of its 23 body keypoints
+# (after check_views); a fitted frame is valid only when ``min_valid_views`` views see it
+VIEW_MIN_KEYPOINTS = 5
 # a sequence whose partner keypoints were left out as the wearer's (the second pass's
 # ``detect.refine.on_wearer`` and check_views' per-keypoint check) above this share of the
 # partner's detected body keypoints is reported: the detector reads the wearer in the
@@ -155,6 +159,12 @@ class PartnerFitOptions:
     min_conf : detections below this confidence are ignored;
     min_keypoints / min_views : a frame is fitted when at least this many body keypoint
     detections (of the 23, over all views) in at least this many views are there;
+    min_valid_views : a fitted frame is valid only when at least this many views (or every
+    camera, when the rig has fewer) each see ``VIEW_MIN_KEYPOINTS`` of the partner's body
+    keypoints after check_views (else ``too_few_views``): two views can always be fitted,
+    and a wrong reading both share (the two people mixed, a hug seen from two sides) leaves
+    no residual; a third view is the check (bench, session 24: the valid frames seen by two
+    views were all more than 10 cm off: 6 of 6, Hug's 4 among them);
     reinit_after : after a run of more than this many frames without enough detections the
     next frame starts again from triangulation; max_iters / first_iters : LM iterations per
     round / for a (re)initialised frame; outer_rounds : LM rounds between which the extra
@@ -189,6 +199,7 @@ class PartnerFitOptions:
     min_conf: float = 0.2
     min_keypoints: int = 12
     min_views: int = 2
+    min_valid_views: int = 3
     reinit_after: int = 10
     max_iters: int = 10
     first_iters: int = 40
@@ -233,7 +244,8 @@ class PartnerFitOptions:
             problems.append(f"min_conf: must be in [0, 1], got {self.min_conf}")
         if not self.contact_max_gap_m > 0:
             problems.append(f"contact_max_gap_m: must be > 0, got {self.contact_max_gap_m}")
-        for name, lo in (("min_keypoints", 1), ("min_views", 2), ("max_iters", 1),
+        for name, lo in (("min_keypoints", 1), ("min_views", 2), ("min_valid_views", 1),
+                         ("max_iters", 1),
                          ("first_iters", 1), ("outer_rounds", 1), ("reinit_after", 0),
                          ("ground_k", 1), ("proxy_vertices", 100), ("contact_facets_n", 1),
                          ("temporal_passes", 0), ("temporal_rounds", 1), ("bystander_views", 1)):
@@ -1285,16 +1297,43 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
         "keypoints_dropped_as_wearer": {"keypoints": int(on_wearer_n.sum()),
                                         "views": int((on_wearer_n > 0).sum())},
         "body_keypoints_detected": int(det.sum()),
+        "valid_views_required": 1,
         "joints_observed": _observed_summary(model, out),
         "keypoints_hidden_by_wearer": int(hidden_n.sum()) if occluder is not None else None,
         "hands_gated": {"views": int(gated.sum()), "gate_px": opts.hand_gate_px if gate else None},
-        "per_frame": {"reproj_px": err_px, "views_flipped": flipped, "views_dropped": dropped,
+        "per_frame": {"reproj_px": err_px, "views_seeing": views_seeing(conf), "views_flipped": flipped, "views_dropped": dropped,
                       "views_bystander": far, "halves_flipped": halves,
                       "keypoints_on_wearer": on_wearer_n, "hands_gated": gated, "keypoints_hidden": hidden_n,
                       "detections": det, "term_cost": cost,
                       "term_active": active, "term_points": npts, "frames": frames},
     }
-    return out, report
+    return apply_min_valid_views(out, report, min(opts.min_valid_views, C))
+
+
+def views_seeing(conf: np.ndarray) -> np.ndarray:
+    """(F,) int: per frame the views that hold at least ``VIEW_MIN_KEYPOINTS`` of the
+    partner's body keypoints; conf (F, C, K) (0 = not used)."""
+    return ((np.asarray(conf)[:, :, :N_BODY] > 0).sum(2) >= VIEW_MIN_KEYPOINTS).sum(1)
+
+
+def apply_min_valid_views(fit: BodyFit, report: dict, required: int) -> tuple[BodyFit, dict]:
+    """The fit with its valid frames seen by fewer than ``required`` views
+    (``report["per_frame"]["views_seeing"]``) made not valid, ``too_few_views``, and the
+    report's counts to match (``frames_valid``, ``frames_not_valid``,
+    ``valid_views_required``). A frame not valid for another reason keeps it; one judged
+    ``too_few_views`` before is judged again at ``required``."""
+    import dataclasses
+
+    seeing = np.asarray(report["per_frame"]["views_seeing"])
+    few = REASON_CODE["too_few_views"]
+    reason = np.asarray(fit.invalid_reason).copy()
+    reason[reason == few] = 0
+    reason[(reason == 0) & (seeing < int(required))] = few
+    out = dataclasses.replace(fit, valid=reason == 0, invalid_reason=reason)
+    reasons = out.reasons()
+    return out, {**report, "frames_valid": reasons["fitted"],
+                 "frames_not_valid": {n: reasons[n] for n in PARTNER_FIT_REASONS},
+                 "valid_views_required": int(required)}
 
 
 # ---------------------------------------------------------------------------- figures

@@ -15,9 +15,12 @@ and the partner is fitted again on the merged keypoints. Writes
 
 - ``fit.npz``: an ``artifacts.BodyFit`` (the layout of marker_fit's, without the marker
   fields): ``valid`` / ``invalid_reason`` (``too_few_keypoints``,
-  ``held_before_first_keypoints``, ``poor_reprojection``);
+  ``held_before_first_keypoints``, ``poor_reprojection``, ``too_few_views``: fewer views
+  than ``min_valid_views`` see the partner; the first fit before the second pass is not held
+  to it, so that the second pass crops those frames too);
 - ``terms.npz``: per frame ``reproj_px (F, C)`` median 2D error per view (NaN: no
-  detection), ``detections (F,)`` body keypoint detections over the views, ``term_cost
+  detection), ``views_seeing (F,)`` the views holding ``fitting.partner_fit.VIEW_MIN_KEYPOINTS``
+  of the partner's body keypoints, ``detections (F,)`` body keypoint detections over the views, ``term_cost
   (F, T)`` weighted cost of each term at the solution, ``term_active (F, T)`` the frames where
   each term was active, ``term_points (F, T)`` offending points of the extra terms, ``terms
   (T,)`` their names, ``penetration_m (F,)``, ``contact_m (F,)``, ``ground_m (F,)``
@@ -128,11 +131,18 @@ def _summary(values_m: np.ndarray) -> dict:
 
 
 def run(ctx: StageContext) -> None:
+    import dataclasses
+
     from artifacts import BodyFit, ShapeFit
     from artifacts.keypoints import Keypoints2D
     from drawing.plots import partner_fit_plot
     from fitting.contact_signature import load_contact
-    from fitting.partner_fit import contact_figures, fit_partner, wearer_drop_warnings
+    from fitting.partner_fit import (
+        apply_min_valid_views,
+        contact_figures,
+        fit_partner,
+        wearer_drop_warnings,
+    )
 
     o: Options = ctx.params or Options()
     rv = ctx.recipe
@@ -162,6 +172,9 @@ def run(ctx: StageContext) -> None:
     two = o.second_pass and not rv.sequence.has_keypoints
     o1 = first_fit_options(o) if two else o
     light = o1 is not o
+    if two:  # the second pass's crops come from every frame the first fit trusts by its
+        # reprojection, also those seen by fewer views than min_valid_views (it may find more)
+        o1 = dataclasses.replace(o1, min_valid_views=1)
     fit, report = fit_partner(model, shape, keypoints, cams, wearer, contact, ground, o1,
                               progress=ctx.progress, log=log, silhouettes=None if light else masks)
     second = None
@@ -173,6 +186,8 @@ def run(ctx: StageContext) -> None:
             second["first_fit_frames_valid"] = report["frames_valid"]
             fit, report = fit_partner(model, shape, keypoints, cams, wearer, contact, ground, o,
                                       progress=ctx.progress, log=log, silhouettes=masks)
+        else:  # the first fit is the fit: its frames judged by the views as the options say
+            fit, report = apply_min_valid_views(fit, report, min(o.min_valid_views, len(cams)))
         keypoints.save(ctx.out)  # the keypoints the fit used (person 1 refined)
     report["second_pass"] = second or {"run": False, "why_not": (
         "option second_pass is off" if not o.second_pass else "precomputed keypoints")}

@@ -578,6 +578,37 @@ def test_a_limb_seen_in_one_view_is_not_ground_truth(scene):
     assert rep["joints_observed"]["per_joint"]["r_wrist"] == pytest.approx(2 / F_SYN, abs=1e-3)
 
 
+def test_a_frame_seen_by_two_views_is_fitted_but_not_valid(scene):
+    """Two views can always be fitted, and a wrong reading both share leaves no residual
+    (bench: every valid partner frame seen by two views was more than 10 cm off): a frame
+    where fewer than min_valid_views views see the partner is fitted and reported
+    ``too_few_views``; a view with fewer than VIEW_MIN_KEYPOINTS body keypoints does not
+    count; the frames around stay valid; min_valid_views=2 keeps them all, and a rig of two
+    cameras needs only its two."""
+    from artifacts import REASON_CODE
+    from fitting.partner_fit import VIEW_MIN_KEYPOINTS, apply_min_valid_views
+
+    kp = scene.kp.copy()
+    kp[2:, 2:4, 1, :, 2] = 0.0  # frames 2 and 3: views 2 and 3 see nothing of the partner
+    kp[1, 3, 1, VIEW_MIN_KEYPOINTS - 1:23, 2] = 0.0  # frame 3, view 1: 4 body keypoints left
+    fit, rep = _fit(scene, kp)
+    assert list(rep["per_frame"]["views_seeing"]) == [4, 4, 2, 1, 4, 4]
+    want = np.zeros(F_SYN, np.int8)
+    want[2:4] = REASON_CODE["too_few_views"]
+    assert np.array_equal(fit.invalid_reason, want) and fit.valid.sum() == F_SYN - 2
+    assert rep["frames_not_valid"]["too_few_views"] == 2 and rep["frames_valid"] == F_SYN - 2
+    assert rep["valid_views_required"] == 3
+    # the frames are fitted all the same: the two views' keypoints are matched
+    assert np.nanmax(rep["per_frame"]["reproj_px"][2]) < 5.0
+    two, rep2 = apply_min_valid_views(fit, rep, 2)  # frame 3 has one view left
+    assert list(np.flatnonzero(~two.valid)) == [3] and rep2["frames_not_valid"]["too_few_views"] == 1
+    loose, _ = _fit(scene, kp, opts={"min_valid_views": 1})
+    assert loose.valid.all()
+    rig2 = [scene.cams[0], scene.cams[1]]  # two cameras: both seeing is all there can be
+    fit2, rep3 = _fit(SimpleNamespace(**{**vars(scene), "cams": rig2}), scene.kp[:2])
+    assert rep3["valid_views_required"] == 2 and fit2.valid.all()
+
+
 def test_the_light_first_fit_leaves_out_only_the_temporal_pass_rounds_and_costly_hooks():
     """The fit that places the second pass's crops (stages.partner_fit.first_fit_options):
     "light" drops the temporal pass, the outer rounds after the first, L_sc and L_sil and
