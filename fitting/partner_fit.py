@@ -1297,17 +1297,16 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
         "keypoints_dropped_as_wearer": {"keypoints": int(on_wearer_n.sum()),
                                         "views": int((on_wearer_n > 0).sum())},
         "body_keypoints_detected": int(det.sum()),
-        "valid_views_required": 1,
         "joints_observed": _observed_summary(model, out),
         "keypoints_hidden_by_wearer": int(hidden_n.sum()) if occluder is not None else None,
         "hands_gated": {"views": int(gated.sum()), "gate_px": opts.hand_gate_px if gate else None},
-        "per_frame": {"reproj_px": err_px, "views_seeing": views_seeing(conf), "views_flipped": flipped, "views_dropped": dropped,
-                      "views_bystander": far, "halves_flipped": halves,
+        "per_frame": {"reproj_px": err_px, "views_seeing": views_seeing(conf),
+                      "views_flipped": flipped, "views_dropped": dropped, "views_bystander": far, "halves_flipped": halves,
                       "keypoints_on_wearer": on_wearer_n, "hands_gated": gated, "keypoints_hidden": hidden_n,
                       "detections": det, "term_cost": cost,
                       "term_active": active, "term_points": npts, "frames": frames},
     }
-    return apply_min_valid_views(out, report, min(opts.min_valid_views, C))
+    return apply_min_valid_views(out, report, opts.min_valid_views, C)
 
 
 def views_seeing(conf: np.ndarray) -> np.ndarray:
@@ -1316,24 +1315,27 @@ def views_seeing(conf: np.ndarray) -> np.ndarray:
     return ((np.asarray(conf)[:, :, :N_BODY] > 0).sum(2) >= VIEW_MIN_KEYPOINTS).sum(1)
 
 
-def apply_min_valid_views(fit: BodyFit, report: dict, required: int) -> tuple[BodyFit, dict]:
-    """The fit with its valid frames seen by fewer than ``required`` views
-    (``report["per_frame"]["views_seeing"]``) made not valid, ``too_few_views``, and the
-    report's counts to match (``frames_valid``, ``frames_not_valid``,
-    ``valid_views_required``). A frame not valid for another reason keeps it; one judged
-    ``too_few_views`` before is judged again at ``required``."""
+def apply_min_valid_views(fit: BodyFit, report: dict, min_valid_views: int,
+                          cameras: int) -> tuple[BodyFit, dict]:
+    """The fit with its valid frames seen by fewer than ``required`` =
+    ``min(min_valid_views, cameras)`` views (``report["per_frame"]["views_seeing"]``; a rig of
+    fewer cameras needs every camera) made not valid, ``too_few_views``, and the report's
+    counts to match (``frames_valid``, ``frames_not_valid``, ``valid_views_required``). A
+    frame not valid for another reason keeps it; one judged ``too_few_views`` before is
+    judged again at ``required``."""
     import dataclasses
 
+    required = min(int(min_valid_views), int(cameras))
     seeing = np.asarray(report["per_frame"]["views_seeing"])
     few = REASON_CODE["too_few_views"]
     reason = np.asarray(fit.invalid_reason).copy()
     reason[reason == few] = 0
-    reason[(reason == 0) & (seeing < int(required))] = few
+    reason[(reason == 0) & (seeing < required)] = few
     out = dataclasses.replace(fit, valid=reason == 0, invalid_reason=reason)
     reasons = out.reasons()
     return out, {**report, "frames_valid": reasons["fitted"],
                  "frames_not_valid": {n: reasons[n] for n in PARTNER_FIT_REASONS},
-                 "valid_views_required": int(required)}
+                 "valid_views_required": required}
 
 
 # ---------------------------------------------------------------------------- figures

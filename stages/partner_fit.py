@@ -19,11 +19,11 @@ and the partner is fitted again on the merged keypoints. Writes
   than ``min_valid_views`` see the partner; the first fit before the second pass is not held
   to it, so that the second pass crops those frames too);
 - ``terms.npz``: per frame ``reproj_px (F, C)`` median 2D error per view (NaN: no
-  detection), ``views_seeing (F,)`` the views holding ``fitting.partner_fit.VIEW_MIN_KEYPOINTS``
-  of the partner's body keypoints, ``detections (F,)`` body keypoint detections over the views, ``term_cost
-  (F, T)`` weighted cost of each term at the solution, ``term_active (F, T)`` the frames where
-  each term was active, ``term_points (F, T)`` offending points of the extra terms, ``terms
-  (T,)`` their names, ``penetration_m (F,)``, ``contact_m (F,)``, ``ground_m (F,)``
+  detection), ``views_seeing (F,)`` the views holding
+  ``fitting.partner_fit.VIEW_MIN_KEYPOINTS`` of the partner's body keypoints, ``detections
+  (F,)`` body keypoint detections over the views, ``term_cost (F, T)`` weighted cost of
+  each term at the solution, ``term_active (F, T)`` the frames where each term was active,
+  ``term_points (F, T)`` offending points of the extra terms, ``terms (T,)`` their names, ``penetration_m (F,)``, ``contact_m (F,)``, ``ground_m (F,)``
   (``fitting.partner_fit.contact_figures``), ``frames (F,)``;
 - ``keypoints.npz``: the keypoints the fit used (``artifacts.keypoints.Keypoints2D``, the
   partner refined by the second pass; only when it ran);
@@ -32,7 +32,8 @@ and the partner is fitted again on the merged keypoints. Writes
   keypoints of the found person left out as the wearer's: ``detect.refine.on_wearer``),
   ``warnings`` (more than ``fitting.partner_fit.WEARER_DROP_WARN_SHARE`` of the partner's body
   keypoints left out as the wearer's, by the second pass and ``check_views`` together: the
-  QA report lists it at its top), summary figures of penetration, contact distance and ground penetration (mm), speed;
+  QA report lists it at its top), summary figures of penetration, contact distance and
+  ground penetration (mm), speed;
 - ``partner_fit.png``: those curves over the sequence (``drawing.plots.partner_fit_plot``).
 """
 from __future__ import annotations
@@ -187,7 +188,7 @@ def run(ctx: StageContext) -> None:
             fit, report = fit_partner(model, shape, keypoints, cams, wearer, contact, ground, o,
                                       progress=ctx.progress, log=log, silhouettes=masks)
         else:  # the first fit is the fit: its frames judged by the views as the options say
-            fit, report = apply_min_valid_views(fit, report, min(o.min_valid_views, len(cams)))
+            fit, report = apply_min_valid_views(fit, report, o.min_valid_views, len(cams))
         keypoints.save(ctx.out)  # the keypoints the fit used (person 1 refined)
     report["second_pass"] = second or {"run": False, "why_not": (
         "option second_pass is off" if not o.second_pass else "precomputed keypoints")}

@@ -600,7 +600,7 @@ def test_a_frame_seen_by_two_views_is_fitted_but_not_valid(scene):
     assert rep["valid_views_required"] == 3
     # the frames are fitted all the same: the two views' keypoints are matched
     assert np.nanmax(rep["per_frame"]["reproj_px"][2]) < 5.0
-    two, rep2 = apply_min_valid_views(fit, rep, 2)  # frame 3 has one view left
+    two, rep2 = apply_min_valid_views(fit, rep, 2, 4)  # frame 3 has one view left
     assert list(np.flatnonzero(~two.valid)) == [3] and rep2["frames_not_valid"]["too_few_views"] == 1
     loose, _ = _fit(scene, kp, opts={"min_valid_views": 1})
     assert loose.valid.all()
