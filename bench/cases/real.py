@@ -88,6 +88,22 @@ for _k in ("residual_median_mm", "residual_p90_mm"):
         "template, and the waist markers sit elsewhere; the placement slides them but not all "
         "the way within its 200 mm cap and segment rule")
     LIMITS[f"real.opensim_jogging.{_k}"] = "as the other captures: the trunk and the knees."
+_SERVE_MAX = (
+    "the serve's arm overhead (session 25, ktk and ktk2 Derrick, the marker fit of a911da2): "
+    "LSHO 230-248 mm off at the same instant of both files (capture frames 366-367) and RELB "
+    "161-166 mm (frame 195); the raw trajectories are smooth there (no ghost or swap: the "
+    "cleaning is right to leave them), but the acromion marker slides with the scapula, LSHO "
+    "coming 80 mm nearer LELB and 87 mm nearer C7, which the rig's clavicle and shoulder "
+    "cannot follow, so the fit holds LSHO or LUPA off in turn; 327 of ktk's 1,092 frames have "
+    "a marker > 50 mm off. Tried: re-tracking every run of outlier frames backwards from the "
+    "frame after it (max 230 -> 223 mm, frames > 50 mm 327 -> 321) and a graduated re-solve "
+    "of those frames from the warm start (-> 203 mm, 315 frames): not kept")
+for _t in ("ktk_serve", "ktk2_derrick", "ktk2_viktor"):
+    LIMITS[f"real.{_t}.residual_max_mm"] = _SERVE_MAX
+LIMITS["real.cmu_walk.residual_max_mm"] = (
+    "RSHO 53 mm at frame 172, LFWT 38, LFRM 36, LKNE 32 (session 25); LKNE and RUPA are more "
+    "than 15 mm off in 220 and 214 of the 1,854 frames: the thigh's and upper arm's soft "
+    "tissue, and the CMU template's placement (the median's reason)")
 
 
 def _recipe(work: Path) -> Path:
