@@ -30,7 +30,15 @@ from threadpoolctl import threadpool_limits
 from pipeline.executors import EngineSpec, Executor, Outcome, SerialExecutor
 from pipeline.hashing import FileHasher
 from pipeline.lease import LeaseLost
-from pipeline.plan import Node, NodeId, Plan, PlanError, build_plan, check_registry
+from pipeline.plan import (
+    ImportMemo,
+    Node,
+    NodeId,
+    Plan,
+    PlanError,
+    build_plan,
+    check_registry,
+)
 from pipeline.procs import Interrupted, end_children, signals_raise
 from pipeline.spec import RecipeView, Registry, StageContext
 from pipeline.store import CorruptArtifactError, Store
@@ -252,6 +260,7 @@ class Engine:
         self.executor = executor or SerialExecutor()
         self.log = log
         self.hasher = FileHasher(self.store.root / ".filehashes.json")
+        self.imports = ImportMemo(self.store.root / ".imports.json")
         self._packages: dict[str, str] | None = None
         self.stage_names = [s.name for s in registry.stages]
         # How to rebuild this engine in another process (a Dask worker); the CLI sets it.
@@ -279,7 +288,7 @@ class Engine:
                                     f"(known: {', '.join(known)})")
         targets = targets_for(self.registry, self.recipe, command, sequences)
         return build_plan(self.registry, self.recipe, self.recipe_path, targets, until,
-                          self.hasher)
+                          self.hasher, self.imports)
 
     def check(self, plan: Plan) -> list[str]:
         """Every problem that stops ``plan`` from running, one line each, before anything
