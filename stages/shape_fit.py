@@ -126,6 +126,9 @@ WARN_SLIDE_MM = 100.0
 # ... a skin offset this close to the 35 mm bound, and a placement residual above this
 WARN_OFFSET_MM = 30.0
 WARN_PLACEMENT_MM = 15.0
+# ... and a scan fit that leaves 1 % of the scan this far from the body (a part not fitted: a
+# 2.34 m synthetic body kept its head 30 cm above the fit, at a 3.3 mm median)
+WARN_SCAN_P99_MM = 20.0
 
 
 def shape_warnings(report: dict) -> list[str]:
@@ -148,6 +151,10 @@ def shape_warnings(report: dict) -> list[str]:
         if v is not None and v > WARN_PLACEMENT_MM:
             out.append(f"marker {n}: {v:.0f} mm median residual in the placement frames "
                        f"({', '.join(str(f['capture']) + ' sample ' + str(f['frame']) for f in (report.get('placement_frames') or [])[:3])}...)")
+    p99 = (report.get("scan_to_model_mm") or {}).get("p99")
+    if p99 is not None and p99 > WARN_SCAN_P99_MM:
+        out.append(f"the scan fit leaves 1 % of the scan points more than {p99:.0f} mm from the "
+                   f"body (a body part not fitted: check the scan and its pose)")
     if report.get("shape_source") == "mean":
         out.append("no scan and no marker capture: the subject has the mean shape")
     return out

@@ -129,3 +129,8 @@ def test_shape_fit_warnings_name_the_marker():
     for s in ("RELB", "LTIB: placed 160 mm", "STRN: 33 mm off the skin", "C7: 40 mm",
               "s1/Walk 1 sample 12"):
         assert s in w, w
+    # a scan fit that leaves a body part off the scan (1 % of its points 290 mm away)
+    scan = {"shape_source": "scan", "scan_to_model_mm": {"median": 1.4, "p90": 3.0, "p99": 5.4}}
+    assert shape_warnings(scan) == []
+    off = shape_warnings({**scan, "scan_to_model_mm": {"median": 3.3, "p90": 9.0, "p99": 289.4}})
+    assert len(off) == 1 and "more than 289 mm" in off[0], off

@@ -47,6 +47,20 @@ def test_scan_points_and_normals_read_back(tmp_path):
     assert n2 is None and len(p2) == 500
 
 
+def test_scan_fit_goes_on_while_its_cost_falls():
+    """The scan fit's last phase runs past its scheduled iterations while the mean cost of the
+    last three iterations is more than 5 % below the three before (per-iteration sampling noise
+    at the plateau does not count), never past max_iters."""
+    from fitting.shape import _still_falling
+
+    assert _still_falling([5.0, 4.0, 3.0], 0.05)  # too few to judge: go on
+    plateau = [4.5e-6, 4.4e-6, 4.6e-6, 4.4e-6, 4.6e-6, 4.5e-6]
+    assert not _still_falling(plateau, 0.05)
+    falling = [1.035e-5, 1.053e-5, 1.020e-5, 9.67e-6, 9.40e-6, 8.75e-6]  # measured, head 63 mm off
+    assert _still_falling(falling, 0.05)
+    assert not _still_falling(falling, 0.2)
+
+
 @pytest.mark.slow
 def test_scan_fit_recovers_shape(anny):
     """A scan of a known body (2 mm noise, armpit holes, no soles, random heading and place):
