@@ -81,6 +81,16 @@ class MediapipeOptions:
         return MediapipeDetector(self)
 
 
+def _open(graph) -> None:
+    """Have every calculator of a just-built graph opened (call inside
+    :func:`detect.base.quiet_native_logs`). ``start_run`` opens them on the graph's own threads
+    and returns; a TFLite model opened after the quiet block ends writes "INFO: Created
+    TensorFlow Lite XNNPACK delegate for CPU." to stderr (seen on one CI machine). A blank
+    image's ``process`` waits until the graph is idle, every model opened; nobody is found, so
+    a tracking graph starts with nobody tracked, as a new one does."""
+    graph.process(_BLANK)
+
+
 class MediapipeDetector:
     """One process's mediapipe graphs (not picklable; build one per worker from
     :class:`MediapipeOptions`)."""
@@ -102,6 +112,8 @@ class MediapipeDetector:
             self._hands = mp_hands.Hands(
                 static_image_mode=True, max_num_hands=opts.max_hands, model_complexity=1,
                 min_detection_confidence=opts.hand_min_conf)
+            _open(self._pose)
+            _open(self._hands)
         self._tracks: dict = {}
         self._stale: set = set()
         self._had: dict = {}  # stream -> its last call found someone (it is tracking)
@@ -132,6 +144,7 @@ class MediapipeDetector:
                                        model_complexity=1,
                                        min_detection_confidence=self.opts.hand_min_conf,
                                        min_tracking_confidence=self.opts.track_min_conf)
+                _open(p)
             self._tracks[stream] = p
         elif stream in self._stale:
             with quiet_native_logs():
