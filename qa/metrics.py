@@ -970,6 +970,43 @@ def _geometry(geom: dict, F: int, workers: int, progress) -> list[tuple]:
     return sorted(res, key=lambda r: r[0])
 
 
+SHARE_CHUNKS = 10  # chunks of the pass given to a pool that this process can take back
+
+
+class _SharedGeometry:
+    """The per-frame geometry pass (:func:`_geometry_frames`) shared between a pool and this
+    process: submitted to ``pool`` in ``SHARE_CHUNKS`` runs of consecutive frames as soon as
+    the bodies are posed; :meth:`result`, called when this process has computed its other
+    metrics, takes back the chunks the pool has not started, from the last one on (a pool
+    works through its queue from the first), computes them here, then waits for the rest.
+    Each frame's numbers are the same wherever it runs. A pool's task that failed raises
+    here."""
+
+    def __init__(self, pool, geom: dict):
+        self.static = {k: v for k, v in geom.items() if k not in ("verts", "frames")}
+        self.verts, self.frames = geom["verts"], np.asarray(geom["frames"])
+        F = len(self.frames)
+        self.parts = [r for r in np.array_split(np.arange(F), min(F, SHARE_CHUNKS)) if len(r)]
+        self.futures = [pool.submit(_geometry_frames, self.static, rows,
+                                    [V[rows] for V in self.verts], self.frames[rows])
+                        for rows in self.parts]
+        self.taken: list[int] = []  # the chunks computed here (their index), for the record
+
+    def result(self) -> list[tuple]:
+        out = []
+        for k in reversed(range(len(self.parts))):
+            if not self.futures[k].cancel():  # started (or done) in the pool: so are those before
+                break
+            rows = self.parts[k]
+            out += _geometry_frames(self.static, rows, [V[rows] for V in self.verts],
+                                    self.frames[rows])
+            self.taken.append(k)
+        for f in self.futures:
+            if not f.cancelled():
+                out += f.result()
+        return sorted(out, key=lambda r: r[0])
+
+
 # ---------------------------------------------------------------------------- the sequence
 
 
@@ -1041,9 +1078,10 @@ def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, f
     video clock (NaN = gap), which the sync check follows between fit frames; workers : the
     per-frame geometry (self-penetration, interpenetration, contact) in this many spawned
     processes (1: in this one; the numbers are the same); pool : an executor (e.g. a process
-    pool's, ``pipeline.procs.process_pool``) that runs the per-frame geometry as one task,
-    submitted as soon as the bodies are posed, while this process computes the other metrics,
-    unless ``workers`` would run it in several processes (the numbers are the same). QA
+    pool's, ``pipeline.procs.process_pool``) given the per-frame geometry in chunks as soon as
+    the bodies are posed, while this process computes the other metrics; this process then
+    takes back the chunks the pool has not started (:class:`_SharedGeometry`); not used when
+    ``workers`` would run the pass in several processes (the numbers are the same). QA
     frames: the partner's frames that the wearer's fit also has (all of them without a
     wearer), else the wearer's frames."""
     from fitting.collision import ProxyMesh
@@ -1084,9 +1122,7 @@ def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, f
     pending = None
     if pool is not None and min(int(workers), F // PARALLEL_MIN_FRAMES) <= 1:
         # (enough frames for several workers: :func:`_geometry`'s own processes, below)
-        pending = pool.submit(_geometry_frames,
-                              {k: v for k, v in geom.items() if k not in ("verts", "frames")},
-                              np.arange(F), verts, frames)
+        pending = _SharedGeometry(pool, geom)
     for (person, fit), (rows, V, P3) in zip(fits, posed, strict=True):
         if person == "wearer" and fit.has_markers:
             _marker_metrics(fit, rows, values, units)

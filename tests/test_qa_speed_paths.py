@@ -272,9 +272,9 @@ def test_self_penetration_is_the_deepest_of_self_collisions(anny):
 
 
 def test_geometry_in_a_given_pool_gives_the_same_metrics(anny):
-    """``sequence_metrics(pool=...)``: the per-frame geometry runs as one task of the pool
-    (here a thread pool), submitted before the other metrics, with the values of the run
-    without it."""
+    """``sequence_metrics(pool=...)``: the per-frame geometry goes to the pool (here a thread
+    pool) in chunks, submitted before the other metrics, with the values of the run without
+    it."""
     import concurrent.futures as cf
 
     from test_qa_metrics import _fit
@@ -296,7 +296,7 @@ def test_geometry_in_a_given_pool_gives_the_same_metrics(anny):
     with Pool(1) as pool:
         b = QM.sequence_metrics(anny, wearer, partner, None, [], NoContact(), None, 25.0,
                                 pool=pool)
-    assert submitted == [QM._geometry_frames]
+    assert submitted == [QM._geometry_frames] * F  # one chunk per frame (F < SHARE_CHUNKS)
     assert list(a.values) == list(b.values)
     for n in a.values:
         np.testing.assert_array_equal(a.values[n], b.values[n], err_msg=n)
@@ -311,3 +311,52 @@ def test_region_map_is_built_once_per_model(anny):
     r = QM.qa_region_map(anny)
     assert QM.qa_region_map(load_model("anny")) is r
     np.testing.assert_array_equal(r.face_region, region_map(anny).face_region)
+
+
+def test_geometry_shared_by_a_pool_and_this_process_gives_the_same_metrics(anny, monkeypatch):
+    """qa.metrics._SharedGeometry: the chunks the pool has not started when this process has
+    its other metrics are computed here, from the last one on; the pool keeps what it started.
+    Planted order: the pool's one thread is held until this process has taken the last chunk,
+    then this process waits until the pool has started its first; every frame's numbers equal
+    those of the run in one process, and each chunk ran once."""
+    import concurrent.futures as cf
+    import threading
+
+    from test_qa_metrics import _fit
+
+    F = 6
+    z0 = 1.0
+    wearer = _fit(anny, np.stack([np.zeros(F), np.zeros(F), np.full(F, z0)], 1))
+    pt = np.tile([1.45, 0.0, z0], (F, 1))
+    pt[[1, 4], 0] = 0.65  # the wearer's forearm in the partner's chest
+    partner = _fit(anny, pt)
+    a = QM.sequence_metrics(anny, wearer, partner, None, [], NoContact(), None, 25.0)
+
+    main = threading.get_ident()
+    ran: list[tuple[int, bool]] = []  # (first frame row, ran in this thread)
+    go, started = threading.Event(), threading.Event()
+    frames_here = QM._geometry_frames
+
+    def spy(static, rows, verts, frames):
+        here = threading.get_ident() == main
+        if not here:
+            started.set()
+        ran.append((int(rows[0]), here))
+        out = frames_here(static, rows, verts, frames)
+        if here and not go.is_set():  # the last chunk done here: let the pool start its first
+            go.set()
+            assert started.wait(30)
+        return out
+
+    monkeypatch.setattr(QM, "_geometry_frames", spy)
+    monkeypatch.setattr(QM, "SHARE_CHUNKS", 3)
+    with cf.ThreadPoolExecutor(1) as pool:
+        pool.submit(go.wait, 30)  # the pool is busy until this process has started sharing
+        b = QM.sequence_metrics(anny, wearer, partner, None, [], NoContact(), None, 25.0,
+                                pool=pool)
+    assert sorted(r for r, _ in ran) == [0, 2, 4]  # three chunks of two frames, each run once
+    assert (4, True) in ran and (0, False) in ran
+    assert list(a.values) == list(b.values)
+    for n in a.values:
+        np.testing.assert_array_equal(a.values[n], b.values[n], err_msg=n)
+    assert (a.values["penetration_mm"][[1, 4]] > 20).all()
