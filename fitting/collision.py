@@ -271,16 +271,19 @@ def _neighbours(adjacency: np.ndarray, rings: int) -> np.ndarray:
     return R
 
 
-def _self_hits(proxy: ProxyMesh, p: np.ndarray, rings: int) -> list[tuple[np.ndarray, np.ndarray]]:
+def _self_hits(proxy: ProxyMesh, p: np.ndarray, rings: int, winding=None
+               ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per region with a colliding point: (the region's collidable faces, its proxy points
     inside them). A candidate is a point the whole proxy's winding number puts inside; winding
     numbers add up over faces, so the collidable part's number is the whole's minus the rest's
-    (exact, in numpy over the few candidates and the small rest: no hierarchy per region)."""
+    (exact, in numpy over the few candidates and the small rest: no hierarchy per region).
+    ``winding``: the whole proxy's (fast) winding number of query points, when the caller
+    already has its hierarchy (the same numbers as :func:`geometry.winding_number`)."""
     regions = proxy.self_regions(rings)
     if p.shape != (proxy.num_vertices, 3):
         raise ValueError(f"points: expected ({proxy.num_vertices}, 3), got {p.shape}")
     vr = proxy.vertex_region
-    w_all = winding_number(p, p, proxy.faces)
+    w_all = winding_number(p, p, proxy.faces) if winding is None else np.asarray(winding(p))
     cand = np.flatnonzero((w_all > SELF_CANDIDATE_WINDING) & (vr >= 0))
     out = []
     for r in np.unique(vr[cand]):
@@ -311,12 +314,15 @@ def self_collisions(proxy: ProxyMesh, points: np.ndarray, rings: int = SELF_RING
     return Collisions(*[x[order] for x in c])
 
 
-def self_penetration(proxy: ProxyMesh, points: np.ndarray, rings: int = SELF_RINGS) -> float:
+def self_penetration(proxy: ProxyMesh, points: np.ndarray, rings: int = SELF_RINGS,
+                     winding=None) -> float:
     """The deepest self-penetration (m) of the proxy points (P, 3), 0 when none: the
-    ``deepest`` of :func:`self_collisions` without its targets (the QA's per-frame figure)."""
+    ``deepest`` of :func:`self_collisions` without its targets (the QA's per-frame figure).
+    ``winding``: optional, the fast winding number of query points against this posed proxy
+    (a hierarchy the caller keeps for other queries; the same numbers)."""
     p = np.asarray(points, dtype=float)
     return max((float(nearest_surface(p[hit], p, proxy.faces[far]).distance.max())
-                for far, hit in _self_hits(proxy, p, rings)), default=0.0)
+                for far, hit in _self_hits(proxy, p, rings, winding)), default=0.0)
 
 
 def ground_candidates(points: np.ndarray, normal, offset: float, k: int = GROUND_K) -> np.ndarray:

@@ -716,7 +716,7 @@ def _grid_inside(W: _Winding, G: np.ndarray, n, want: np.ndarray) -> np.ndarray:
     return out
 
 
-def _pair_frame(VA, VB, faces, proxy, need_near: bool):
+def _pair_frame(VA, VB, faces, proxy, need_near: bool, posed=None):
     """Deepest interpenetration (m), penetrating volume (m^3) and (when ``need_near``) the
     closest distance (m, clipped at NEAR_M; 0 when penetrating) of two posed meshes VA, VB
     (V, 3) of one model.
@@ -728,15 +728,20 @@ def _pair_frame(VA, VB, faces, proxy, need_near: bool):
     box of the penetrating points inside both proxies (:func:`_grid_inside`: blocks of cells
     away from a surface tested by one cell); the closest distance is that of the proxy points
     to the other full mesh (both ways). One winding-number hierarchy per proxy mesh and
-    frame serves all its queries."""
-    PA, PB = proxy.points(VA), proxy.points(VB)
+    frame serves all its queries. ``posed``: ((PA, PB), (WA, WB)) the proxy points and their
+    :class:`_Winding` when the caller has them (the self-penetration's)."""
+    if posed is None:
+        PA, PB = proxy.points(VA), proxy.points(VB)
+        wind: dict = {}
+    else:
+        (PA, PB), (WA, WB) = posed
+        wind = {0: WA, 1: WB}
     pf = proxy.faces
     faces = np.ascontiguousarray(faces, dtype=np.int64)
     SA, SB = _Surface(VA, faces, PA), _Surface(VB, faces, PB)
     pen, inside_pts = 0.0, []
     boxA, boxB = _bbox(VA), _bbox(VB)
     overlap = np.all(boxA[0] <= boxB[1]) and np.all(boxB[0] <= boxA[1])
-    wind: dict = {}
 
     def winding(k):  # the proxy mesh of A (0) or B (1), its hierarchy built on first use
         if k not in wind:
@@ -911,14 +916,17 @@ def _geometry_frames(g: dict, rows, verts, frames) -> list[tuple]:
     proxy = g["proxy"]
     out = []
     for k, i in enumerate(rows):
-        sp = [self_penetration(proxy, proxy.points(V[k].astype(float))) for V in verts]
+        # each posed proxy's winding-number hierarchy, built once for both passes
+        P = [proxy.points(V[k].astype(float)) for V in verts]
+        W = [_Winding(p, proxy.faces) for p in P]
+        sp = [self_penetration(proxy, p, winding=w) for p, w in zip(P, W, strict=True)]
         pen = vol = near = gap = np.nan
         if len(verts) == 2:
             f = int(frames[k])
             a, b = (V[k].astype(float) for V in verts)
             contact, lo, hi = g["contact"], g["lo"], g["hi"]
             outside = contact is not None and not (contact.has_contact and lo <= f <= hi)
-            pen, vol, near = _pair_frame(a, b, g["faces"], g["proxy"], outside)
+            pen, vol, near = _pair_frame(a, b, g["faces"], g["proxy"], outside, (P, W))
             if g["sel"] and contact.active(f):
                 gap = _contact_gap(a, b, g["faces"], g["sel"])
         out.append((int(i), sp, pen, vol, near, gap))

@@ -242,8 +242,8 @@ def test_grid_blocks_give_the_cells_of_testing_every_cell(anny):
 def test_self_penetration_is_the_deepest_of_self_collisions(anny):
     """The QA's self-penetration (``fitting.collision.self_penetration``: the region faces
     found once per proxy, no targets made) is ``self_collisions(...).deepest`` number for
-    number, with an arm pushed into the own body (a depth > 0) and without; the cached region
-    faces are those found afresh."""
+    number, with an arm pushed into the own body (a depth > 0) and without, also when given
+    the frame's winding-number hierarchy; the cached region faces are those found afresh."""
     from body import forward
     from fitting.collision import SELF_RINGS, _neighbours, self_collisions, self_penetration
 
@@ -258,6 +258,9 @@ def test_self_penetration_is_the_deepest_of_self_collisions(anny):
         P = proxy.points(V)
         want = self_collisions(proxy, P).deepest
         assert self_penetration(proxy, P) == want
+        # with the frame's winding-number hierarchy of the posed proxy (qa.metrics._Winding,
+        # kept for the pair test): the same number
+        assert self_penetration(proxy, P, winding=QM._Winding(P, proxy.faces)) == want
         depths.append(want)
     assert depths[0] == 0.0 and depths[2] > 0.02 and depths[3] > 0.02
     regions = proxy.self_regions(SELF_RINGS)
