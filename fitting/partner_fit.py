@@ -791,8 +791,10 @@ def check_views(cams, pred: np.ndarray, uv: np.ndarray, conf: np.ndarray, flip: 
     - a view whose detection read mirrored fits ``pred`` better (``e_flip < ratio * e`` and
       ``e > min_px``) is mirrored back (a person seen from behind read as seen from the
       front: the fit must not follow it);
-    - in a view kept as it is, each half of the body (:data:`BODY_PARTS`: the head and arms
-      with the hands, the legs) is judged the same way on its own: the detector mirrors the
+    - in a view kept as it is or mirrored back, each half of the body (:data:`BODY_PARTS`:
+      the head and arms with the hands, the legs) is judged the same way on its own (a view
+      whose legs alone read mirrored is mirrored back as a whole, its median held by the 12
+      leg keypoints of 23, and its arms then mirrored back alone): the detector mirrors the
       upper body alone of a partner seen from behind while the legs stay right (bench,
       Posing, view 60457274 from frame 54 on: the shoulders, elbows and wrists swapped), and
       the whole view's median, held by the legs, does not see it;
@@ -842,7 +844,10 @@ def check_views(cams, pred: np.ndarray, uv: np.ndarray, conf: np.ndarray, flip: 
     parts = np.zeros((C, len(BODY_PARTS)), bool)
     kp_dropped = np.zeros((C, K), bool)
     kept = ~(far | dropped | flipped)
-    for c in np.flatnonzero(kept):
+    # the halves also of a view mirrored back as a whole: a view whose legs alone read
+    # mirrored (12 of the 23 body keypoints) has its median held by them and is mirrored as a
+    # whole, which mirrors its right arms; the arms are then mirrored back on their own
+    for c in np.flatnonzero(kept | flipped):
         for p, (judged, moved) in enumerate(BODY_PARTS):
             judged = judged[judged < K]
             ep = med(c, pred, ident, judged)
@@ -874,7 +879,8 @@ class ViewCheck:
     flipped: np.ndarray
     dropped: np.ndarray
     far: np.ndarray
-    parts_flipped: np.ndarray  # (C, 2) bool: the upper / lower half mirrored back alone
+    parts_flipped: np.ndarray  # (C, 2) bool: the upper / lower half mirrored back alone (in a
+    # view mirrored back as a whole: that half mirrored again, as it was read)
     keypoints_dropped: np.ndarray  # (C, K) bool: the wearer's joints read as the partner's
 
     @property
@@ -1037,10 +1043,42 @@ def _observed_summary(model: BodyModel, fit: BodyFit) -> dict:
             "per_joint": {n: round(float(pts[:, i].mean()), 3) for i, n in enumerate(JOINTS3D_25)}}
 
 
+def seed_poses(start: BodyFit | None, skel, frames: np.ndarray) -> list[np.ndarray | None]:
+    """Per frame of ``frames`` (F,): the unknowns x (the fit's packing: global rotation
+    vector, translation, the fitted joints' rotation vectors) of ``start``'s pose at that
+    frame where ``start`` has it and it is valid there, else None (None everywhere without
+    ``start``).
+
+    Why: the stage fits twice, before and after the second detection pass, and the second
+    fit started each sequence afresh from the triangulated detections. A start triangulated
+    from detections whose legs one view reads mirrored puts the legs crossed (bench, Kick,
+    on one machine's mediapipe answers: the second start's knees 107-161 mm off, the first's
+    15-24), and the fit cannot uncross them through each other; check_views then mirrors the
+    right views' legs to match (40 of 80 view-halves), and all 20 frames, their knees and
+    ankles 28-41 cm off, were published as valid. The first fit's pose, chosen on the first
+    detections (around which the second pass cropped), does not depend on that
+    triangulation."""
+    from body.rotations import rotmat_to_rotvec
+
+    out: list[np.ndarray | None] = [None] * len(frames)
+    if start is None:
+        return out
+    sf = np.asarray(start.frames, np.int64)
+    pos = {int(f): i for i, f in enumerate(sf)}
+    valid = np.asarray(start.valid, bool)
+    bp, R, T = np.asarray(start.body_pose), np.asarray(start.global_orient), np.asarray(start.transl)
+    for k, f in enumerate(np.asarray(frames, np.int64)):
+        i = pos.get(int(f))
+        if i is None or not valid[i]:
+            continue
+        out[k] = np.concatenate([rotmat_to_rotvec(R[i]), T[i], bp[i, skel.joints[1:]].reshape(-1)])
+    return out
+
+
 def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
                 wearer: BodyFit | None = None, contact=None, ground=None,
                 opts: PartnerFitOptions = PartnerFitOptions(), progress=None,
-                log=None, silhouettes=None) -> tuple[BodyFit, dict]:
+                log=None, silhouettes=None, start: BodyFit | None = None) -> tuple[BodyFit, dict]:
     """The partner's motion over the keypoints' video frames.
 
     model : BodyModel; shape : the partner's own :class:`artifacts.ShapeFit` (betas held
@@ -1051,7 +1089,12 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
     ``fitting.contact_signature.ContactAnnotation`` (``L_D`` / ``L_N`` in its interval, with
     the wearer; what was used: ``report["contact_terms"]``, :func:`extra_terms`); ground :
     ``(normal (3,), offset)`` of the
-    ground plane (``L_gp``; None: none); progress : iterable wrapper; log : ``log(str)``.
+    ground plane (``L_gp``; None: none); progress : iterable wrapper; log : ``log(str)``;
+    start : an earlier fit of the partner over these frames (the stage's first fit, before
+    the second detection pass): a start frame (the first, a re-initialisation) that it
+    fitted validly starts from its pose there (:func:`seed_poses`) instead of from
+    ``init_pose``'s triangulation of this fit's detections; counted in the report's
+    ``initialisations_from_start``.
 
     Returns the :class:`artifacts.BodyFit` (no marker fields) and a report dict whose
     ``per_frame`` entry holds arrays (the stage writes them to ``terms.npz``): ``reproj_px
@@ -1090,6 +1133,7 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
 
     flipK = np.asarray(KP65_FLIP)[kidx]
     WK = None if posed is None else wearer_keypoints(posed, R_kp)
+    seeds = seed_poses(start, skel, frames)
     X = np.zeros((F, skel.n))
     reason = np.zeros(F, np.int8)
     err_px = np.full((F, C), np.nan)
@@ -1160,12 +1204,14 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
             on_wearer_n[f] += vc.keypoints_dropped.sum(-1)
         return vc
 
-    def fit_frame(f, x0, x_ref):
+    def fit_frame(f, x0, x_ref, seeded=False):
         """Frame f solved from x0 (tied to x_ref by L_s; None: a start frame, whose views are
-        not checked against an estimate) and recorded; returns its solution."""
+        not checked against an estimate unless x0 is ``seeded``: an earlier fit's pose) and
+        recorded; returns its solution."""
         start = x_ref is None
         uvf, cf = uv[f], conf[f]
-        if opts.check_views and not start:  # against the neighbouring frame's solution
+        if opts.check_views and (seeded or not start):  # against the neighbouring frame's
+            # solution (or the earlier fit's pose at a start frame)
             vc = checked(f, x0, uvf, cf)
             uvf, cf = vc.uv, vc.conf
         first = start
@@ -1197,6 +1243,7 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
         return x
 
     x_prev, miss, first_fit, inits, iters, rounds, t_rounds = None, 0, None, 0, [], [], []
+    seeded = 0
     backfilled = 0
     from threadpoolctl import threadpool_limits
 
@@ -1205,8 +1252,11 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
     with threadpool_limits(limits=1):
         for f in it:
             start = x_prev is None or miss > opts.reinit_after
-            x0 = x_prev
-            if enough[f] and start:
+            x0, from_start = x_prev, False
+            if enough[f] and start and seeds[f] is not None:  # the earlier fit's pose here
+                x0, from_start = seeds[f], True
+                seeded += 1
+            elif enough[f] and start:
                 kpi = kp_raw[:, f].copy()
                 if gate:  # from the body alone (a wrong hand triangulated drags the arm)
                     kpi[:, N_BODY:, 2] = 0.0
@@ -1224,7 +1274,7 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
                     reason[f] = REASON_CODE["held_before_first_keypoints"]
                 miss += 1
                 continue
-            x = fit_frame(f, x0, None if start else x_prev)
+            x = fit_frame(f, x0, None if start else x_prev, seeded=from_start)
             miss = 0
             first_fit = f if first_fit is None else first_fit
             x_prev = x
@@ -1276,7 +1326,8 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
         "frames": F, "first_fitted_frame": None if first_fit is None else int(frames[first_fit]),
         "frames_valid": reasons["fitted"],
         "frames_not_valid": {n: reasons[n] for n in PARTNER_FIT_REASONS},
-        "initialisations": inits, "frames_backfilled": backfilled, "terms": names, "weights": dict(opts.weights),
+        "initialisations": inits, "initialisations_from_start": seeded,
+        "frames_backfilled": backfilled, "terms": names, "weights": dict(opts.weights),
         "reprojection_px": rp, "hands": bool(opts.use_hands), "fitted_joints": list(skel.names),
         "prior": prior.source, "build_s": round(t_build, 3),
         "fit_s": round(t_fit, 3), "fit_cpu_s": c_fit, "extra_jacobian_s": round(body.jacobian_s, 3),

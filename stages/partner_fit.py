@@ -186,7 +186,8 @@ def run(ctx: StageContext) -> None:
             second["first_fit_cpu_s"] = report["fit_cpu_s"]
             second["first_fit_frames_valid"] = report["frames_valid"]
             fit, report = fit_partner(model, shape, keypoints, cams, wearer, contact, ground, o,
-                                      progress=ctx.progress, log=log, silhouettes=masks)
+                                      progress=ctx.progress, log=log, silhouettes=masks,
+                                      start=fit)
         else:  # the first fit is the fit: its frames judged by the views as the options say
             fit, report = apply_min_valid_views(fit, report, o.min_valid_views, len(cams))
         keypoints.save(ctx.out)  # the keypoints the fit used (person 1 refined)

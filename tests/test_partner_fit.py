@@ -761,3 +761,54 @@ def test_the_frames_before_the_first_initialisation_are_fitted_backwards(scene):
     names = [INVALID_REASONS[c] for c in held.invalid_reason[:4]]
     assert names == ["held_before_first_keypoints"] * 3 + ["fitted"], names
     assert rep_h["frames_backfilled"] == 0 and rep_h["first_fitted_frame"] == int(scene.frames[3])
+
+
+def test_an_earlier_fit_seeds_the_start_frame_and_its_views_are_checked_against_it(scene):
+    """The stage's second fit (after the second detection pass) starts a sequence from the
+    first fit's pose where that fit is valid (``fit_partner(start=...)``, ``seed_poses``), and
+    checks the start frame's views against that pose before solving: a start triangulated
+    from detections whose legs two of four views read mirrored crossed the legs (bench, Kick:
+    every frame 28-41 cm off at the knees and ankles, all published valid). Planted: the legs
+    of the two views where mirroring moves them most read mirrored in the first two frames;
+    seeded, both views' legs are mirrored back in both frames (check_views: the view as a
+    whole, then its arms on their own) and every frame stays near the truth. ``seed_poses`` packs the earlier fit's valid frames into the fit's unknowns
+    (unpacked: the same pose) and gives None where it is not valid or has no frame."""
+    from calib import project
+    from fitting.marker_fit import unpack
+    from fitting.partner_fit import BODY_PARTS, seed_poses
+    from formats.skeletons import KP65_FLIP
+
+    first, _ = _fit(scene, scene.kp)
+    assert first.valid.all()
+    flip = np.asarray(KP65_FLIP)
+    judged, moved = BODY_PARTS[1]  # the legs
+    errs = [np.median(np.linalg.norm(project(cam, scene.kp3[0][flip[judged]])
+                                     - project(cam, scene.kp3[0][judged]), axis=-1))
+            for cam in scene.cams]
+    views = np.argsort(errs)[-2:]
+    assert min(errs[c] for c in views) > 30.0  # the scene: mirrored legs the check must see
+    kp = scene.kp.copy()
+    for c in views:
+        for f in (0, 1):
+            kp[c, f, 1, moved] = scene.kp[c, f, 1, flip[moved]]
+    fit, rep = _fit(scene, kp, start=first)
+    err, _ = _joint_err_mm(scene, fit)
+    assert rep["initialisations_from_start"] == 1 and rep["initialisations"] == 0
+    # each planted view-frame (2 views x 2 frames; the legs hold its median: 12 of the 23
+    # body keypoints) is mirrored back as a whole and then its arms alone: net, the legs
+    assert rep["views_mirrored_back"] == 4, rep["views_mirrored_back"]
+    assert rep["view_halves_mirrored_back"] == {"upper": 4, "lower": 0}
+    assert fit.valid.all() and err.max() < 35.0, err
+
+    # seed_poses: the earlier fit's pose as unknowns, where it is valid
+    skel = scene.skel
+    not_valid = dataclasses.replace(first, valid=np.r_[False, first.valid[1:]])
+    seeds = seed_poses(not_valid, skel, np.r_[scene.frames, scene.frames[-1] + 2])
+    assert seeds[0] is None and seeds[-1] is None
+    assert all(s is not None for s in seeds[1:-1])
+    bp, R, T = unpack(skel, scene.model.num_joints, np.stack(seeds[1:-1]))
+    np.testing.assert_allclose(R, first.global_orient[1:], atol=1e-9)
+    np.testing.assert_allclose(T, first.transl[1:], atol=1e-12)
+    np.testing.assert_allclose(bp[:, skel.joints[1:]], np.asarray(first.body_pose)[1:, skel.joints[1:]],
+                               atol=1e-9)
+    assert seed_poses(None, skel, scene.frames) == [None] * F_SYN
