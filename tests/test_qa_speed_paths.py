@@ -11,6 +11,18 @@ from geometry import nearest_surface
 from qa import metrics as QM
 
 
+def _pair(anny, F: int, inside, z0: float = 1.0):
+    """(wearer, partner) fits of F frames: the wearer standing at the origin, the partner
+    1.45 m away along x, and 0.65 m away in the frames ``inside`` (the wearer's hand and
+    forearm in the partner's chest: the pair's numbers are not all zero there)."""
+    from test_qa_metrics import _fit
+
+    wearer = _fit(anny, np.stack([np.zeros(F), np.zeros(F), np.full(F, z0)], 1))
+    pt = np.tile([1.45, 0.0, z0], (F, 1))
+    pt[list(inside), 0] = 0.65
+    return wearer, _fit(anny, pt)
+
+
 def test_surface_tree_distances_are_nearest_surface_distances(anny):
     from body import forward
 
@@ -92,14 +104,8 @@ def test_geometry_in_worker_processes_gives_the_same_metrics(anny, monkeypatch):
     all zero)."""
     import multiprocessing as mp
 
-    from test_qa_metrics import _fit
-
     F = 6
-    z0 = 1.0
-    wearer = _fit(anny, np.stack([np.zeros(F), np.zeros(F), np.full(F, z0)], 1))
-    pt = np.tile([1.45, 0.0, z0], (F, 1))
-    pt[[2, 3], 0] = 0.65  # the wearer's hand and forearm in the partner's chest
-    partner = _fit(anny, pt)
+    wearer, partner = _pair(anny, F, [2, 3])
     bp = np.array(partner.body_pose)
     bp[4, anny.joint_index("upperarm01.L")] = [0.0, 1.5, 0.0]  # an arm into the own body
     partner = dataclasses.replace(partner, body_pose=bp)
@@ -280,14 +286,8 @@ def test_geometry_in_a_given_pool_gives_the_same_metrics(anny):
     it."""
     import concurrent.futures as cf
 
-    from test_qa_metrics import _fit
-
     F = 4
-    z0 = 1.0
-    wearer = _fit(anny, np.stack([np.zeros(F), np.zeros(F), np.full(F, z0)], 1))
-    pt = np.tile([1.45, 0.0, z0], (F, 1))
-    pt[1, 0] = 0.65  # the wearer's forearm in the partner's chest
-    partner = _fit(anny, pt)
+    wearer, partner = _pair(anny, F, [1])
     a = QM.sequence_metrics(anny, wearer, partner, None, [], NoContact(), None, 25.0)
     submitted = []
 
@@ -325,14 +325,8 @@ def test_geometry_shared_by_a_pool_and_this_process_gives_the_same_metrics(anny,
     import concurrent.futures as cf
     import threading
 
-    from test_qa_metrics import _fit
-
     F = 6
-    z0 = 1.0
-    wearer = _fit(anny, np.stack([np.zeros(F), np.zeros(F), np.full(F, z0)], 1))
-    pt = np.tile([1.45, 0.0, z0], (F, 1))
-    pt[[1, 4], 0] = 0.65  # the wearer's forearm in the partner's chest
-    partner = _fit(anny, pt)
+    wearer, partner = _pair(anny, F, [1, 4])
     a = QM.sequence_metrics(anny, wearer, partner, None, [], NoContact(), None, 25.0)
 
     main = threading.get_ident()
