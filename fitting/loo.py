@@ -41,7 +41,7 @@ from artifacts import ShapeFit
 from body.lbs import rest_state
 from body.rotations import rotmat_to_rotvec
 from fitting import mocap, skinned
-from fitting.marker_fit import MarkerFitOptions, fit_markers
+from fitting.marker_fit import MarkerFitOptions, fit_markers, pack
 from fitting.marker_graph import Placement, marker_coeffs, placement_of
 from formats.c3d import Markers
 from formats.errors import InputError
@@ -65,10 +65,7 @@ def predicted_markers(model, fit, pl: Placement, fitted_joints) -> np.ndarray:
     rest = rest_state(model, np.asarray(fit.betas, float))
     u, _ = skinned.reduced_offsets(model, rest, skel)
     H = marker_coeffs(model, rest, skel, pl)
-    F = len(fit.frames)
-    X = np.concatenate([rotmat_to_rotvec(np.asarray(fit.global_orient)),
-                        np.asarray(fit.transl), np.asarray(fit.body_pose)[:, skel.joints[1:]]
-                        .reshape(F, -1)], axis=1)
+    X = pack(skel, fit.body_pose, fit.global_orient, fit.transl)
     return np.stack([H.positions(skel, u, x) for x in X])
 
 

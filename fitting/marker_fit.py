@@ -307,6 +307,15 @@ def _fit_sequence(solver, obs, vis, uv, conf, progress) -> SequenceFit:
     return SequenceFit(X, res_m, rw, iters, cost)
 
 
+def pack(skel: FitSkeleton, body_pose, global_orient, transl) -> np.ndarray:
+    """The inverse of :func:`unpack`: a fit's body_pose (F, J, 3), global_orient (F, 3, 3)
+    and transl (F, 3) -> per-frame unknowns (F, n) (the fitted joints' rotation vectors;
+    the global rotation as a rotation vector of angle <= pi)."""
+    F = len(transl)
+    return np.concatenate([rotmat_to_rotvec(np.asarray(global_orient)), np.asarray(transl),
+                           np.asarray(body_pose)[:, skel.joints[1:]].reshape(F, -1)], axis=1)
+
+
 def unpack(skel: FitSkeleton, num_joints: int, X: np.ndarray):
     """Per-frame unknowns (F, n) -> (body_pose (F, J, 3) with zeros on non-fitted joints and the
     root, global_orient (F, 3, 3), transl (F, 3)) in the body contract's convention."""

@@ -54,7 +54,7 @@ from body.model import BodyModel
 from calib import project
 from fitting import collision, lm, priors, skinned, terms
 from fitting.init_pose import InitOptions, init_pose
-from fitting.marker_fit import GNC_FACTORS, rewrap, unpack
+from fitting.marker_fit import GNC_FACTORS, pack, rewrap, unpack
 from fitting.marker_graph import OBSERVED_WEIGHT, body_joints, observed_joints
 from fitting.reprojection import Reprojection
 from fitting.skinned import point_jacobian, subtree
@@ -1058,20 +1058,16 @@ def seed_poses(start: BodyFit | None, skel, frames: np.ndarray) -> list[np.ndarr
     ankles 28-41 cm off, were published as valid. The first fit's pose, chosen on the first
     detections (around which the second pass cropped), does not depend on that
     triangulation."""
-    from body.rotations import rotmat_to_rotvec
-
     out: list[np.ndarray | None] = [None] * len(frames)
     if start is None:
         return out
-    sf = np.asarray(start.frames, np.int64)
-    pos = {int(f): i for i, f in enumerate(sf)}
+    X = pack(skel, start.body_pose, start.global_orient, start.transl)
+    pos = {int(f): i for i, f in enumerate(np.asarray(start.frames, np.int64))}
     valid = np.asarray(start.valid, bool)
-    bp, R, T = np.asarray(start.body_pose), np.asarray(start.global_orient), np.asarray(start.transl)
     for k, f in enumerate(np.asarray(frames, np.int64)):
         i = pos.get(int(f))
-        if i is None or not valid[i]:
-            continue
-        out[k] = np.concatenate([rotmat_to_rotvec(R[i]), T[i], bp[i, skel.joints[1:]].reshape(-1)])
+        if i is not None and valid[i]:
+            out[k] = X[i]
     return out
 
 
