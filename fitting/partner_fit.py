@@ -1239,7 +1239,7 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
         return x
 
     x_prev, miss, first_fit, inits, iters, rounds, t_rounds = None, 0, None, 0, [], [], []
-    seeded = 0
+    n_seeded = 0
     backfilled = 0
     from threadpoolctl import threadpool_limits
 
@@ -1251,7 +1251,7 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
             x0, from_start = x_prev, False
             if enough[f] and start and seeds[f] is not None:  # the earlier fit's pose here
                 x0, from_start = seeds[f], True
-                seeded += 1
+                n_seeded += 1
             elif enough[f] and start:
                 kpi = kp_raw[:, f].copy()
                 if gate:  # from the body alone (a wrong hand triangulated drags the arm)
@@ -1322,7 +1322,7 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
         "frames": F, "first_fitted_frame": None if first_fit is None else int(frames[first_fit]),
         "frames_valid": reasons["fitted"],
         "frames_not_valid": {n: reasons[n] for n in PARTNER_FIT_REASONS},
-        "initialisations": inits, "initialisations_from_start": seeded,
+        "initialisations": inits, "initialisations_from_start": n_seeded,
         "frames_backfilled": backfilled, "terms": names, "weights": dict(opts.weights),
         "reprojection_px": rp, "hands": bool(opts.use_hands), "fitted_joints": list(skel.names),
         "prior": prior.source, "build_s": round(t_build, 3),

@@ -998,7 +998,6 @@ class _SharedGeometry:
         self.futures = [pool.submit(_geometry_frames, self.static, rows,
                                     [V[rows] for V in self.verts], self.frames[rows])
                         for rows in self.parts]
-        self.taken: list[int] = []  # the chunks computed here (their index), for the record
 
     def result(self) -> list[tuple]:
         out = []
@@ -1008,7 +1007,6 @@ class _SharedGeometry:
             rows = self.parts[k]
             out += _geometry_frames(self.static, rows, [V[rows] for V in self.verts],
                                     self.frames[rows])
-            self.taken.append(k)
         for f in self.futures:
             if not f.cancelled():
                 out += f.result()
