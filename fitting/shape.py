@@ -79,7 +79,9 @@ class ScanFitOptions:
     product exceeds this (holes); final_pair_m: the distance cut of the last third of the
     iterations (a cut from the start loses the scan when the start is far from it)."""
 
-    num_betas: int = 404  # all of anny's: 150 left 6.3 mm v2v on the bench, 404 gives 4.4
+    # all of anny's: 150 left 6.3 mm v2v on the bench, 404 gives 4.4 (template-space v2v, the
+    # bench's measure before session 28)
+    num_betas: int = 404
     n_points: int = 4000
     n_vertices: int = 2000
     iters: int = 40
