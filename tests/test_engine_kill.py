@@ -48,6 +48,18 @@ def alive(pid: int) -> bool:
     return s is not None and s[0] not in ("Z", "X")
 
 
+def cmdlines(pids) -> dict[int, str]:
+    """Each pid's command line (for an assertion's message: which process was not expected)."""
+    out = {}
+    for p in pids:
+        try:
+            out[p] = Path(f"/proc/{p}/cmdline").read_bytes().replace(b"\0", b" ").decode(
+                errors="replace")[:300]
+        except OSError:
+            out[p] = "(gone)"
+    return out
+
+
 def descendants(pid: int) -> list[int]:
     """Every live process under ``pid`` (children, grandchildren, ...)."""
     children: dict[int, list[int]] = {}
@@ -148,7 +160,7 @@ def test_signal_mid_stage_removes_the_temp_folder_ends_children_and_exits_128_pl
                and (not pool or "pool detect g/x" in counts(tmp_path)), proc, "detect mid-stage")
     kids = descendants(proc.pid)
     try:
-        assert len(kids) == (3 if pool else 0), kids
+        assert len(kids) == (3 if pool else 0), cmdlines(kids)
         t0 = time.monotonic()
         os.kill(proc.pid, sig)
         proc.wait(timeout=20)
@@ -458,7 +470,7 @@ def test_kill_9_of_detect_sequence_kills_its_pool_workers(tmp_path):
     kids = descendants(proc.pid)
     try:
         workers = {int(p.stem) for p in tmp_path.glob("*.pid")}
-        assert workers <= set(kids) and len(kids) == 3, kids  # + the resource tracker
+        assert workers <= set(kids) and len(kids) == 3, cmdlines(kids)  # + the resource tracker
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(timeout=10)
         assert wait_gone(kids) == []
