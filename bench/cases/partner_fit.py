@@ -28,7 +28,10 @@ annotated region pairs of the smallest facet distance between the two regions) i
 annotated contact frames; ``penetration_p95_mm``: 95th percentile over all valid frames of the
 deepest interpenetration of the two fitted bodies (the wearer from marker_fit);
 ``fps_per_core``: fitted frames per CPU-second of the partner fit (build excluded; both fits
-and the second detection pass counted); ``frames_valid_fraction``;
+and the second detection pass counted); ``frames_valid_fraction``; ``defect_fraction_valid``:
+the share of the frames the fit calls valid whose worst H36M-17 joint is farther than
+``DEFECT_MM`` from the truth (the fit's own wrong frames, before the QA withholds any:
+``qa.defect_frames_clean`` counts those the release still publishes);
 ``detected_<body|hands>_<before|after>_second_pass``: fraction of the partner's view-frames
 with its body (>= 12 of 23 keypoints) / a hand (>= 5 of 21) detected before and after the
 second detection pass (``detect.refine``).
@@ -186,6 +189,7 @@ VARIANTS = {  # the paper's Table 3 ablation: stage option overrides of each row
 }
 DEFAULT_VARIANTS: tuple[str, ...] = ()  # the full method alone (see the module doc)
 TABLE_PREFIX = "partner_fit.table3."
+DEFECT_MM = 100.0  # a fit frame whose worst H36M joint is farther from the truth is a defect
 SECTION_PREFIXES = (TABLE_PREFIX,)
 
 
@@ -230,6 +234,7 @@ def _score(recipe, outputs: Path, model, h36) -> tuple[dict, dict, float, int]:
             "transl": M.translation_error(pj[ok], tj[ok]) * 1000,
             "contact": terms["contact_m"][ok][np.isfinite(terms["contact_m"][ok])] * 1000,
             "penetration": terms["penetration_m"][ok] * 1000,
+            "worst": np.linalg.norm(pj[ok] - tj[ok], axis=-1).max(-1) * 1000,
         }
         sp = rep.get("second_pass") or {}
         if sp.get("run"):  # the partner's detection rates before / after the second pass
@@ -294,6 +299,9 @@ def _figures(pooled: dict, prefix: str) -> dict[str, float]:
         if len(p):
             out[f"{prefix}penetration_p95_mm{suf}"] = float(np.percentile(p, 95))
         out[f"{prefix}frames_valid_fraction{suf}"] = float(cat("valid").mean())
+        w = cat("worst")
+        if len(w):
+            out[f"{prefix}defect_fraction_valid{suf}"] = float(np.mean(w > DEFECT_MM))
         for g in ("body", "hands"):
             for when in ("before", "after"):
                 v = cat(f"detected_{g}_{when}")

@@ -220,7 +220,7 @@ def limb_fault(recipe: Path, outputs: Path, session: str) -> dict:
     return out
 
 
-DEFECT_MM = 100.0  # a fit frame whose worst H36M joint is farther from the truth is a defect
+DEFECT_MM = P.DEFECT_MM  # a fit frame whose worst H36M joint is farther from the truth is a defect
 
 
 def truth_errors(outputs: Path, session: str, unit: str, frames: np.ndarray, model, R) -> np.ndarray:
