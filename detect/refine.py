@@ -143,8 +143,9 @@ def refine_partner(source: FrameSource, factory: DetectorFactory, frames: np.nda
     frames : (F,) video frames; kp : (C, F, 2, 65, 3) the first pass (both people);
     projected : (C, F, 65, 2) the partner's first-fit keypoints in each view; outline :
     (C, F, P, 2) projected points of its surface; opts : the first pass's options.
-    A redone view's keypoints replace the first pass's when they have more confident body
-    keypoints (body), and its hands fill hands the first pass did not find."""
+    A redone view's body keypoints replace the first pass's when they have more confident
+    body keypoints, except a confident first-pass keypoint the redone body did not find
+    confidently (kept); its hands fill hands the first pass did not find."""
     o = PeopleOptions() if opts is None else opts
     out = np.array(kp[:, :, 1], np.float32)
     C, F = need.shape
@@ -178,7 +179,13 @@ def refine_partner(source: FrameSource, factory: DetectorFactory, frames: np.nda
                     bad = on_wearer(cand, projected[c, i], kp[c, i, 0], conf)
                     cand[layout.BODY][bad, 2] = 0.0
                     on_wearer_n[c, i] = int(bad.sum())
-                    new[layout.BODY] = cand[layout.BODY]
+                    # keypoint by keypoint: a confident first-pass keypoint the redone body
+                    # lost is kept (the second pass can drop a right joint and add a wrong
+                    # one; the bench's Posing arm was lost so)
+                    body = cand[layout.BODY].copy()
+                    keep = (body[:, 2] < conf) & (first[layout.BODY][:, 2] >= conf)
+                    body[keep] = first[layout.BODY][keep]
+                    new[layout.BODY] = body
                     improved[c, i] = True
             if o.hands:
                 before = new.copy()
