@@ -19,8 +19,10 @@ Every later stage honours the mask, and reports say how many frames are not vali
 Within a valid frame, a body part that no marker (and no keypoint) observed is not ground truth
 either: the optional ``observed (F, J)`` says per frame which joints of ``body_pose`` the
 frame's evidence observes (``fitting.marker_graph.observed_joints``; e.g. the arms and head of a
-lower-body marker set are never observed). Absent (the partner fit, older fits): every joint of
-a valid frame counts as observed.
+lower-body marker set are never observed). Absent (older fits): every joint of a valid frame
+counts as observed. A fit from keypoints also says which keypoints the fitted body agrees with
+in two views (``keypoints_observed (F, 65)``): a point of the body at a keypoint is ground truth
+only there.
 """
 from __future__ import annotations
 
@@ -62,6 +64,11 @@ class BodyFit(TypedArtifact):
     visible (F, M) bool.
     observed : optional (F, J) bool, the joints the frame's markers / keypoints observe (see
     the module docstring); None = all.
+    keypoints_observed : optional (F, 65) bool, a fit from keypoints: the KP65 keypoints the
+    fitted body agrees with in at least two views (``fitting.partner_fit.OBSERVED_PX``): a
+    point of the body at such a keypoint (an elbow, a knee) is ground truth only where it is
+    True, even when ``observed`` holds the joints it hangs on through other keypoints (two
+    views that agree on the wrist can leave the elbow free); None = no such restriction.
     """
 
     KIND: ClassVar[str] = "body_fit"
@@ -80,6 +87,8 @@ class BodyFit(TypedArtifact):
         FieldSpec("marker_weight", "f", "F M", optional=True),
         FieldSpec("visible", "b", "F M", optional=True),
         FieldSpec("observed", "b", "F J", optional=True, doc="joints observed per frame"),
+        FieldSpec("keypoints_observed", "b", "F 65", optional=True,
+                  doc="KP65 keypoints the fit agrees with in two views, per frame"),
     )
 
     body_pose: np.ndarray
@@ -94,6 +103,7 @@ class BodyFit(TypedArtifact):
     marker_weight: np.ndarray | None = None
     visible: np.ndarray | None = None
     observed: np.ndarray | None = None
+    keypoints_observed: np.ndarray | None = None
 
     @property
     def num_frames(self) -> int:

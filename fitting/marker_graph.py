@@ -210,6 +210,25 @@ def observed_points(model: BodyModel, R, observed: np.ndarray,
                      for d in deps], axis=1)
 
 
+def fit_points_observed(model: BodyModel, fit, layout: str = "joints3d_25") -> np.ndarray:
+    """(F, K) bool: the points of ``layout`` (``body.joints.regressor``) that are ground truth
+    in each frame of ``fit`` (``artifacts.BodyFit``): the frame valid, every joint the point
+    hangs on observed (:func:`observed_points`), and a point named like a KP65 keypoint
+    (an elbow, a knee) also observed itself where the fit says which keypoints it observed
+    (``BodyFit.keypoints_observed``)."""
+    from body.joints import regressor
+    from formats.skeletons import KP65, LAYOUTS
+
+    pts = observed_points(model, regressor(model, layout), fit.joints_observed())
+    kpo = getattr(fit, "keypoints_observed", None)
+    if kpo is not None:
+        kpo = np.asarray(kpo, bool)
+        for i, name in enumerate(LAYOUTS[layout]):
+            if name in KP65:
+                pts[:, i] &= kpo[:, KP65.index(name)]
+    return pts
+
+
 def placement_of(shape: ShapeFit) -> Placement:
     """The marker placement a :class:`artifacts.ShapeFit` carries."""
     return Placement(shape.names, np.asarray(shape.marker_face, np.int64),

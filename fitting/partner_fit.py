@@ -126,6 +126,16 @@ TEMPORAL_ROUNDS = 1
 # many views (one view leaves its depth to the model: Push's right wrist seen by one view
 # 45 px off, the other views' detections gated or a bystander's, was fitted 180-280 mm off)
 MIN_VIEWS_OBSERVED = 2
+#: A keypoint counts as observed in a view only where the fitted body agrees with its
+#: detection within this many pixels: a detection the fit does not follow is no evidence of
+#: where the fitted joint is. Two views that agree still leave a joint free along the line
+#: where their rays nearly meet (CHI3D's diagonal cameras: 25 degrees apart), and one wrong
+#: third view pulls it there: on the bench store of session 29 (stride 6, 8 classes), the
+#: partner's body keypoints more than 10 cm off the truth in valid frames were 96; counting a
+#: view with any detection, 13 of them were not observed; counting the views within 15 / 20 /
+#: 25 / 35 px, 78 / 67 / 59 / 38 of them, for 245 / 145 / 101 / 54 more of the 3,239 right
+#: ones (within 10 cm) not observed.
+OBSERVED_PX = 20.0
 # the wearer's proxy mesh the occlusion rays are cast against (vertices; ~2x as many faces)
 OCCLUDER_VERTICES = 600
 GROUND_BAND_M = 0.01  # L_gp slots: candidates below the plane or within this above it
@@ -192,7 +202,10 @@ class PartnerFitOptions:
     frame warm-started from and tied by L_s to the previous one), sweeps backwards over the
     sequence re-solving each frame tied to both its neighbours (0: none; ``TEMPORAL_PASSES``,
     the reason beside it); temporal_rounds : outer rounds of such a re-solve
-    (``TEMPORAL_ROUNDS``)."""
+    (``TEMPORAL_ROUNDS``); observed_px : a keypoint is observed in a frame (and what it moves
+    with is ground truth there) where the fitted body lies within this many pixels of its
+    detection in at least ``MIN_VIEWS_OBSERVED`` views (``OBSERVED_PX``, the reason beside
+    it)."""
 
     weights: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_WEIGHTS))
     sigma_keypoint_px: float = 20.0
@@ -223,6 +236,7 @@ class PartnerFitOptions:
     bystander_px: float = BYSTANDER_PX
     bystander_views: int = BYSTANDER_SUPPORT_VIEWS
     backfill: bool = True
+    observed_px: float = OBSERVED_PX
 
     def __post_init__(self):
         problems = []
@@ -237,7 +251,7 @@ class PartnerFitOptions:
         for name in ("limit_weight", "hand_gate_px", "bystander_px"):
             if not getattr(self, name) >= 0:
                 problems.append(f"{name}: must be >= 0, got {getattr(self, name)}")
-        for name in ("sigma_keypoint_px", "max_reproj_px"):
+        for name in ("sigma_keypoint_px", "max_reproj_px", "observed_px"):
             if not getattr(self, name) > 0:
                 problems.append(f"{name}: must be > 0, got {getattr(self, name)}")
         if not 0 <= self.min_conf <= 1:
@@ -1032,13 +1046,13 @@ def _observed_summary(model: BodyModel, fit: BodyFit) -> dict:
     """How much of the valid frames' body the evidence observed (:attr:`BodyFit.observed`):
     per joints3d_25 joint the share of valid frames it is ground truth in, and the share of
     valid frames with every joint observed."""
-    from fitting.marker_graph import observed_points
+    from fitting.marker_graph import fit_points_observed
     from formats.skeletons import JOINTS3D_25
 
     v = np.asarray(fit.valid, bool)
     if not v.any():
         return {"frames_all_observed": None, "per_joint": {}}
-    pts = observed_points(model, regressor(model, "joints3d_25"), fit.joints_observed())[v]
+    pts = fit_points_observed(model, fit)[v]
     return {"frames_all_observed": float(pts.all(axis=1).mean()),
             "per_joint": {n: round(float(pts[:, i].mean()), 3) for i, n in enumerate(JOINTS3D_25)}}
 
@@ -1133,6 +1147,7 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
     X = np.zeros((F, skel.n))
     reason = np.zeros(F, np.int8)
     err_px = np.full((F, C), np.nan)
+    agree = np.zeros((F, C, len(kidx)), bool)  # the fitted keypoint within observed_px
     flipped = np.zeros((F, C), bool)
     dropped = np.zeros((F, C), bool)
     far = np.zeros((F, C), bool)
@@ -1164,6 +1179,7 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
         e = reprojection_px(cams, slots(x), uv[f], conf[f])
         with np.errstate(all="ignore"):
             err_px[f] = [np.nanmedian(r) if np.isfinite(r).any() else np.nan for r in e]
+            agree[f] = np.nan_to_num(e, nan=np.inf) <= opts.observed_px
         reason[f] = 0 if np.nanmedian(e) <= opts.max_reproj_px else REASON_CODE["poor_reprojection"]
         s2 = solver.row_scale[0] ** 2
         r2 = np.sum(((np.nan_to_num(e) ** 2) * conf[f]) / max(int((conf[f] > 0).sum()), 1))
@@ -1307,11 +1323,16 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
         X[:first_fit] = X[first_fit]
     body_pose, R, T = unpack(skel, model.num_joints, X)
     # a joint is ground truth only where keypoints that move with it were used in two views
-    seen = (conf > 0).sum(axis=1) >= MIN_VIEWS_OBSERVED  # (F, K) after every drop and gate
+    # that the fitted body agrees with (observed_px)
+    seen = (agree & (conf > 0)).sum(axis=1) >= MIN_VIEWS_OBSERVED  # (F, K) after drops, gates
+    seen &= active[:, :1]  # a held frame (never solved) observes nothing of its own
+    kp_seen = np.zeros((F, len(KP65)), bool)
+    kp_seen[:, kidx] = seen
     observed = observed_joints(model, skel, (), np.zeros((F, 0), bool),
                                skinned.support_of(Hk, OBSERVED_WEIGHT), seen)
     out = BodyFit(body_pose=body_pose, global_orient=R, transl=T, betas=betas, frames=frames,
-                  valid=reason == 0, invalid_reason=reason, observed=observed)
+                  valid=reason == 0, invalid_reason=reason, observed=observed,
+                  keypoints_observed=kp_seen)
     reasons = out.reasons()
     n_fit = int(np.count_nonzero(active[:, 0]))
     with np.errstate(all="ignore"):

@@ -275,7 +275,7 @@ def run(ctx: StageContext) -> None:
     from body.rotations import rodrigues
     from calib.convert import convert_distortion
     from calib.io import write_chi3d_camera
-    from fitting.marker_graph import observed_points
+    from fitting.marker_graph import fit_points_observed
     from formats import anny_json, chi3d
     from formats import release as R
     from formats.errors import InputError
@@ -335,9 +335,10 @@ def run(ctx: StageContext) -> None:
                              [f.invalid_reason[i] for f, i in zip(fits, idx, strict=True)],
                              None if sm is None else sm.valid, withheld)
     # per joints3d_25 joint: ground truth where the frame is and every joint it hangs on was
-    # observed by a marker or a view (BodyFit.observed; e.g. not the arms of a lower-body set)
+    # observed by a marker or a view (BodyFit.observed; e.g. not the arms of a lower-body set),
+    # and a joint at a keypoint (an elbow) where the fit agrees with it in two views
     reg25 = regressor(model, "joints3d_25")
-    joints_valid = np.stack([observed_points(model, reg25, f.joints_observed()[i])
+    joints_valid = np.stack([fit_points_observed(model, f)[i]
                              for f, i in zip(fits, idx, strict=True)]) & valid[..., None]
     R.write_valid(rel(f"{R.VALID_DIR}/{action}.json"), valid, reason, frames, joints_valid,
                   qa_withhold=withhold)

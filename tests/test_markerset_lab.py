@@ -290,13 +290,16 @@ def test_lower_body_fit_observes_legs_not_arms_or_head(anny, lower_fit, tmp_path
 
 def test_export_valid_file_marks_unobserved_joints_not_valid(anny, lower_fit, tmp_path):
     from body.joints import regressor
-    from fitting.marker_graph import observed_points
+    from fitting.marker_graph import fit_points_observed, observed_points
     from formats.release import read_valid, write_valid
     from formats.skeletons import JOINTS3D_25
 
     fit, _ = lower_fit
-    # what stages/export.py writes for the person
-    jv = observed_points(anny, regressor(anny, "joints3d_25"), fit.joints_observed())[None]
+    # what stages/export.py writes for the person (a marker fit: no keypoints_observed)
+    jv = fit_points_observed(anny, fit)[None]
+    assert fit.keypoints_observed is None
+    assert np.array_equal(jv[0], observed_points(anny, regressor(anny, "joints3d_25"),
+                                                 fit.joints_observed()))
     valid = fit.valid[None]
     reason = np.where(valid, "fitted", "too_few_markers")
     p = write_valid(tmp_path / "valid" / "a.json", valid, reason, fit.frames, jv & valid[..., None])

@@ -31,7 +31,12 @@ deepest interpenetration of the two fitted bodies (the wearer from marker_fit);
 and the second detection pass counted); ``frames_valid_fraction``; ``defect_fraction_valid``:
 the share of the frames the fit calls valid whose worst H36M-17 joint is farther than
 ``DEFECT_MM`` from the truth (the fit's own wrong frames, before the QA withholds any:
-``qa.defect_frames_clean`` counts those the release still publishes);
+``qa.defect_frames_clean`` counts those the release still publishes); per joint of the valid
+frames (H36M-17, where it is, not centred): ``defect_fraction_joints`` (farther than
+``DEFECT_MM``), ``joints_observed_fraction`` (published as ground truth by the export's
+per-joint rule, ``valid/<action>.json``'s ``joints_valid``:
+``fitting.marker_graph.fit_points_observed``) and ``defect_fraction_joints_observed`` (the
+first among those published);
 ``detected_<body|hands>_<before|after>_second_pass``: fraction of the partner's view-frames
 with its body (>= 12 of 23 keypoints) / a hand (>= 5 of 21) detected before and after the
 second detection pass (``detect.refine``).
@@ -212,6 +217,8 @@ def _score(recipe, outputs: Path, model, h36) -> tuple[dict, dict, float, int]:
     from artifacts import BodyFit
     from body import forward
     from evaluate import metrics as M
+    from fitting.marker_graph import fit_points_observed
+    from formats.skeletons import H36M17
 
     per_seq, pooled = {}, {}
     cpu, fitted = 0.0, 0
@@ -235,6 +242,10 @@ def _score(recipe, outputs: Path, model, h36) -> tuple[dict, dict, float, int]:
             "contact": terms["contact_m"][ok][np.isfinite(terms["contact_m"][ok])] * 1000,
             "penetration": terms["penetration_m"][ok] * 1000,
             "worst": np.linalg.norm(pj[ok] - tj[ok], axis=-1).max(-1) * 1000,
+            # per joint of the valid frames: where it is (no centring), and whether the export
+            # publishes it as ground truth (valid/<action>.json's joints_valid)
+            "joint_err": (np.linalg.norm(pj[ok] - tj[ok], axis=-1) * 1000).ravel(),
+            "joint_obs": fit_points_observed(model, fit)[ok][:, :len(H36M17)].ravel(),
         }
         sp = rep.get("second_pass") or {}
         if sp.get("run"):  # the partner's detection rates before / after the second pass
@@ -302,6 +313,12 @@ def _figures(pooled: dict, prefix: str) -> dict[str, float]:
         w = cat("worst")
         if len(w):
             out[f"{prefix}defect_fraction_valid{suf}"] = float(np.mean(w > DEFECT_MM))
+        je, jo = cat("joint_err"), cat("joint_obs").astype(bool)
+        if len(je):
+            out[f"{prefix}joints_observed_fraction{suf}"] = float(jo.mean())
+            out[f"{prefix}defect_fraction_joints{suf}"] = float(np.mean(je > DEFECT_MM))
+            if jo.any():
+                out[f"{prefix}defect_fraction_joints_observed{suf}"] = float(np.mean(je[jo] > DEFECT_MM))
         for g in ("body", "hands"):
             for when in ("before", "after"):
                 v = cat(f"detected_{g}_{when}")
