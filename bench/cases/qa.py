@@ -29,7 +29,10 @@ clean session's own fit defects), ``qa.defect_frames_all`` (frames with a joint 
 person farther than ``DEFECT_MM``, published or not), ``qa.defect_frames_clean`` (issue #27: among
 the person-frames the release would publish as valid, the share with a joint farther than
 ``DEFECT_MM``: the export's own rules, :func:`published`; goal <= 1 %) with its count
-``qa.defect_person_frames_published`` and ``qa.published_fraction`` (person-frames published over
+``qa.defect_person_frames_published``, ``qa.defect_frames_clean_joints`` (the same, but a
+person-frame counts only when a joint the export publishes as ground truth in it, its
+``joints_valid``, is farther than ``DEFECT_MM``: a joint it marks not observed is not
+published as truth) and ``qa.published_fraction`` (person-frames published over
 all), ``qa.withheld_{right,wrong}_{wearer,partner}`` (person-frames not published whose fit was
 right, or wrong, by the truth), ``qa.s_per_frame`` (wall seconds of
 the whole qa stage per frame over the clean session, from the engine's manifests: metrics,
@@ -223,12 +226,16 @@ def limb_fault(recipe: Path, outputs: Path, session: str) -> dict:
 DEFECT_MM = P.DEFECT_MM  # a fit frame whose worst H36M joint is farther from the truth is a defect
 
 
-def truth_errors(outputs: Path, session: str, unit: str, frames: np.ndarray, model, R) -> np.ndarray:
+def truth_errors(outputs: Path, session: str, unit: str, frames: np.ndarray, model, R,
+                 published_joints: bool = False) -> np.ndarray:
     """(2, F) per person (0 = the wearer, 1 = the partner) and QA frame the worst H36M-17 joint
     error (mm) of the fit against the studio's truth (``data/bench/gt``); NaN where a fit is
-    missing."""
+    missing. ``published_joints``: the worst of the joints the export publishes as ground
+    truth in that frame (``joints_valid``: ``fitting.marker_graph.fit_points_observed``; 0
+    where it publishes none)."""
     from artifacts import BodyFit
     from body import forward
+    from fitting.marker_graph import fit_points_observed
 
     gt = np.load(P.REPO / "data" / "bench" / "gt" / f"{unit}.npz")
     worst = np.full((2, len(frames)), np.nan)
@@ -242,7 +249,10 @@ def truth_errors(outputs: Path, session: str, unit: str, frames: np.ndarray, mod
         pred = np.einsum("kn,fnd->fkd", R, np.concatenate([est.vertices, est.joints], 1))
         true = np.einsum("kn,fnd->fkd", R, np.concatenate(
             [gt["vertices"][p][frames].astype(float), gt["joints"][p][frames]], 1))
-        worst[p] = np.linalg.norm(pred - true, axis=-1).max(-1) * 1000
+        err = np.linalg.norm(pred - true, axis=-1) * 1000  # (F, 17)
+        if published_joints:
+            err = np.where(fit_points_observed(model, fit)[rows][:, :err.shape[1]], err, 0.0)
+        worst[p] = err.max(-1)
     return worst
 
 
@@ -287,7 +297,7 @@ def run(work: Path) -> dict[str, float]:
     frames = flagged = flagged_valid = frames_valid = 0
     correct = flagged_correct = defects = flagged_defects = 0
     metrics_s = stage_s = stage_cpu_s = 0.0
-    person_frames = published_pf = published_bad = 0
+    person_frames = published_pf = published_bad = published_bad_joints = 0
     withheld_right, withheld_wrong = {"wearer": 0, "partner": 0}, {"wearer": 0, "partner": 0}
     from stages.export import Options as ExportOptions
 
@@ -317,6 +327,9 @@ def run(work: Path) -> dict[str, float]:
         bad = err > DEFECT_MM
         pub = published(outputs, base["session"], unit, res, np.asarray(qa.frames), export_opts)
         pub_bad = pub & (errs > DEFECT_MM)
+        errs_pj = truth_errors(outputs, base["session"], unit, np.asarray(qa.frames), model, R,
+                               published_joints=True)
+        published_bad_joints += int((pub & (errs_pj > DEFECT_MM)).sum())
         person_frames += int(np.isfinite(errs).sum())
         published_pf += int(pub.sum())
         published_bad += int(pub_bad.sum())
@@ -384,6 +397,7 @@ def run(work: Path) -> dict[str, float]:
         "qa.defect_recall": float(flagged_defects / max(defects, 1)),
         "qa.defect_frames_clean": float(published_bad / max(published_pf, 1)),
         "qa.defect_person_frames_published": float(published_bad),
+        "qa.defect_frames_clean_joints": float(published_bad_joints / max(published_pf, 1)),
         "qa.published_fraction": float(published_pf / max(person_frames, 1)),
         "qa.withheld_right_partner": float(withheld_right["partner"]),
         "qa.withheld_wrong_partner": float(withheld_wrong["partner"]),
