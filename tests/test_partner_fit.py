@@ -584,7 +584,8 @@ def test_a_keypoint_the_fit_does_not_follow_is_not_ground_truth(scene):
     fit): the fitted body agrees with that elbow in view 0 alone, so the elbow is not ground
     truth there (``keypoints_observed``, ``fit_points_observed``), although every joint it
     hangs on is observed through other keypoints (``observed``); the right wrist, agreed
-    with in four views, stays. With ``observed_px`` above the offsets the elbow counts again."""
+    with in four views, stays. With ``observed_px`` above the offsets (and the outliers kept:
+    ``outlier_px`` 0) the elbow counts again."""
     from body.joints import regressor
     from fitting.marker_graph import fit_points_observed, observed_points
     from formats.skeletons import JOINTS3D_25, KP65
@@ -605,8 +606,29 @@ def test_a_keypoint_the_fit_does_not_follow_is_not_ground_truth(scene):
     assert pts[:2, j["r_elbow"]].all() and not pts[2:, j["r_elbow"]].any()
     assert pts[:, j["r_wrist"]].all() and pts[:, j["l_elbow"]].all()
     assert rep["joints_observed"]["per_joint"]["r_elbow"] == pytest.approx(2 / F_SYN, abs=1e-3)
-    loose, _ = _fit(scene, kp, opts={"observed_px": 200.0})
+    loose, _ = _fit(scene, kp, opts={"observed_px": 200.0, "outlier_px": 0.0})
     assert np.asarray(loose.keypoints_observed)[:, el].all()
+
+
+def test_a_detection_far_from_the_solved_frame_is_left_out(scene):
+    """The right wrist detected 80 px off in view 1 in every frame (the other views right):
+    after each frame's solve it lies farther than ``outlier_px`` from the fitted wrist, so it
+    is left out and the frame solved again (counted per frame and view); the fit is at least
+    as close to the truth as with it kept (outlier_px 0: nothing left out)."""
+    from formats.skeletons import KP65
+
+    kp = scene.kp.copy()
+    wr = KP65.index("r_wrist")
+    kp[1, :, 1, wr, :2] += (80.0, 0.0)
+    fit, rep = _fit(scene, kp)
+    n = rep["per_frame"]["keypoints_rejected"]  # (F, C)
+    assert (n[:, 1] >= 1).all() and n[:, [0, 2, 3]].sum() == 0, n
+    assert rep["keypoints_rejected_as_outliers"] == {"keypoints": int(n.sum()), "outlier_px": 35.0}
+    kept, rep0 = _fit(scene, kp, opts={"outlier_px": 0.0})
+    assert rep0["keypoints_rejected_as_outliers"] == {"keypoints": 0, "outlier_px": None}
+    err, _ = _joint_err_mm(scene, fit)
+    err0, _ = _joint_err_mm(scene, kept)
+    assert err.mean() <= err0.mean() + 0.1, (err, err0)
 
 
 def test_a_frame_seen_by_two_views_is_fitted_but_not_valid(scene):
