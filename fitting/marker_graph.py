@@ -220,7 +220,7 @@ def fit_points_observed(model: BodyModel, fit, layout: str = "joints3d_25") -> n
     from formats.skeletons import KP65, LAYOUTS
 
     pts = observed_points(model, regressor(model, layout), fit.joints_observed())
-    kpo = getattr(fit, "keypoints_observed", None)
+    kpo = fit.keypoints_observed
     if kpo is not None:
         kpo = np.asarray(kpo, bool)
         for i, name in enumerate(LAYOUTS[layout]):

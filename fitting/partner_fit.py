@@ -160,6 +160,10 @@ VIEW_MIN_KEYPOINTS = 5
 # partner's detected body keypoints is reported: the detector reads the wearer in the
 # partner's place there (the bench's sequences: 0.3-5 %)
 WEARER_DROP_WARN_SHARE = 0.10
+#: A view that loses most of its partner keypoints to ``outlier_px`` in more than this share
+#: of the solved frames is reported (the bench's sequences, session 29: no view lost most of
+#: its keypoints in any frame but Hug's, where the partner hides behind the wearer)
+OUTLIER_WARN_SHARE = 0.10
 
 
 @dataclass(frozen=True)
@@ -797,6 +801,27 @@ def wearer_drop_warnings(detected: int, dropped_check: int, dropped_second: int 
             "reads the wearer in the partner's place; check the partner's overlays"]
 
 
+def outlier_warnings(rejected: dict, views: list[str],
+                     share: float = OUTLIER_WARN_SHARE) -> list[str]:
+    """The report's warnings for a view that lost most of its keypoints to ``outlier_px``.
+
+    rejected : the report's ``keypoints_rejected_as_outliers`` (``frames_view_lost_most``
+    per view, ``frames_solved``, ``outlier_px``); views : the cameras' names.
+    Returns a line per view that lost most (more than half) of its partner keypoints in more
+    than ``share`` of the solved frames: the other views fit a body it does not see, so its
+    calibration or sync is off, or it reads somebody else."""
+    n = int(rejected.get("frames_solved") or 0)
+    out = []
+    for name, k in zip(views, rejected.get("frames_view_lost_most") or (), strict=False):
+        if n > 0 and k > share * n:
+            out.append(f"view {name}: in {k} of {n} solved frames ({100.0 * k / n:.0f} %, more "
+                       f"than {100.0 * share:.0f} %) most of its partner keypoints lay more than "
+                       f"{rejected.get('outlier_px')} px from the body the other views fit and "
+                       "were left out: its calibration or sync may be off, or it reads "
+                       "somebody else; check that view's overlays")
+    return out
+
+
 def check_views(cams, pred: np.ndarray, uv: np.ndarray, conf: np.ndarray, flip: np.ndarray,
                 other: np.ndarray | None = None, min_px: float = FLIP_MIN_PX,
                 ratio: float = FLIP_RATIO, far_px: float = 0.0,
@@ -1185,11 +1210,13 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
             return np.zeros((C, len(kidx)), bool)
         return hidden(cams, slots(x), occluder.points(WV[f]), occluder.faces)
 
-    def record(f, x, blocks, x_ref, s_scale=1):
-        """Frame f's solution x and the terms at it (L_s against x_ref, None: none)."""
+    def record(f, x, blocks, x_ref, s_scale=1, e=None):
+        """Frame f's solution x and the terms at it (L_s against x_ref, None: none; e: its
+        reprojection_px against uv[f], conf[f] when already known)."""
         X[f] = x
         cost[f], active[f], npts[f] = 0.0, False, 0
-        e = reprojection_px(cams, slots(x), uv[f], conf[f])
+        if e is None:
+            e = reprojection_px(cams, slots(x), uv[f], conf[f])
         with np.errstate(all="ignore"):
             err_px[f] = [np.nanmedian(r) if np.isfinite(r).any() else np.nan for r in e]
             agree[f] = np.nan_to_num(e, nan=np.inf) <= opts.observed_px
@@ -1261,16 +1288,19 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
             if vc.changed:
                 uvf, cf = vc.uv, vc.conf
                 res, blocks, _ = solver.solve(res.x, uvf, cf, f, x_ref)
+        e = None  # the solution's reprojection, kept for record() while it still holds
         if opts.outlier_px > 0:  # a detection the solution lies far from: left out, solved again
-            far_px = np.nan_to_num(reprojection_px(cams, slots(res.x), uvf, cf), nan=0.0) > opts.outlier_px
+            e = reprojection_px(cams, slots(res.x), uvf, cf)
+            far_px = np.nan_to_num(e, nan=0.0) > opts.outlier_px
             if far_px.any():
                 cf = np.where(far_px, 0.0, cf)
                 rejected_n[f] = far_px.sum(axis=1)
                 res, blocks, _ = solver.solve(res.x, uvf, cf, f, x_ref)
+                e = None
         uv[f], conf[f] = uvf, cf
         x = rewrap(res.x)
         iters.append(res.iterations)
-        record(f, x, blocks, x_ref)
+        record(f, x, blocks, x_ref, e=e)
         return x
 
     x_prev, miss, first_fit, inits, iters, rounds, t_rounds = None, 0, None, 0, [], [], []
@@ -1343,8 +1373,8 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
     body_pose, R, T = unpack(skel, model.num_joints, X)
     # a joint is ground truth only where keypoints that move with it were used in two views
     # that the fitted body agrees with (observed_px)
-    seen = (agree & (conf > 0)).sum(axis=1) >= MIN_VIEWS_OBSERVED  # (F, K) after drops, gates
-    seen &= active[:, :1]  # a held frame (never solved) observes nothing of its own
+    # (agree is set only where a frame is solved, and only where its detection is kept)
+    seen = agree.sum(axis=1) >= MIN_VIEWS_OBSERVED  # (F, K)
     kp_seen = np.zeros((F, len(KP65)), bool)
     kp_seen[:, kidx] = seen
     observed = observed_joints(model, skel, (), np.zeros((F, 0), bool),
@@ -1386,8 +1416,12 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
         "body_keypoints_detected": int(det.sum()),
         "joints_observed": _observed_summary(model, out),
         "keypoints_hidden_by_wearer": int(hidden_n.sum()) if occluder is not None else None,
-        "keypoints_rejected_as_outliers": {"keypoints": int(rejected_n.sum()),
-                                           "outlier_px": opts.outlier_px or None},
+        "keypoints_rejected_as_outliers": {
+            "keypoints": int(rejected_n.sum()), "outlier_px": opts.outlier_px or None,
+            # per view, the solved frames where it lost most of its keypoints to the rule
+            "frames_view_lost_most": [int(v) for v in (
+                (rejected_n > (conf > 0).sum(axis=2)) & active[:, :1]).sum(axis=0)],
+            "frames_solved": n_fit},
         "hands_gated": {"views": int(gated.sum()), "gate_px": opts.hand_gate_px if gate else None},
         "per_frame": {"reproj_px": err_px, "views_seeing": views_seeing(conf),
                       "views_flipped": flipped, "views_dropped": dropped, "views_bystander": far, "halves_flipped": halves,

@@ -142,6 +142,7 @@ def run(ctx: StageContext) -> None:
         apply_min_valid_views,
         contact_figures,
         fit_partner,
+        outlier_warnings,
         wearer_drop_warnings,
     )
 
@@ -196,6 +197,8 @@ def run(ctx: StageContext) -> None:
     report["warnings"] = wearer_drop_warnings(
         report["body_keypoints_detected"], report["keypoints_dropped_as_wearer"]["keypoints"],
         (second or {}).get("keypoints_dropped_as_wearer", 0))
+    report["warnings"] += outlier_warnings(report["keypoints_rejected_as_outliers"],
+                                           [c.name for c in cams])
     for w in report["warnings"]:
         log(f"WARNING {w}")
     fig = contact_figures(model, fit, wearer, contact, ground)
@@ -321,7 +324,7 @@ def run_markerless(ctx: StageContext, o: Options, model, cams) -> None:
     from artifacts.keypoints import Keypoints2D
     from drawing.plots import partner_fit_plot
     from fitting.contact_signature import load_contact
-    from fitting.partner_fit import contact_figures, fit_partner, shape_from_views
+    from fitting.partner_fit import contact_figures, fit_partner, outlier_warnings, shape_from_views
 
     rv = ctx.recipe
     people = list(rv.sequence.people)
@@ -383,6 +386,10 @@ def run_markerless(ctx: StageContext, o: Options, model, cams) -> None:
                     "frames_not_valid_list": {str(int(f)): r for f, r in zip(
                         fits[p].frames[~ok], [_reason(c) for c in fits[p].invalid_reason[~ok]],
                         strict=True)}})
+        rep["warnings"] = [f"{sid}: {w}" for w in outlier_warnings(
+            rep["keypoints_rejected_as_outliers"], [c.name for c in cams])]
+        for w in rep["warnings"]:
+            ctx.log(f"{ctx.unit}: WARNING {w}")
         writer.save_json("report", rep)
         FitSummary.from_report("partner_fit", rep, PUBLISHED).save(writer)
         partner_fit_plot(writer.path("partner_fit.png"), fits[p].frames, fps, per["reproj_px"],
@@ -394,6 +401,7 @@ def run_markerless(ctx: StageContext, o: Options, model, cams) -> None:
     top["people"] = {sid: {k: r[k] for k in ("person", "frames_valid", "frames_not_valid",
                                              "reprojection_px", "shape", "fit_cpu_s", "fps")}
                      for sid, r in summaries.items()}
+    top["warnings"] = [w for r in summaries.values() for w in r["warnings"]]
     top["people_files"] = {people[0]: f"{PERSON0}/"} | ({people[1]: ""} if len(people) == 2 else {})
     ctx.out.save_json("report", top)
     if len(people) == 1:

@@ -94,3 +94,22 @@ def test_an_engine_run_that_fails_is_raised_or_returned_with_its_log(tmp_path):
     log.unlink()
     rc = run_engine(args, "the missing recipe", log_file=log, check=False)
     assert rc != 0 and "missing.yaml" in log.read_text()
+
+
+def test_the_qa_case_counts_only_the_published_joints_of_a_frame():
+    """``bench.cases.qa.worst_errors``: a frame's worst joint over every joint, and over the
+    joints the export publishes (``joints_valid``); a 15 cm error on an unpublished joint
+    counts in the first only, a frame publishing no joint counts 0."""
+    import numpy as np
+
+    from bench.cases.qa import worst_errors
+
+    true = np.zeros((3, 4, 3))
+    pred = true.copy()
+    pred[:, 1, 0] = 0.15  # joint 1 15 cm off in every frame
+    pred[:, 2, 1] = 0.02  # joint 2 2 cm off
+    pub = np.array([[True] * 4, [True, False, True, True], [False] * 4])
+    worst, worst_pub = worst_errors(pred, true, np.c_[pub, np.ones((3, 2), bool)])
+    assert np.allclose(worst, 150.0)
+    assert np.allclose(worst_pub, [150.0, 20.0, 0.0])
+    assert np.allclose(worst_errors(pred, true)[1], 150.0)

@@ -623,12 +623,41 @@ def test_a_detection_far_from_the_solved_frame_is_left_out(scene):
     fit, rep = _fit(scene, kp)
     n = rep["per_frame"]["keypoints_rejected"]  # (F, C)
     assert (n[:, 1] >= 1).all() and n[:, [0, 2, 3]].sum() == 0, n
-    assert rep["keypoints_rejected_as_outliers"] == {"keypoints": int(n.sum()), "outlier_px": 35.0}
+    out = rep["keypoints_rejected_as_outliers"]
+    assert out["keypoints"] == int(n.sum()) and out["outlier_px"] == 35.0
+    # one keypoint of a view's many is not most of them: no view reported
+    assert out["frames_view_lost_most"] == [0, 0, 0, 0] and out["frames_solved"] == F_SYN
     kept, rep0 = _fit(scene, kp, opts={"outlier_px": 0.0})
-    assert rep0["keypoints_rejected_as_outliers"] == {"keypoints": 0, "outlier_px": None}
+    assert rep0["keypoints_rejected_as_outliers"]["keypoints"] == 0
+    assert rep0["keypoints_rejected_as_outliers"]["outlier_px"] is None
     err, _ = _joint_err_mm(scene, fit)
     err0, _ = _joint_err_mm(scene, kept)
     assert err.mean() <= err0.mean() + 0.1, (err, err0)
+
+
+def test_a_view_that_loses_most_of_its_keypoints_as_outliers_is_reported(scene):
+    """View 2's detections all 55 px off in every frame (its calibration wrong; less than
+    ``bystander_px``, which would drop the view whole): the other three views fit the body,
+    view 2's keypoints lie farther than ``outlier_px`` from it and are left out, most of them
+    in every frame, so the report warns naming the view; the share threshold decides."""
+    from fitting.partner_fit import OUTLIER_WARN_SHARE, outlier_warnings
+
+    kp = scene.kp.copy()
+    kp[2, :, 1, :, :2] += (55.0, 0.0)
+    _, rep = _fit(scene, kp)
+    out = rep["keypoints_rejected_as_outliers"]
+    lost = out["frames_view_lost_most"]
+    assert lost[2] >= F_SYN - 1 and lost[0] == lost[1] == lost[3] == 0, out
+    names = ["c0", "c1", "c2", "c3"]
+    (w,) = outlier_warnings(out, names)
+    assert w.startswith("view c2:") and "35.0 px" in w
+    assert outlier_warnings(out, names, share=1.0) == []  # no view loses most in > all frames
+    assert OUTLIER_WARN_SHARE == 0.10
+    assert outlier_warnings({**out, "frames_view_lost_most": [0, 2, 0, 0],
+                             "frames_solved": 20}, names) == []  # 10 %: not more than 10 %
+    (w,) = outlier_warnings({**out, "frames_view_lost_most": [0, 3, 0, 0],
+                             "frames_solved": 20}, names)
+    assert w.startswith("view c1: in 3 of 20 solved frames (15 %")
 
 
 def test_a_frame_seen_by_two_views_is_fitted_but_not_valid(scene):

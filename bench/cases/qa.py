@@ -226,19 +226,31 @@ def limb_fault(recipe: Path, outputs: Path, session: str) -> dict:
 DEFECT_MM = P.DEFECT_MM  # a fit frame whose worst H36M joint is farther from the truth is a defect
 
 
-def truth_errors(outputs: Path, session: str, unit: str, frames: np.ndarray, model, R,
-                 published_joints: bool = False) -> np.ndarray:
+def worst_errors(pred: np.ndarray, true: np.ndarray, published: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame the worst joint error (mm) of ``pred`` against ``true`` (both (F, K, 3), m),
+    over every joint and over the joints ``published (F, >= K) bool`` marks as ground truth
+    (0 where it marks none; without ``published``: every joint)."""
+    err = np.linalg.norm(pred - true, axis=-1) * 1000  # (F, K)
+    pub = err if published is None else np.where(np.asarray(published, bool)[:, :err.shape[1]],
+                                                  err, 0.0)
+    return err.max(-1), pub.max(-1)
+
+
+def truth_errors(outputs: Path, session: str, unit: str, frames: np.ndarray, model, R
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """(2, F) per person (0 = the wearer, 1 = the partner) and QA frame the worst H36M-17 joint
-    error (mm) of the fit against the studio's truth (``data/bench/gt``); NaN where a fit is
-    missing. ``published_joints``: the worst of the joints the export publishes as ground
-    truth in that frame (``joints_valid``: ``fitting.marker_graph.fit_points_observed``; 0
-    where it publishes none)."""
+    error (mm) of the fit against the studio's truth (``data/bench/gt``), NaN where a fit is
+    missing; and the same over the joints the export publishes as ground truth in that frame
+    (``joints_valid``: ``fitting.marker_graph.fit_points_observed``; 0 where it publishes
+    none), both from one forward pass (:func:`worst_errors`)."""
     from artifacts import BodyFit
     from body import forward
     from fitting.marker_graph import fit_points_observed
 
     gt = np.load(P.REPO / "data" / "bench" / "gt" / f"{unit}.npz")
     worst = np.full((2, len(frames)), np.nan)
+    worst_pub = np.full((2, len(frames)), np.nan)
     for p, stage in enumerate(("marker_fit", "partner_fit")):
         d = outputs / session / unit / stage
         if not (d / "fit.npz").exists():
@@ -249,11 +261,8 @@ def truth_errors(outputs: Path, session: str, unit: str, frames: np.ndarray, mod
         pred = np.einsum("kn,fnd->fkd", R, np.concatenate([est.vertices, est.joints], 1))
         true = np.einsum("kn,fnd->fkd", R, np.concatenate(
             [gt["vertices"][p][frames].astype(float), gt["joints"][p][frames]], 1))
-        err = np.linalg.norm(pred - true, axis=-1) * 1000  # (F, 17)
-        if published_joints:
-            err = np.where(fit_points_observed(model, fit)[rows][:, :err.shape[1]], err, 0.0)
-        worst[p] = err.max(-1)
-    return worst
+        worst[p], worst_pub[p] = worst_errors(pred, true, fit_points_observed(model, fit)[rows])
+    return worst, worst_pub
 
 
 def published(outputs: Path, session: str, unit: str, res, frames: np.ndarray, opts) -> np.ndarray:
@@ -321,14 +330,13 @@ def run(work: Path) -> dict[str, float]:
                              .read_text())["timings"]
         stage_s += float(timings["seconds"])
         stage_cpu_s += float(timings["cpu_s"])
-        errs = truth_errors(outputs, base["session"], unit, np.asarray(qa.frames), model, R)
+        errs, errs_pj = truth_errors(outputs, base["session"], unit, np.asarray(qa.frames),
+                                     model, R)
         err = np.nanmax(errs, axis=0)
         ok = (err <= DEFECT_MM) & ~nv
         bad = err > DEFECT_MM
         pub = published(outputs, base["session"], unit, res, np.asarray(qa.frames), export_opts)
         pub_bad = pub & (errs > DEFECT_MM)
-        errs_pj = truth_errors(outputs, base["session"], unit, np.asarray(qa.frames), model, R,
-                               published_joints=True)
         published_bad_joints += int((pub & (errs_pj > DEFECT_MM)).sum())
         person_frames += int(np.isfinite(errs).sum())
         published_pf += int(pub.sum())
