@@ -302,3 +302,12 @@ CLEAN_PLATE_FRAMES = 10
 #: The bystander's clothing (the realistic studio's third person).
 BYSTANDER_CLOTHING = {"shirt": (200, 200, 195), "sleeve": (60, 60, 65), "trousers": (45, 50, 70),
                       "shoes": (90, 60, 40)}
+
+# Sequences of a session are made in parallel worker processes (one per core, at most one per
+# sequence; MOCAP_STUDIO_WORKERS overrides, 1: in this process) when they have at least this
+# many video frames: a worker's start (imports, the body model, the renderer) costs ~5 s, the
+# bench preset's sequences (120 frames) 55-155 s each
+PARALLEL_MIN_FRAMES = 50
+# ... and a marker session's trials, when it has two motion trials or more with at least this
+# many mocap samples in all (the markers preset: 2,636 samples, trials 15-43 s each)
+PARALLEL_MIN_SAMPLES = 1000

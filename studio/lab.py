@@ -449,6 +449,12 @@ class Developer:
         self._bank = [self._rng.standard_normal((h + m, w + m, 3), np.float32)
                       for _ in range(C.NOISE_BANK)]
 
+    def reseed(self, seed) -> None:
+        """Draw the noise's offsets from ``seed``'s own stream from here on (the noise bank
+        stays): each sequence of a session gets its own, so sequences can be made in any
+        order, or at once in several processes, and come out the same."""
+        self._rng = np.random.default_rng(seed)
+
     def __call__(self, img: np.ndarray, c: int) -> np.ndarray:
         import cv2
 

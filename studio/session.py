@@ -349,6 +349,8 @@ def generate_sequence(out: Path, plan: PL.SessionPlan, seq: PL.SequencePlan, mod
                       look: StudioLook | None = None) -> dict:
     t0 = time.time()
     look = look or StudioLook(list(cams))
+    if look.developer is not None:  # the sequence's own noise stream (any order, any process)
+        look.developer.reseed([plan.seed, 8, 100 + seq.index])
     mo, chk, attempt, outs = verified_motion(plan, seq, subjects, model)
     cast, scene, rng, order, trk = mo.cast, mo.scene, mo.rng, mo.order, mo.tracks
     vs = mo.video_samples
@@ -523,21 +525,95 @@ def signature_json(seqs, cts, regions) -> dict:
     return d
 
 
-def generate(out: str | Path, plan: PL.SessionPlan | PL.MarkerSessionPlan) -> Path:
-    """Write the whole session into ``out`` (created). Returns the recipe path."""
+@dataclass
+class SessionParts:
+    """What every sequence of a session is made with, all drawn from the plan's own random
+    streams (so a worker process rebuilds the same from the plan; the marker placements,
+    drawn beside the scans, are handed over)."""
+
+    model: object
+    cams: list
+    subjects: list
+    look: StudioLook
+    reg25: object
+    regions: object
+    room: list | None
+
+    @classmethod
+    def of(cls, plan: PL.SessionPlan) -> SessionParts:
+        model = load_model("anny")
+        cams = make_rig(np.random.default_rng([plan.seed, 1]))
+        subjects = make_subjects(model, plan.subjects, np.random.default_rng([plan.seed, 2]))
+        subjects = [replace(s, colors=clothing_colors_of(model, s, s.index, plan)) for s in subjects]
+        room = lab_room(np.random.default_rng([plan.seed, 7]), cams) if plan.lab else None
+        return cls(model, cams, subjects, make_look(plan, model, cams),
+                   regressor(model, "joints3d_25"), region_map(model), room)
+
+
+def studio_workers(plan: PL.SessionPlan | PL.MarkerSessionPlan) -> int:
+    """How many processes make the session's sequences (or a marker session's trials):
+    one per core, at most one per sequence, when they are long enough to pay for a worker's
+    start (:data:`constants.PARALLEL_MIN_FRAMES`, ``PARALLEL_MIN_SAMPLES``), else 1; the
+    environment's ``MOCAP_STUDIO_WORKERS`` overrides (1: all in this process)."""
+    import os
+
     if isinstance(plan, PL.MarkerSessionPlan):
-        return generate_markers(out, plan)
+        units = [t for t in plan.trials if t.kind == "motion"]
+        big = len(units) >= 2 and sum(t.samples for t in units) >= C.PARALLEL_MIN_SAMPLES
+    else:
+        units = list(plan.sequences)
+        big = len(units) >= 2 and min(q.frames for q in units) >= C.PARALLEL_MIN_FRAMES
+    env = os.environ.get("MOCAP_STUDIO_WORKERS", "").strip()
+    if env:
+        try:
+            n = int(env)
+        except ValueError:
+            raise ValueError(f"MOCAP_STUDIO_WORKERS={env!r}: not a whole number") from None
+        if n < 1:
+            raise ValueError(f"MOCAP_STUDIO_WORKERS={env!r}: must be 1 or more")
+        return max(1, min(n, len(units)))
+    return max(1, min(len(os.sched_getaffinity(0)), len(units))) if big else 1
+
+
+def _sequence_job(out: Path, plan: PL.SessionPlan, index: int, markersets: dict):
+    """A worker process's sequence (``plan.sequences[index]``): (its facts, its contact)."""
+    parts = SessionParts.of(plan)
+    seq = plan.sequences[index]
+    with Renderer(parts.cams, room=parts.room) as renderer:
+        return generate_sequence(out, plan, seq, parts.model, parts.subjects, parts.cams,
+                                 renderer, markersets, parts.reg25, parts.regions, parts.look)
+
+
+def _in_workers(job, calls: list[tuple], workers: int) -> list:
+    """``[job(*args) for args in calls]``, ``workers`` at a time in fresh processes (spawned:
+    no GL context or thread is inherited), results in call order. The first failure stops the
+    rest."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as ex:
+        futs = [ex.submit(job, *args) for args in calls]
+        try:
+            return [f.result() for f in futs]
+        except BaseException:
+            ex.shutdown(wait=True, cancel_futures=True)
+            raise
+
+
+def generate(out: str | Path, plan: PL.SessionPlan | PL.MarkerSessionPlan,
+             workers: int | None = None) -> Path:
+    """Write the whole session into ``out`` (created). Returns the recipe path. workers: how
+    many processes make the sequences (None: :func:`studio_workers`); the files are the same
+    for any number."""
+    if isinstance(plan, PL.MarkerSessionPlan):
+        return generate_markers(out, plan, workers=workers)
     t0 = time.time()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    model = load_model("anny")
-    cams = make_rig(np.random.default_rng([plan.seed, 1]))
-    subjects = make_subjects(model, plan.subjects, np.random.default_rng([plan.seed, 2]))
-    subjects = [replace(s, colors=clothing_colors_of(model, s, s.index, plan)) for s in subjects]
-    look = make_look(plan, model, cams)
+    parts = SessionParts.of(plan)
+    model, cams, subjects, look = parts.model, parts.cams, parts.subjects, parts.look
     base = plug_in_gait(model)
-    reg25 = regressor(model, "joints3d_25")
-    regions = region_map(model)
+    reg25, regions = parts.reg25, parts.regions
     markersets = {}
     rng_s = np.random.default_rng([plan.seed, 3])
     for s in subjects:
@@ -554,11 +630,13 @@ def generate(out: str | Path, plan: PL.SessionPlan | PL.MarkerSessionPlan) -> Pa
                   num_faces=len(model.faces))
     _log(f"subjects and scans ready ({time.time() - t0:.1f} s)")
     infos, cts = {}, []
-    room = lab_room(np.random.default_rng([plan.seed, 7]), cams) if plan.lab else None
-    with Renderer(cams, room=room) as renderer:
+    workers = studio_workers(plan) if workers is None else max(1, int(workers))
+    with Renderer(cams, room=parts.room) as renderer:
         if plan.lab:  # the empty room, as labs record one: one video per camera and group
             plates = {}
-            for g in sorted({s.group for s in plan.sequences}):
+            for gi, g in enumerate(sorted({s.group for s in plan.sequences})):
+                if look.developer is not None:
+                    look.developer.reseed([plan.seed, 8, gi])
                 paths = [out / PL.clean_plate_path(g, c.name) for c in cams]
                 write_videos(paths, plan.fps, (
                     [look.developer(v, c) if look.developer else v
@@ -566,11 +644,17 @@ def generate(out: str | Path, plan: PL.SessionPlan | PL.MarkerSessionPlan) -> Pa
                     for _ in range(C.CLEAN_PLATE_FRAMES)), look.codecs)
                 plates[g] = {c.name: p.relative_to(out).as_posix() for c, p in zip(cams, paths, strict=True)}
             look.facts["clean_plates"] = plates
-        for seq in plan.sequences:
-            info, ct = generate_sequence(out, plan, seq, model, subjects, cams, renderer,
-                                         markersets, reg25, regions, look)
-            infos[seq.seq_id] = info
-            cts.append(ct)
+        if workers == 1:
+            made = [generate_sequence(out, plan, seq, model, subjects, cams, renderer,
+                                      markersets, reg25, regions, look)
+                    for seq in plan.sequences]
+    if workers > 1:
+        _log(f"{len(plan.sequences)} sequences in {workers} worker processes")
+        made = _in_workers(_sequence_job, [(out, plan, i, markersets)
+                                           for i in range(len(plan.sequences))], workers)
+    for seq, (info, ct) in zip(plan.sequences, made, strict=True):
+        infos[seq.seq_id] = info
+        cts.append(ct)
     groups = sorted({s.group for s in plan.sequences})
     for g in groups:
         seqs = [s for s in plan.sequences if s.group == g]
@@ -715,18 +799,31 @@ def generate_trial(out: Path, plan: PL.MarkerSessionPlan, trial: PL.TrialPlan, m
     return info
 
 
+def _marker_subjects(model, plan: PL.MarkerSessionPlan) -> list:
+    ids = tuple(plan.subjects) if len(plan.subjects) == 2 else (plan.subjects[0], f"{plan.subjects[0]}_partner")
+    return make_subjects(model, ids, np.random.default_rng([plan.seed, 2]))
+
+
+def _trial_job(out: Path, plan: PL.MarkerSessionPlan, index: int, placements: dict,
+               opts: RealismOptions) -> dict:
+    """A worker process's trial (``plan.trials[index]``): its facts."""
+    model = load_model("anny")
+    by_id = {s.id: s for s in _marker_subjects(model, plan)}
+    return generate_trial(out, plan, plan.trials[index], model, by_id, placements, opts)
+
+
 def generate_markers(out: str | Path, plan: PL.MarkerSessionPlan,
-                     opts: RealismOptions | None = None) -> Path:
+                     opts: RealismOptions | None = None, workers: int | None = None) -> Path:
     """Write a marker-only session (the ``markers`` preset) into ``out``: per subject its true
     placement, a static trial and its motion trials (C3D + ground truth, layout in this module's
-    docstring); no rendering. Returns the recipe path."""
+    docstring); no rendering. Returns the recipe path. workers: as :func:`generate`'s (each
+    trial draws from its own random streams)."""
     t0 = time.time()
     opts = opts or RealismOptions()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     model = load_model("anny")
-    ids = tuple(plan.subjects) if len(plan.subjects) == 2 else (plan.subjects[0], f"{plan.subjects[0]}_partner")
-    subjects = make_subjects(model, ids, np.random.default_rng([plan.seed, 2]))
+    subjects = _marker_subjects(model, plan)
     by_id = {s.id: s for s in subjects}
     base = plug_in_gait(model)
     gdir = out / "gt" / "subjects"
@@ -739,7 +836,14 @@ def generate_markers(out: str | Path, plan: PL.MarkerSessionPlan,
         np.savez(gdir / f"{s.id}.npz", betas=s.betas, phenotypes=s.phenotypes,
                  local_changes=s.local_changes, sex=sex, **pl.arrays())
         save_json(pl.markerset, gdir / f"{s.id}_markers.json", model="anny", num_faces=len(model.faces))
-    infos = {t.seq_id: generate_trial(out, plan, t, model, by_id, placements, opts) for t in plan.trials}
+    workers = studio_workers(plan) if workers is None else max(1, int(workers))
+    if workers > 1:
+        _log(f"{len(plan.trials)} trials in {workers} worker processes")
+        made = _in_workers(_trial_job, [(out, plan, i, placements, opts)
+                                        for i in range(len(plan.trials))], workers)
+    else:
+        made = [generate_trial(out, plan, t, model, by_id, placements, opts) for t in plan.trials]
+    infos = {t.seq_id: info for t, info in zip(plan.trials, made, strict=True)}
     meta = {"plan": plan_dict(plan), "trials": infos, "studio_source": source_hash(),
             "frame_convention": "gt row i = C3D sample i = C3D frame number first_frame + 1 + i "
                                 "(first_frame 0-based, as formats.c3d.Markers)",

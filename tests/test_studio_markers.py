@@ -326,3 +326,33 @@ def test_generate_markers_one_subject_one_trial(model, tmp_path):
         assert np.array_equal(f.mask(n, len(ms)), g["markers_fault"])
     kick = np.load(tmp_path / "gt" / "m01" / "Kick 1.npz")
     assert np.linalg.norm(kick["markers_sta"], axis=-1).max() > 0.005
+
+
+@pytest.mark.slow
+def test_marker_trials_made_in_worker_processes_are_byte_for_byte_those_made_in_one(
+        tmp_path, monkeypatch):
+    """Each trial draws from its own random streams, so a marker session made with its trials
+    in two worker processes writes the very same C3D and truth files as one made in this
+    process (the markers preset's trials go to workers: ``studio_workers``)."""
+    import filecmp
+    import os
+
+    from studio import plan as PL
+    from studio.session import generate, studio_workers
+
+    monkeypatch.delenv("MOCAP_STUDIO_WORKERS", raising=False)
+
+    p = PL.make_marker_plan(5, ("kick", "grab"), preset=None, n_subjects=1, trial_s=(1.5, 1.5),
+                            static_s=0.5)
+    a, b = tmp_path / "one", tmp_path / "two"
+    generate(a, p, workers=1)
+    generate(b, p, workers=2)
+    files = [f for f in a.rglob("*") if f.is_file() and f.name != "session.json"]
+    assert sum(f.suffix == ".c3d" for f in files) == 3
+    assert [str(f.relative_to(a)) for f in files
+            if not filecmp.cmp(f, b / f.relative_to(a), shallow=False)] == []
+    assert studio_workers(p) == 1  # 300 samples: not worth a worker's start
+    preset = PL.make_plan(PL.PRESETS["markers"].seed, preset="markers")
+    assert studio_workers(preset) == min(len(os.sched_getaffinity(0)), 4)  # 4 motion trials
+    monkeypatch.setenv("MOCAP_STUDIO_WORKERS", "1")
+    assert studio_workers(preset) == 1
