@@ -575,6 +575,24 @@ def studio_workers(plan: PL.SessionPlan | PL.MarkerSessionPlan) -> int:
     return max(1, min(len(os.sched_getaffinity(0)), len(units))) if big else 1
 
 
+def one_blas_thread(fn):
+    """Run ``fn`` with one thread in numpy's BLAS/LAPACK: the studio's numbers depend on the
+    summation order, and a session must come out the same in any process, on any number of
+    cores and whatever the environment says (``OMP_NUM_THREADS``), as the engine's stages do
+    (``pipeline.engine.BLAS_THREADS``)."""
+    import functools
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(limits=1):
+            return fn(*args, **kwargs)
+
+    return wrapper
+
+
+@one_blas_thread
 def _sequence_job(out: Path, plan: PL.SessionPlan, index: int, markersets: dict):
     """A worker process's sequence (``plan.sequences[index]``): (its facts, its contact)."""
     parts = SessionParts.of(plan)
@@ -600,6 +618,7 @@ def _in_workers(job, calls: list[tuple], workers: int) -> list:
             raise
 
 
+@one_blas_thread
 def generate(out: str | Path, plan: PL.SessionPlan | PL.MarkerSessionPlan,
              workers: int | None = None) -> Path:
     """Write the whole session into ``out`` (created). Returns the recipe path. workers: how
@@ -804,6 +823,7 @@ def _marker_subjects(model, plan: PL.MarkerSessionPlan) -> list:
     return make_subjects(model, ids, np.random.default_rng([plan.seed, 2]))
 
 
+@one_blas_thread
 def _trial_job(out: Path, plan: PL.MarkerSessionPlan, index: int, placements: dict,
                opts: RealismOptions) -> dict:
     """A worker process's trial (``plan.trials[index]``): its facts."""
@@ -812,6 +832,7 @@ def _trial_job(out: Path, plan: PL.MarkerSessionPlan, index: int, placements: di
     return generate_trial(out, plan, plan.trials[index], model, by_id, placements, opts)
 
 
+@one_blas_thread
 def generate_markers(out: str | Path, plan: PL.MarkerSessionPlan,
                      opts: RealismOptions | None = None, workers: int | None = None) -> Path:
     """Write a marker-only session (the ``markers`` preset) into ``out``: per subject its true

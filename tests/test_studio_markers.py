@@ -331,9 +331,10 @@ def test_generate_markers_one_subject_one_trial(model, tmp_path):
 @pytest.mark.slow
 def test_marker_trials_made_in_worker_processes_are_byte_for_byte_those_made_in_one(
         tmp_path, monkeypatch):
-    """Each trial draws from its own random streams, so a marker session made with its trials
-    in two worker processes writes the very same C3D and truth files as one made in this
-    process (the markers preset's trials go to workers: ``studio_workers``)."""
+    """Each trial draws from its own random streams and runs on one BLAS thread, so a marker
+    session made with its trials in two worker processes (their environment asking for another
+    BLAS thread count than this process has) writes the very same C3D and truth files as one
+    made in this process (the markers preset's trials go to workers: ``studio_workers``)."""
     import filecmp
     import os
 
@@ -341,6 +342,8 @@ def test_marker_trials_made_in_worker_processes_are_byte_for_byte_those_made_in_
     from studio.session import generate, studio_workers
 
     monkeypatch.delenv("MOCAP_STUDIO_WORKERS", raising=False)
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS"):  # the workers' BLAS told otherwise
+        monkeypatch.setenv(var, "2" if os.environ.get(var) == "1" else "1")
 
     p = PL.make_marker_plan(5, ("kick", "grab"), preset=None, n_subjects=1, trial_s=(1.5, 1.5),
                             static_s=0.5)

@@ -252,13 +252,21 @@ def _same_image(a: np.ndarray, b: np.ndarray) -> bool:
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """A 10-frame realistic session (a handshake and a push), its sequences made in two
-    worker processes."""
+    worker processes whose environment asks for another BLAS thread count than this one's."""
+    import os
+
     from studio import plan as PL
     from studio.session import generate
 
     out = tmp_path_factory.mktemp("realistic")
     plan = PL.make_plan(5, 10, ("handshake", "push"), realism=True)
-    generate(out, plan, workers=2)
+    mp = pytest.MonkeyPatch()
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        mp.setenv(var, "2" if os.environ.get(var) == "1" else "1")
+    try:
+        generate(out, plan, workers=2)
+    finally:
+        mp.undo()
     return out, plan
 
 
@@ -276,8 +284,8 @@ def _video_frames(path):
 
 @pytest.mark.slow
 def test_sequences_made_in_worker_processes_are_those_made_one_after_the_other(tiny, tmp_path):
-    """Each sequence draws its camera noise from its own stream (``Developer.reseed``), so
-    made in two processes or in one, the truth is identical and every video the same up to
+    """Each sequence draws its camera noise from its own stream (``Developer.reseed``) and
+    runs on one BLAS thread, so made in two processes or in one, the truth is identical and every video the same up to
     the renderer's own rasterisation jitter (a shared noise stream would differ everywhere
     in the second sequence: noise of several grey levels on every pixel)."""
     from studio.session import generate
