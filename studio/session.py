@@ -123,7 +123,8 @@ from studio.subjects import Subject, make_subjects
 STUDIO_DIR = Path(__file__).resolve().parent
 
 
-#: The packages whose code decides what the studio writes (it imports only these).
+#: The packages whose code decides what the studio writes (it imports only these, and
+#: ``pipeline.procs`` for a worker pool whose workers die with it, which decides nothing).
 SOURCE_PACKAGES = ("studio", "body", "calib", "formats", "geometry", "drawing")
 
 
@@ -604,18 +605,13 @@ def _sequence_job(out: Path, plan: PL.SessionPlan, index: int, markersets: dict)
 
 def _in_workers(job, calls: list[tuple], workers: int) -> list:
     """``[job(*args) for args in calls]``, ``workers`` at a time in fresh processes (spawned:
-    no GL context or thread is inherited), results in call order. The first failure stops the
-    rest."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
+    no GL context or thread is inherited; ``pipeline.procs.process_pool``: they die with this
+    process), results in call order. The first failure kills the rest."""
+    from pipeline.procs import process_pool
 
-    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as ex:
+    with process_pool(workers) as ex:
         futs = [ex.submit(job, *args) for args in calls]
-        try:
-            return [f.result() for f in futs]
-        except BaseException:
-            ex.shutdown(wait=True, cancel_futures=True)
-            raise
+        return [f.result() for f in futs]
 
 
 @one_blas_thread
