@@ -1418,9 +1418,10 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
         "keypoints_hidden_by_wearer": int(hidden_n.sum()) if occluder is not None else None,
         "keypoints_rejected_as_outliers": {
             "keypoints": int(rejected_n.sum()), "outlier_px": opts.outlier_px or None,
-            # per view, the solved frames where it lost most of its keypoints to the rule
+            # per view, the frames where it lost most of its keypoints to the rule (only a
+            # solved frame loses any)
             "frames_view_lost_most": [int(v) for v in (
-                (rejected_n > (conf > 0).sum(axis=2)) & active[:, :1]).sum(axis=0)],
+                rejected_n > (conf > 0).sum(axis=2)).sum(axis=0)],
             "frames_solved": n_fit},
         "hands_gated": {"views": int(gated.sum()), "gate_px": opts.hand_gate_px if gate else None},
         "per_frame": {"reproj_px": err_px, "views_seeing": views_seeing(conf),
