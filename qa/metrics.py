@@ -19,14 +19,17 @@
   separates a 40-degree shoulder rotation better than the median over the views); the
   per-view figures are flagged at higher thresholds (a view that is off altogether);
 - ``sync_offset_frames.<cam>``: the wearer (whose marker fit does not depend on the video)
-  projected at video frame ``f + s`` against the view's detections of frame ``f`` (body and
-  hands), for ``s``
-  in ``constants.SYNC_SHIFTS``: the ``s`` of the lowest cost (0 unless it beats 0 by
-  ``constants.SYNC_MIN_GAIN``), one number per view repeated on every frame. The cost is the
-  mean error (clipped at ``SYNC_CAP_PX``) over the confident body detections whose projected
-  wearer moves by ``SYNC_MIN_MOTION_PX`` or more across the shifts (a still keypoint says
-  nothing of time). Between the wearer's fit frames (a keypoint stride) its keypoints are
-  interpolated by a cubic spline;
+  and the partner projected at video frame ``f + s`` against the view's detections of frame
+  ``f`` (body and hands), for ``s`` in ``constants.SYNC_SHIFTS``: the ``s`` of the lowest
+  cost, one number per view repeated on every frame. The cost is the mean error (clipped at
+  ``SYNC_CAP_PX``) over the confident detections whose projected person moves by
+  ``SYNC_MIN_MOTION_PX`` or more across the shifts (a still keypoint says nothing of time).
+  A shift other than 0 is kept only when its gain over 0 is ``SYNC_MIN_Z`` standard errors
+  or more, over the person-frames (:func:`_paired_z`): a wearer standing still or a noisy
+  view keeps 0. The partner's fit took the view under test in, which pulls it toward no
+  shift: it adds evidence (the wearer alone moves too little in many actions) and can only
+  make the test more cautious. Between the wearer's fit frames (a keypoint stride) its
+  keypoints follow its markers (:func:`_sync_people`), the partner's a cubic spline;
 - ``penetration_mm``: the deepest surface point of either body inside the other (subsampled:
   the ``PROXY_VERTICES`` proxy points of one body, inside the other's proxy by the generalized
   winding number; their depth is exact, to the other's full mesh); ``penetration_volume_cm3``:
@@ -526,6 +529,21 @@ def _sync_people(model, fits, keypoints, marker_track=None):
     return out
 
 
+def _paired_z(d: np.ndarray, unit: np.ndarray) -> float:
+    """How many standard errors the mean of ``d`` (per detection, the error at shift 0 minus
+    the error at the best shift) lies above 0, with the person-frames ``unit`` as the samples:
+    the detections of one frame share its pose, so they are not independent of each other.
+    +inf when every person-frame gains the same, 0 with fewer than 3 person-frames."""
+    u, inv = np.unique(unit, return_inverse=True)
+    if len(u) < 3:
+        return 0.0
+    g = np.bincount(inv, weights=d) / np.bincount(inv)
+    sd = float(g.std(ddof=1))
+    if sd == 0.0:
+        return float("inf") if g.mean() > 0 else 0.0
+    return float(g.mean() / (sd / np.sqrt(len(u))))
+
+
 def _sync(model, fits, keypoints, cams, opts, seq, marker_track=None):
     """Per view the best time shift of the detections against the fits (the wearer first; see
     the module doc) and the cost of each shift. fits: [(BodyFit, person index)]."""
@@ -534,7 +552,7 @@ def _sync(model, fits, keypoints, cams, opts, seq, marker_track=None):
     kf = np.asarray(keypoints.frames)
     shifts = [int(s) for s in K.SYNC_SHIFTS]
     pts = list(K.BODY + K.HANDS)
-    offsets, costs, points, unmeasured = {}, {}, {}, []
+    offsets, costs, points, unmeasured, zs = {}, {}, {}, [], {}
     people = _sync_people(model, fits, keypoints, marker_track)
     seq["sync_from"] = "markers" if marker_track is not None else "fit"
     for cam in cams:
@@ -543,6 +561,7 @@ def _sync(model, fits, keypoints, cams, opts, seq, marker_track=None):
         except KeyError:
             continue
         err = {s: [] for s in shifts}
+        unit = []  # the person-frame of each informative detection
         for at, use, pidx in people:
             det = np.asarray(keypoints.kp[c][:, pidx][:, pts], float)  # (Fk, n, 3)
             # the detector's own confidences: the cross-view check zeroes exactly the
@@ -558,25 +577,30 @@ def _sync(model, fits, keypoints, cams, opts, seq, marker_track=None):
                 motion = np.max([np.linalg.norm(U[s] - U[0], axis=-1) for s in shifts], axis=0)
             known = np.all([np.isfinite(U[s]).all(-1) for s in shifts], axis=0)
             inf = ok[fr] & known & (np.nan_to_num(motion) >= K.SYNC_MIN_MOTION_PX)
+            unit.append(np.broadcast_to(pidx * (int(kf.max()) + 1) + kf[fr][:, None], inf.shape)[inf])
             for s in shifts:
-                err[s].append(np.linalg.norm(U[s] - det[fr, :, :2], axis=-1)[inf])
+                err[s].append(np.minimum(np.linalg.norm(U[s] - det[fr, :, :2], axis=-1)[inf],
+                                         K.SYNC_CAP_PX))
         e = {s: np.concatenate(v) if v else np.zeros(0) for s, v in err.items()}
         points[cam.name] = int(len(e[0]))
         if len(e[0]) < K.SYNC_MIN_POINTS:
             continue
-        cost = {s: float(np.minimum(e[s], K.SYNC_CAP_PX).mean()) for s in shifts}
+        cost = {s: float(e[s].mean()) for s in shifts}
         costs[cam.name] = {str(k): round(v, 3) for k, v in cost.items()}
-        if min(cost.values()) > K.SYNC_MAX_COST_PX:  # the wearer's detections fit at no shift
+        if min(cost.values()) > K.SYNC_MAX_COST_PX:  # most detections a miss at every shift
             unmeasured.append(cam.name)
             continue
         best = min(cost, key=cost.get)
         if best in (min(shifts), max(shifts)):  # no minimum inside the range: a trend, not a shift
             unmeasured.append(cam.name)
             continue
-        if best != 0 and not cost[best] < K.SYNC_MIN_GAIN * cost[0]:
+        z = _paired_z(e[0] - e[best], np.concatenate(unit)) if best != 0 else 0.0
+        zs[cam.name] = round(z, 2)
+        if z < K.SYNC_MIN_Z:
             best = 0
         offsets[cam.name] = int(best)
     seq["sync_offset_frames"] = offsets
+    seq["sync_z"] = zs
     seq["sync_cost"] = costs
     seq["sync_points"] = points
     seq["sync_not_measurable"] = unmeasured
@@ -1142,9 +1166,10 @@ def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, f
                         units)
         seq["people"].append({"role": person, "frames": int(F),
                               "not_valid": int((~np.asarray(fit.valid, bool)[rows]).sum())})
-    # sync: the wearer (the marker fit does not depend on the videos)
+    # sync: the wearer (the marker fit does not depend on the videos) and the partner (its
+    # fit takes the view under test in, which pulls toward no shift: the test stays cautious)
     if keypoints is not None:
-        sync_fits = [(f, PEOPLE.index(n)) for n, f in fits if n == "wearer"]
+        sync_fits = [(f, PEOPLE.index(n)) for n, f in fits]
         offs = _sync(model, sync_fits, keypoints, cams, opts, seq, marker_track)
         for cam, s in offs.items():
             values[f"sync_offset_frames.{cam}"] = np.full(F, float(s))

@@ -33,6 +33,7 @@ from html.parser import HTMLParser
 from pathlib import Path
 
 from formats.errors import InputError
+from qa.constants import SYNC_MIN_Z as _SYNC_MIN_Z
 
 MAX_LIST_ITEMS = 12      # longer lists in the stage reports are cut, with a count
 MAX_MATRIX_ROWS = 60     # rows of a dict-of-dicts table (e.g. per marker)
@@ -376,7 +377,7 @@ def _img(src: str, base: Path, alt: str = "", cls: str = "") -> str:
 # ----------------------------------------------------------------------------- sequence report
 
 _SUMMARY_KNOWN = ("frames", "flagged", "rate", "spans", "people", "reasons", "not_valid",
-                  "sync_offset_frames", "thresholds", "units")
+                  "sync_offset_frames", "sync_z", "thresholds", "units")
 
 
 def _span_html(i: int, s: dict, base: Path, thresholds: dict, units: dict, file: Path) -> str:
@@ -531,11 +532,14 @@ def write_sequence_report(out_dir: Path, *, sequence: str, title: str, summary: 
                  + "</table>")
     sync = summary.get("sync_offset_frames") or {}
     if sync:
+        zs = summary.get("sync_z") or {}
         rows = "".join(
             f"<tr><td>{esc(c)}</td><td class=\"{'flag' if o else 'okc'}\">{esc(fmt_num(o))}</td>"
-            "</tr>" for c, o in sync.items())
+            f"<td>{esc(fmt_num(zs[c])) if c in zs else ''}</td></tr>" for c, o in sync.items())
         b.append("<h3>Camera time offsets (video frames; 0 = in sync)</h3><table class=\"kv\">"
-                 f"<tr><th>camera</th><th>offset</th></tr>{rows}</table>")
+                 "<tr><th>camera</th><th>offset</th><th>evidence of the best other shift "
+                 f"(standard errors; kept from {esc(fmt_num(_SYNC_MIN_Z))})</th></tr>{rows}"
+                 "</table>")
     if heldout:
         b.append(heldout_html(heldout))
     if thresholds:

@@ -61,9 +61,9 @@ def _cams():
     return out
 
 
-def _keypoints(model, fits, cams, delay=None) -> Keypoints2D:
+def _keypoints(model, fits, cams, delay=None, delayed=0) -> Keypoints2D:
     """Detections = the fits' KP65 projected (conf 1). delay (view, frames): that view's
-    wearer detections of frame f show frame f + frames."""
+    detections of person ``delayed`` (0: the wearer) of frame f show frame f + frames."""
     from body import forward
     from body.joints import keypoints as kp65
     from calib import project
@@ -76,7 +76,7 @@ def _keypoints(model, fits, cams, delay=None) -> Keypoints2D:
         for c, cam in enumerate(cams):
             kp[c, :, p, :, :2] = project(cam, X)
             kp[c, :, p, :, 2] = 1.0
-            if delay is not None and delay[0] == c and p == 0:
+            if delay is not None and delay[0] == c and p == delayed:
                 s = delay[1]
                 kp[c, :F - s, p] = kp[c, s:, p].copy()
                 kp[c, F - s:, p, :, 2] = 0.0
@@ -227,6 +227,41 @@ def test_sync_offset_of_a_delayed_view(scene, model):
     assert fl.flagged[:, r].all()
     assert not fl.flagged[:, fl.reasons.index("sync_offset_frames.cam0")].any()
     assert not flag_frames(m, QAOptions(sync_max_frames=2)).flagged[:, r].any()
+
+
+def test_sync_offset_measured_on_the_partner_when_the_wearer_stands_still(scene, model):
+    """A wearer standing still says nothing of time; the partner walking past does: a view
+    whose both people are 2 frames late is found from the partner's detections (the wearer's
+    alone leave it not measured)."""
+    cams = scene["cams"]
+    w = scene["wearer"]
+    still = dataclasses.replace(w, transl=np.tile(np.asarray(w.transl)[:1], (F, 1)))
+    pt = np.asarray(scene["partner_clean"].transl).copy()
+    pt[:, 0] = 1.45  # no push: the partner walks along y past the wearer
+    walker = dataclasses.replace(scene["partner_clean"], transl=pt)
+    kps = _keypoints(model, [still, walker], cams, delay=(1, 2), delayed=1)
+    both = sequence_metrics(model, still, walker, kps, cams, None, GROUND, FPS)
+    assert both.sequence["sync_offset_frames"] == {"cam0": 0, "cam1": 2, "cam2": 0}
+    assert both.sequence["sync_z"]["cam1"] >= 2.5
+    alone = sequence_metrics(model, still, None, kps, cams, None, GROUND, FPS)
+    assert alone.sequence["sync_offset_frames"] == {}  # nothing moved: too few points
+    assert alone.sequence["sync_points"] == {"cam0": 0, "cam1": 0, "cam2": 0}
+
+
+def test_a_shift_that_wins_in_some_frames_only_is_not_kept():
+    from qa.metrics import _paired_z
+
+    frames = np.repeat(np.arange(10), 5)  # 10 person-frames of 5 detections
+    steady = np.full(50, 1.5)  # every frame gains 1.5 px at the shift
+    assert _paired_z(steady, frames) == np.inf
+    rng = np.random.default_rng(0)
+    noisy = rng.normal(1.5, 1.0, 50)
+    assert _paired_z(noisy, frames) > 2.5
+    # one frame gains 30 px (a wrong detection), the others lose a little: a larger mean gain
+    # than ``steady``'s, but from one frame
+    one = np.where(frames == 3, 30.0, -0.3)
+    assert one.mean() > 2.0 and _paired_z(one, frames) < 2.5
+    assert _paired_z(steady[:10], frames[:10]) == 0.0  # two person-frames: not judged
 
 
 # ---------------------------------------------------------------------------- spans, options
