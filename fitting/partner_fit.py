@@ -165,6 +165,13 @@ WEARER_DROP_WARN_SHARE = 0.10
 #: most of them in 2, 4 and 2 of its 16 solved frames, where the partner hides behind the
 #: wearer, and warn; HoldingHands and Kick in one frame of one view (5 %); the others in none)
 OUTLIER_WARN_SHARE = 0.10
+#: A view whose partner detection is dropped whole as somebody else (``bystander_px``) in more
+#: than this share of the solved frames is reported: the partner was fitted without it there,
+#: and a camera far off its calibration looks the same as an operator standing in the view
+#: (the bench's, the demo's and the pose2sim recording's sequences, session 31's stores: no
+#: view dropped in any frame; the keypoints stage drops an operator standing out of reach
+#: before: ``detect.sequence.standing_far``)
+BYSTANDER_WARN_SHARE = 0.25
 
 
 @dataclass(frozen=True)
@@ -823,6 +830,25 @@ def outlier_warnings(rejected: dict, views: list[str],
     return out
 
 
+def bystander_warnings(dropped, solved: int, views: list[str],
+                       share: float = BYSTANDER_WARN_SHARE) -> list[str]:
+    """The report's warnings for a view whose partner detection was dropped whole as somebody
+    else (``check_views``' ``far``) in more than ``share`` of the ``solved`` frames.
+
+    dropped : per view, the frames it was dropped in (the report's
+    ``views_dropped_as_bystander_per_view``); views : the cameras' names."""
+    out = []
+    for name, k in zip(views, dropped or (), strict=False):
+        if solved > 0 and k > share * solved:
+            out.append(f"view {name}: in {int(k)} of {solved} solved frames ({100.0 * k / solved:.0f}"
+                       f" %, more than {100.0 * share:.0f} %) the partner's detection lay far "
+                       "from the body the other views fit and the view was left out whole as "
+                       "somebody else: the partner was fitted without it there. A bystander "
+                       "or an operator in that view, or its calibration or sync is off; check "
+                       "that view's overlays")
+    return out
+
+
 def check_views(cams, pred: np.ndarray, uv: np.ndarray, conf: np.ndarray, flip: np.ndarray,
                 other: np.ndarray | None = None, min_px: float = FLIP_MIN_PX,
                 ratio: float = FLIP_RATIO, far_px: float = 0.0,
@@ -1410,6 +1436,7 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
         "frames_with": {n: int(active[:, i].sum()) for i, n in enumerate(names)},
         "views_mirrored_back": int(flipped.sum()), "views_dropped_as_wearer": int(dropped.sum()),
         "views_dropped_as_bystander": int(far.sum()),
+        "views_dropped_as_bystander_per_view": [int(v) for v in far.sum(axis=0)],
         "view_halves_mirrored_back": {"upper": int(halves[..., 0].sum()),
                                       "lower": int(halves[..., 1].sum())},
         "keypoints_dropped_as_wearer": {"keypoints": int(on_wearer_n.sum()),

@@ -140,6 +140,7 @@ def run(ctx: StageContext) -> None:
     from fitting.contact_signature import load_contact
     from fitting.partner_fit import (
         apply_min_valid_views,
+        bystander_warnings,
         contact_figures,
         fit_partner,
         outlier_warnings,
@@ -199,6 +200,9 @@ def run(ctx: StageContext) -> None:
         (second or {}).get("keypoints_dropped_as_wearer", 0))
     report["warnings"] += outlier_warnings(report["keypoints_rejected_as_outliers"],
                                            [c.name for c in cams])
+    report["warnings"] += bystander_warnings(
+        report["views_dropped_as_bystander_per_view"],
+        report["keypoints_rejected_as_outliers"]["frames_solved"], [c.name for c in cams])
     for w in report["warnings"]:
         log(f"WARNING {w}")
     fig = contact_figures(model, fit, wearer, contact, ground)
@@ -324,7 +328,13 @@ def run_markerless(ctx: StageContext, o: Options, model, cams) -> None:
     from artifacts.keypoints import Keypoints2D
     from drawing.plots import partner_fit_plot
     from fitting.contact_signature import load_contact
-    from fitting.partner_fit import contact_figures, fit_partner, outlier_warnings, shape_from_views
+    from fitting.partner_fit import (
+        bystander_warnings,
+        contact_figures,
+        fit_partner,
+        outlier_warnings,
+        shape_from_views,
+    )
 
     rv = ctx.recipe
     people = list(rv.sequence.people)
@@ -387,7 +397,9 @@ def run_markerless(ctx: StageContext, o: Options, model, cams) -> None:
                         fits[p].frames[~ok], [_reason(c) for c in fits[p].invalid_reason[~ok]],
                         strict=True)}})
         rep["warnings"] = [f"{sid}: {w}" for w in outlier_warnings(
-            rep["keypoints_rejected_as_outliers"], [c.name for c in cams])]
+            rep["keypoints_rejected_as_outliers"], [c.name for c in cams]) + bystander_warnings(
+            rep["views_dropped_as_bystander_per_view"],
+            rep["keypoints_rejected_as_outliers"]["frames_solved"], [c.name for c in cams])]
         for w in rep["warnings"]:
             ctx.log(f"{ctx.unit}: WARNING {w}")
         writer.save_json("report", rep)

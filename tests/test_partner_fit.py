@@ -660,6 +660,32 @@ def test_a_view_that_loses_most_of_its_keypoints_as_outliers_is_reported(scene):
     assert w.startswith("view c1: in 3 of 20 solved frames (15 %")
 
 
+def test_a_view_dropped_whole_as_somebody_else_is_reported(scene):
+    """View 1's detections all 150 px off (farther than ``bystander_px``: a camera far off its
+    calibration, or somebody else read there): the view is left out whole in the frames after
+    the start, the count per view says which, and the report warns naming it; a view dropped
+    in a quarter of the frames or fewer is not warned about."""
+    from fitting.partner_fit import BYSTANDER_WARN_SHARE, bystander_warnings
+
+    kp = scene.kp.copy()
+    kp[1, :, 1, :, :2] += (150.0, 0.0)
+    fit, rep = _fit(scene, kp)
+    per_view = rep["views_dropped_as_bystander_per_view"]
+    assert per_view[1] >= F_SYN - 1 and per_view[0] == per_view[2] == per_view[3] == 0, per_view
+    assert rep["views_dropped_as_bystander"] == sum(per_view)
+    names = ["c0", "c1", "c2", "c3"]
+    n = rep["keypoints_rejected_as_outliers"]["frames_solved"]
+    (w,) = bystander_warnings(per_view, n, names)
+    assert w.startswith(f"view c1: in {per_view[1]} of {n} solved frames")
+    assert "left out whole" in w
+    assert BYSTANDER_WARN_SHARE == 0.25
+    assert bystander_warnings([0, 5, 0, 0], 20, names) == []  # 25 %: not more than 25 %
+    assert len(bystander_warnings([0, 6, 0, 0], 20, names)) == 1
+    assert bystander_warnings([0, 0, 0, 0], 0, names) == []  # nothing solved
+    clean = _fit(scene, scene.kp)[1]
+    assert clean["views_dropped_as_bystander_per_view"] == [0, 0, 0, 0]
+
+
 def test_a_frame_seen_by_two_views_is_fitted_but_not_valid(scene):
     """Two views can always be fitted, and a wrong reading both share leaves no residual
     (bench: every valid partner frame seen by two views was more than 10 cm off): a frame
