@@ -53,7 +53,7 @@ SYNC_SHIFTS = tuple(range(-3, 4))
 #: person-frames (``qa.metrics._paired_z``). Session 31, bench store (8 sequences x 4 views, one
 #: noise draw): the clean views' best nonzero shifts reach 1.2, the view delayed by 2 frames 3.1.
 SYNC_MIN_Z = 2.5
-#: Only detections whose projected wearer moves at least this much across the shifts count.
+#: Only detections whose projected person moves at least this much across the shifts count.
 SYNC_MIN_MOTION_PX = 3.0
 #: Per-detection errors are clipped here (a wrong detection counts as a miss, not more).
 SYNC_CAP_PX = 25.0

@@ -595,7 +595,7 @@ def _sync(model, fits, keypoints, cams, opts, seq, marker_track=None):
             unmeasured.append(cam.name)
             continue
         z = _paired_z(e[0] - e[best], np.concatenate(unit)) if best != 0 else 0.0
-        zs[cam.name] = round(z, 2)
+        zs[cam.name] = round(min(z, 999.0), 2)  # (JSON has no infinity)
         if z < K.SYNC_MIN_Z:
             best = 0
         offsets[cam.name] = int(best)

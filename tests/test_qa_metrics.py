@@ -243,6 +243,7 @@ def test_sync_offset_measured_on_the_partner_when_the_wearer_stands_still(scene,
     both = sequence_metrics(model, still, walker, kps, cams, None, GROUND, FPS)
     assert both.sequence["sync_offset_frames"] == {"cam0": 0, "cam1": 2, "cam2": 0}
     assert both.sequence["sync_z"]["cam1"] >= 2.5
+    json.dumps(both.sequence, allow_nan=False)  # the report is strict JSON (no infinity)
     alone = sequence_metrics(model, still, None, kps, cams, None, GROUND, FPS)
     assert alone.sequence["sync_offset_frames"] == {}  # nothing moved: too few points
     assert alone.sequence["sync_points"] == {"cam0": 0, "cam1": 0, "cam2": 0}
