@@ -142,8 +142,13 @@ class Renderer:
         else:
             self._room_scene = pyrender.Scene(bg_color=bg)
             self._room_nodes = self._add_cameras(self._room_scene)
-            for m in room:
-                self._room_scene.add(self._mesh(m.vertices, m.faces, m.colors, m.shade, m.uv, m.texture))
+            # one mesh of a primitive per room part: pyrender draws a mesh's primitives in list
+            # order but its nodes in a set's order (``_sorted_mesh_nodes``: equal distance keys
+            # for identity poses), which changes from process to process; where two parts
+            # tie in depth the first drawn wins the pixel, so one node keeps the bytes fixed
+            self._room_scene.add(self._pr.Mesh([
+                self._primitive(m.vertices, m.faces, m.colors, m.shade, m.uv, m.texture)
+                for m in room]))
         self._people: list = []
 
     def _add_cameras(self, scene) -> list:
@@ -169,6 +174,9 @@ class Renderer:
             self._renderer = None
 
     def _mesh(self, vertices, faces, colors, shade=True, uv=None, texture=None):
+        return self._pr.Mesh([self._primitive(vertices, faces, colors, shade, uv, texture)])
+
+    def _primitive(self, vertices, faces, colors, shade=True, uv=None, texture=None):
         pr = self._pr
         if colors is None:
             col = np.ones((len(vertices), 3), np.float32)
@@ -184,14 +192,22 @@ class Renderer:
                 metallicFactor=0.0, doubleSided=True, baseColorTexture=pr.Texture(source=np.ascontiguousarray(texture),
                                                                 source_channels="RGB"))
             kw["texcoord_0"] = np.asarray(uv, np.float32)
-        prim = pr.Primitive(positions=np.asarray(vertices, np.float32), color_0=col,
+        return pr.Primitive(positions=np.asarray(vertices, np.float32), color_0=col,
                             indices=np.asarray(faces, np.uint32), material=mat, **kw)
-        return pr.Mesh([prim])
 
     def _set_people(self, people: list[PersonMesh]) -> None:
         for n in self._people:
             self.scene.remove_node(n)
-        self._people = [self.scene.add(self._mesh(p.vertices, p.faces, p.colors)) for p in people]
+        # each person's node at its own centroid: pyrender sorts the nodes by the distance of
+        # their poses to the camera and draws equal keys in a set's order (process-dependent),
+        # so distinct poses keep the draw order, and a depth tie's winner, fixed
+        self._people = []
+        for p in people:
+            v = np.asarray(p.vertices, float)
+            pose = np.eye(4)
+            pose[:3, 3] = v.mean(axis=0)
+            self._people.append(self.scene.add(self._mesh(v - pose[:3, 3], p.faces, p.colors),
+                                               pose=pose))
 
     def _each_view(self, flags, warp_interp, seg_node_map=None, views=None):
         import cv2
