@@ -205,6 +205,28 @@ def test_load_model_dispatches_by_kind(tiny, tmp_path):
         load_model("ghum", p)
 
 
+def test_a_model_file_is_read_once_per_process_until_it_changes(tiny, tmp_path):
+    """body.loaders.load_model keeps what it read: the same file again is the same (frozen,
+    read-only) object, whether named by its path or its folder; a file rewritten in place (same
+    name, same size) is read anew, and so is a copy elsewhere."""
+    p = tmp_path / "SMPLX_NEUTRAL.npz"
+    np.savez(p, **tiny)
+    a = load_model("smplx", p)
+    assert load_model("smplx", tmp_path) is a
+    assert not a.v_template.flags.writeable
+    z = dict(tiny, v_template=tiny["v_template"] + 0.5)
+    size = p.stat().st_size
+    np.savez(p, **z)
+    assert p.stat().st_size == size
+    b = load_model("smplx", p)
+    assert b is not a
+    np.testing.assert_allclose(b.v_template, a.v_template + 0.5)
+    (tmp_path / "copy").mkdir()
+    np.savez(tmp_path / "copy" / "SMPLX_NEUTRAL.npz", **z)
+    c = load_model("smplx", tmp_path / "copy")
+    assert c is not b and c.source != b.source
+
+
 @pytest.mark.parametrize("edit,key", [
     (lambda z: z.pop("weights"), "weights"),
     (lambda z: z.__setitem__("J_regressor", z["J_regressor"][:, :50]), "J_regressor"),
