@@ -387,13 +387,11 @@ def _plot(*args) -> float:
 
 
 def _worker_init() -> None:
-    """The worker process's imports (the geometry's, the plot's), done on its start."""
+    """The worker process's imports for the geometry, done on its start (the plot's,
+    matplotlib's 0.3 s, when the plot runs: after the geometry, off the metrics' path)."""
     import igl  # noqa: F401
-    import matplotlib.backends.backend_agg  # noqa: F401
-    import matplotlib.figure  # noqa: F401
     import scipy.spatial  # noqa: F401
 
-    import drawing.qa_plots  # noqa: F401
     import fitting.collision  # noqa: F401
     import geometry.queries  # noqa: F401
     import qa.metrics  # noqa: F401

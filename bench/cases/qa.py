@@ -83,15 +83,19 @@ LIMITS = {
         "catches 4 of the 23 and withholds 6 of 86 right frames; above 60 px at conf >= 0.5, 14 "
         "of 23 against 40 of 86): the fit, not the QA, has to get them right."),
     "qa.s_per_frame": (
-        "per 20-frame bench sequence ~4.7 s of stage wall (session 20's breakdown): the "
-        "per-frame metrics ~2.9 s, waiting for the geometry (each person's self-penetration and "
-        "the pair's interpenetration, winding numbers and nearest points on the 2,000-vertex "
-        "proxies and the full meshes, in one worker process beside the other metrics; Hug, "
-        "whose bodies overlap in every frame, ~5 s), the overlays and the video ~1.5 s (each "
-        "frame decoded once and drawn at two scales, ~100k cv2.fillConvexPoly calls a "
-        "sequence), the 3D scene ~0.6 s; the plot (~1.5 s) runs off the main path. Left to "
-        "try: a numpy z-buffer for the overlays (~0.3 s a sequence) and the pair test on the "
-        "proxy points near the other body only."),
+        "per 20-frame bench sequence ~3.5 s of stage wall and ~5.9 CPU-s (session 31's bench): "
+        "the metrics ~1.8 s, of which ~1 s waits for the per-frame geometry (each person's "
+        "self-penetration and the pair's interpenetration, winding numbers and nearest points "
+        "on the 2,000-vertex proxies and the full meshes: ~70 ms a frame of one core, shared "
+        "by a worker process and this one; Hug ~3 s), then the overlays and the video ~1.1 s "
+        "(raster_people ~0.5 s for 27 frame-scales x 4 views, PNG writing 0.2 s) while the "
+        "scene (~0.5 s, a thread of this process) and the plot (0.65 s alone, 0.8-1.2 s beside "
+        "the overlays: 13 matplotlib panels) share the two cores. The stage is CPU-bound on 2 "
+        "cores: 0.1 s a frame needs ~2 s a sequence, i.e. less than 4 CPU-s. Since session 32 "
+        "the body model is read once per process (0.4 s a stage before) and the worker "
+        "imports matplotlib only for the plot. Left to try: the pair's geometry on the proxy "
+        "points near the other body only, the scene out of this process's GIL, a cheaper "
+        "plot"),
 }
 
 SWAP_SEQUENCE, SWAP = "s01/Push 1", ("LKNE", "RKNE")
