@@ -63,6 +63,16 @@ SYNC_MIN_POINTS = 30
 #: partner's detections fit worse than the wearer's (the Kick bench view delayed on purpose
 #: costs 19 px at its best shift, with the partner in).
 SYNC_MAX_COST_PX = 22.0
+#: A view is judged only when its mean cost rises by at least SYNC_MIN_RISE (relative) from
+#: the chosen shift to a shift SYNC_SENSE_FRAMES away on each side (the farthest tried up to
+#: there): detections that do not follow the motion cannot say "in sync". Session 32's bench
+#: (one noise draw): the Kick view delayed on purpose cost 17.7-18.2 px at every shift from -3
+#: to 0 and read 0 (passing for in sync); the clean views rise 0-109 %, 11 of 32 by less than
+#: 10 %. (A significance test of the rise, frame-clustered like SYNC_MIN_Z at 2.5, passed
+#: only 13 of 32 on 20 frames and failed clear V's such as Posing's 50591643, 75 % up at z 1.4:
+#: most frames of a view carry no timing, the few moving ones all of it.)
+SYNC_SENSE_FRAMES = 2
+SYNC_MIN_RISE = 0.10
 SYNC_MARKER_RADIUS_M = 0.15  # a keypoint follows its nearest marker within this (sync)
 
 # ---------------------------------------------------------------- geometry

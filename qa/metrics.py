@@ -29,7 +29,12 @@
   view keeps 0. The partner's fit took the view under test in, which pulls it toward no
   shift: it adds evidence (the wearer alone moves too little in many actions) and can only
   make the test more cautious. Between the wearer's fit frames (a keypoint stride) its
-  keypoints follow its markers (:func:`_sync_people`), the partner's a cubic spline;
+  keypoints follow its markers (:func:`_sync_people`), the partner's a cubic spline. A view
+  is not measurable (no number; ``sync_not_measurable`` and, per view, the reason in
+  ``sync_not_measurable_why``) with fewer than ``SYNC_MIN_POINTS`` such detections, a best
+  cost above ``SYNC_MAX_COST_PX``, a best shift at the end of the range, or a cost that
+  rises by less than ``SYNC_MIN_RISE`` ``SYNC_SENSE_FRAMES`` frames away on either side
+  (:func:`_sync_rise`): detections that do not follow the motion cannot say "in sync";
 - ``penetration_mm``: the deepest surface point of either body inside the other (subsampled:
   the ``PROXY_VERTICES`` proxy points of one body, inside the other's proxy by the generalized
   winding number; their depth is exact, to the other's full mesh); ``penetration_volume_cm3``:
@@ -544,6 +549,20 @@ def _paired_z(d: np.ndarray, unit: np.ndarray) -> float:
     return float(g.mean() / (sd / np.sqrt(len(u))))
 
 
+def _sync_rise(cost: dict[int, float], best: int) -> float:
+    """How much a view's mean cost rises (relative) from the chosen shift ``best`` to the shift
+    ``SYNC_SENSE_FRAMES`` away on each side (the farthest tried up to there), the smaller side:
+    whether the view could tell its offset from one that many frames away. Detections that do
+    not follow the motion (a view reading somebody else, or nobody) leave the cost flat."""
+    rise = []
+    for side in (-1, 1):
+        near = [s for s in cost if 0 < side * (s - best) <= K.SYNC_SENSE_FRAMES]
+        if near:
+            far = max(near, key=lambda s: side * (s - best))
+            rise.append(cost[far] / max(cost[best], 1e-9) - 1.0)
+    return min(rise, default=0.0)
+
+
 def _sync(model, fits, keypoints, cams, opts, seq, marker_track=None):
     """Per view the best time shift of the detections against the fits (the wearer first; see
     the module doc) and the cost of each shift. fits: [(BodyFit, person index)]."""
@@ -552,7 +571,7 @@ def _sync(model, fits, keypoints, cams, opts, seq, marker_track=None):
     kf = np.asarray(keypoints.frames)
     shifts = [int(s) for s in K.SYNC_SHIFTS]
     pts = list(K.BODY + K.HANDS)
-    offsets, costs, points, unmeasured, zs = {}, {}, {}, [], {}
+    offsets, costs, points, unmeasured, zs, rises, why = {}, {}, {}, [], {}, {}, {}
     people = _sync_people(model, fits, keypoints, marker_track)
     seq["sync_from"] = "markers" if marker_track is not None else "fit"
     for cam in cams:
@@ -584,26 +603,42 @@ def _sync(model, fits, keypoints, cams, opts, seq, marker_track=None):
         e = {s: np.concatenate(v) if v else np.zeros(0) for s, v in err.items()}
         points[cam.name] = int(len(e[0]))
         if len(e[0]) < K.SYNC_MIN_POINTS:
+            why[cam.name] = (f"{len(e[0])} detections that move with the shift (needs "
+                             f"{K.SYNC_MIN_POINTS})")
+            unmeasured.append(cam.name)
             continue
         cost = {s: float(e[s].mean()) for s in shifts}
         costs[cam.name] = {str(k): round(v, 3) for k, v in cost.items()}
         if min(cost.values()) > K.SYNC_MAX_COST_PX:  # most detections a miss at every shift
+            why[cam.name] = (f"the best shift costs {min(cost.values()):.1f} px (more than "
+                             f"{K.SYNC_MAX_COST_PX:.0f})")
             unmeasured.append(cam.name)
             continue
         best = min(cost, key=cost.get)
         if best in (min(shifts), max(shifts)):  # no minimum inside the range: a trend, not a shift
+            why[cam.name] = f"no minimum inside {min(shifts)}..{max(shifts)} frames"
             unmeasured.append(cam.name)
             continue
         z = _paired_z(e[0] - e[best], np.concatenate(unit)) if best != 0 else 0.0
         zs[cam.name] = round(min(z, 999.0), 2)  # (JSON has no infinity)
         if z < K.SYNC_MIN_Z:
             best = 0
+        rise = _sync_rise(cost, best)
+        rises[cam.name] = round(rise, 3)
+        if rise < K.SYNC_MIN_RISE:  # a cost that hardly moves with the shift cannot say "in sync"
+            why[cam.name] = (f"flat: the cost rises {100 * rise:.0f} % "
+                             f"{K.SYNC_SENSE_FRAMES} frames away (needs "
+                             f"{100 * K.SYNC_MIN_RISE:.0f} %)")
+            unmeasured.append(cam.name)
+            continue
         offsets[cam.name] = int(best)
     seq["sync_offset_frames"] = offsets
     seq["sync_z"] = zs
     seq["sync_cost"] = costs
     seq["sync_points"] = points
     seq["sync_not_measurable"] = unmeasured
+    seq["sync_rise"] = rises
+    seq["sync_not_measurable_why"] = why
     return offsets
 
 

@@ -377,7 +377,8 @@ def _img(src: str, base: Path, alt: str = "", cls: str = "") -> str:
 # ----------------------------------------------------------------------------- sequence report
 
 _SUMMARY_KNOWN = ("frames", "flagged", "rate", "spans", "people", "reasons", "not_valid",
-                  "sync_offset_frames", "sync_z", "thresholds", "units")
+                  "sync_offset_frames", "sync_z", "sync_not_measurable_why", "thresholds",
+                  "units")
 
 
 def _span_html(i: int, s: dict, base: Path, thresholds: dict, units: dict, file: Path) -> str:
@@ -531,14 +532,19 @@ def write_sequence_report(out_dir: Path, *, sequence: str, title: str, summary: 
                      f"<tr><td>{esc(p)}</td><td>{esc(fmt_num(n))}</td></tr>" for p, n in nv.items())
                  + "</table>")
     sync = summary.get("sync_offset_frames") or {}
-    if sync:
+    why = summary.get("sync_not_measurable_why") or {}
+    if sync or why:
         zs = summary.get("sync_z") or {}
         rows = "".join(
             f"<tr><td>{esc(c)}</td><td class=\"{'flag' if o else 'okc'}\">{esc(fmt_num(o))}</td>"
             f"<td>{esc(fmt_num(zs[c])) if c in zs else ''}</td></tr>" for c, o in sync.items())
+        rows += "".join(
+            f"<tr><td>{esc(c)}</td><td class=\"flag\">not measurable</td><td>{esc(w)}</td></tr>"
+            for c, w in why.items() if c not in sync)
         b.append("<h3>Camera time offsets (video frames; 0 = in sync)</h3><table class=\"kv\">"
                  "<tr><th>camera</th><th>offset</th><th>evidence of the best other shift "
-                 f"(standard errors; kept from {esc(fmt_num(_SYNC_MIN_Z))})</th></tr>{rows}"
+                 f"(standard errors; kept from {esc(fmt_num(_SYNC_MIN_Z))}), or why the view "
+                 f"cannot tell</th></tr>{rows}"
                  "</table>")
     if heldout:
         b.append(heldout_html(heldout))

@@ -249,6 +249,52 @@ def test_sync_offset_measured_on_the_partner_when_the_wearer_stands_still(scene,
     assert alone.sequence["sync_points"] == {"cam0": 0, "cam1": 0, "cam2": 0}
 
 
+def test_a_view_whose_cost_does_not_move_with_the_shift_is_not_called_in_sync():
+    """qa.metrics._sync_rise: the cost curve of session 32's bench view delayed by 2 frames
+    (its detections did not follow the motion: 17.7-18.2 px from -3 to 0) is flat, so the
+    view is not measurable, where it read 0 (in sync) before; a view that follows the motion
+    (the clean views' V, 8 -> 11 px at 2 frames) rises on both sides, also around a best
+    shift next to the range's end (one side then looks 1 frame away only)."""
+    from qa import constants as K
+    from qa.metrics import _sync_rise
+
+    delayed = dict(zip(range(-3, 4), (17.929, 17.724, 17.838, 18.244, 18.878, 19.637, 20.366),
+                       strict=True))
+    assert _sync_rise(delayed, 0) < 0 < K.SYNC_MIN_RISE  # -2 is cheaper than the 0 it reads
+    assert _sync_rise(delayed, -2) < K.SYNC_MIN_RISE  # and -2 itself is not told from -3
+    v = dict(zip(range(-3, 4), (12.86, 11.06, 9.14, 7.97, 9.29, 11.27, 12.79), strict=True))
+    assert _sync_rise(v, 0) == pytest.approx(11.06 / 7.97 - 1) and _sync_rise(v, 0) > 0.3
+    shifted = {s: v[min(max(s + 2, -3), 3)] for s in range(-3, 4)}  # best at -2
+    assert min(shifted, key=shifted.get) == -2
+    assert _sync_rise(shifted, -2) == pytest.approx(9.14 / 7.97 - 1)  # -3: one frame away
+    assert _sync_rise(shifted, -2) > K.SYNC_MIN_RISE
+
+
+def test_a_view_that_reads_nobody_in_time_is_reported_not_measurable(scene, model):
+    """Through sequence_metrics: a view whose partner detections stand still while the partner
+    walks past (a detector locked on a poster) is not measurable, with its reason, and the
+    views that see the walk are measured in sync; the report is strict JSON."""
+    cams = scene["cams"]
+    w = scene["wearer"]
+    still = dataclasses.replace(w, transl=np.tile(np.asarray(w.transl)[:1], (F, 1)))
+    pt = np.asarray(scene["partner_clean"].transl).copy()
+    pt[:, 0] = 1.45
+    walker = dataclasses.replace(scene["partner_clean"], transl=pt)
+    kps = _keypoints(model, [still, walker], cams)
+    kp = np.array(kps.kp)
+    rng = np.random.default_rng(3)
+    mid = kp[1, F // 2, 1, :, :2].copy()
+    kp[1, :, 1, :, :2] = mid + rng.normal(0, 6.0, (F, 65, 2))  # cam1: the partner frozen
+    kps = dataclasses.replace(kps, kp=kp)
+    m = sequence_metrics(model, still, walker, kps, cams, None, GROUND, FPS)
+    seq = m.sequence
+    assert seq["sync_offset_frames"] == {"cam0": 0, "cam2": 0}
+    assert "cam1" in seq["sync_not_measurable"]
+    assert seq["sync_not_measurable_why"]["cam1"].startswith("flat")  # 0 (in sync) before
+    assert seq["sync_rise"]["cam0"] > 0.1 and seq["sync_rise"]["cam2"] > 0.1
+    json.dumps(seq, allow_nan=False)
+
+
 def test_a_shift_that_wins_in_some_frames_only_is_not_kept():
     from qa.metrics import _paired_z
 

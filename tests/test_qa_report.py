@@ -117,6 +117,7 @@ def build_report(root: Path, seq: str = SEQ, n_spans: int = 2, video: bool = Tru
     summary = {"frames": 40, "flagged": 10, "rate": 0.25, "people": ["wearer", "partner"],
                "reasons": {"partner.reproj_body_px.58860488": 10, "penetration_mm": 4},
                "not_valid": {"partner": 2}, "sync_offset_frames": {"58860488": 0, "50591643": 2},
+               "sync_not_measurable_why": {"65906101": "flat: the cost rises 2 % <2 frames>"},
                "thresholds": {"partner.reproj_body_px.58860488": 15.0, "penetration_mm": 20.0},
                "units": {"partner.reproj_body_px.58860488": "px", "penetration_mm": "mm"},
                "s_per_frame": 0.21, "odd <key>": EVIL}
@@ -194,8 +195,11 @@ def test_spans_reasons_in_plain_words_and_stage_reports(report):
     # the video offers the WebM first (Chromium cannot decode mp4v), the MP4 second
     v = text[text.index("<video"):text.index("</video>")]
     assert v.index("tiles.webm") < v.index("tiles.mp4")
-    # sync offsets: the non-zero one is marked
+    # sync offsets: the non-zero one is marked; a view that cannot tell is listed with why
     assert re.search(r"50591643</td><td class=\"flag\">2<", text)
+    assert re.search(r"65906101</td><td class=\"flag\">not measurable</td><td>flat: the cost "
+                     r"rises 2 % &lt;2 frames&gt;<", text)
+    assert "sync_not_measurable_why" not in text  # not repeated raw under "More"
 
 
 def test_describe_reason():
