@@ -91,7 +91,10 @@ LIMITS = {
         "confident feet (the partner fit's check_views then drops it when one other view "
         "agrees with its estimate)."),
     "keypoints.identity_swaps": (
-        "session 21's one swapped frame (HoldingHands frame 18, view 58860488) is the "
+        "the two classes where the people stand closest in a view: session 31's run 6 frames "
+        "(HoldingHands 4, Hug 2) in 6 views, session 32's 5 (HoldingHands 3, Hug 2) in 6; not "
+        "examined one by one since session 21. There, the one swapped frame (HoldingHands "
+        "frame 18, view 58860488) was the "
         "wearer's crop locked onto the partner standing right behind it: the two people's truths 48 px apart (median) in that view, the "
         "detection 11 px from the partner's and 23 from the wearer's, close enough to pass the "
         "wearer's marker check (detect.people.wearer_check) and the cross-view checks."),
