@@ -75,8 +75,9 @@ def joint_limits(joint_names) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass(frozen=True)
 class GaussianPrior:
-    """``|A (theta - mean)|^2`` over ``theta (n,)``: ``mean (n,)``, ``sqrt_precision A (n, n)``
-    (``A^T A = Sigma^-1``), radians; ``source`` says what it was learned from."""
+    """``|A (theta - mean)|^2`` over ``theta (n,)``: ``mean (n,)``, ``sqrt_precision A (k, n)``
+    (``A^T A = Sigma^-1``; ``k > n`` when rows were appended, :func:`couple_chains`), radians;
+    ``source`` says what it was learned from."""
 
     mean: np.ndarray
     sqrt_precision: np.ndarray
@@ -137,6 +138,44 @@ def default_prior(joint_names) -> PosePrior:
                       "no motion data: zero mean, sigma = joint-limit / 3 per axis "
                       "(fitting/priors.py JOINT_CLASSES)")
     return PosePrior(names, g, lo, hi, np.arange(len(hi)))
+
+
+#: Chains of joints that bend together (a spine's vertebrae share a bend between them): the
+#: fitted joints of Anny's trunk, pelvis to chest. Anny's pose-0 joint frames are all aligned
+#: with the body (``body/lbs.py``: G_j = I at rest), so a bend shared evenly over a chain is
+#: equal local rotation vectors (exactly for bends about one axis, to first order otherwise).
+SPINE_CHAIN = ("spine05", "spine03", "spine01")
+
+
+def couple_chains(prior: PosePrior, chains, sigma_rad: float) -> PosePrior:
+    """The prior with, per chain of joints (names; those not posed are skipped) and per pair
+    of consecutive posed joints ``a, b`` in it, the rows ``(theta_a - theta_b) / sigma_rad``
+    appended to the Gaussian's ``sqrt_precision``: a bend is shared over the chain unless the
+    evidence says otherwise (a chain's joints differing by ``sigma_rad`` per axis cost as much
+    as one joint ``sigma`` from the mean). Keypoints on the shoulders and hips fix the trunk's
+    total bend but not how it is shared between the vertebrae, so without this the fit puts it
+    wherever the per-joint prior is weakest. ``sigma_rad`` <= 0: the prior unchanged."""
+    if not sigma_rad > 0:
+        return prior
+    names = list(prior.joint_names)
+    n = len(prior.lo)
+    rows, used = [], []
+    for chain in chains:
+        posed = [names.index(j) for j in chain if j in names]
+        for a, b in zip(posed[:-1], posed[1:], strict=True):
+            for ax in range(3):
+                r = np.zeros(n)
+                r[3 * a + ax], r[3 * b + ax] = 1.0 / sigma_rad, -1.0 / sigma_rad
+                rows.append(r)
+        if len(posed) > 1:
+            used.append("-".join(names[i] for i in posed))
+    if not rows:
+        return prior
+    g = prior.gaussian
+    A = np.concatenate([np.asarray(g.sqrt_precision, float), np.asarray(rows)], axis=0)
+    src = (f"{g.source}; chains bending together ({', '.join(used)}): consecutive joints "
+           f"coupled at sigma {np.rad2deg(sigma_rad):.1f} deg per axis")
+    return with_gaussian(prior, GaussianPrior(g.mean, A, src))
 
 
 def with_gaussian(prior: PosePrior, gaussian: GaussianPrior) -> PosePrior:

@@ -48,3 +48,41 @@ def test_default_prior_says_where_it_comes_from():
     with pytest.raises(ValueError):
         priors.with_gaussian(p, priors.learn_gaussian(np.zeros((5, 3)) + np.arange(5)[:, None],
                                                       "wrong size"))
+
+
+def test_a_bend_shared_along_a_chain_costs_nothing_extra_and_a_kink_does():
+    names = ["spine05", "lowerarm01.L", "spine03", "spine01"]  # a chain need not be contiguous
+    plain = priors.default_prior(names)
+    sigma = np.deg2rad(15.0)
+    p = priors.couple_chains(plain, (priors.SPINE_CHAIN, ("neck01", "head")), sigma)
+    # two consecutive pairs of the spine, 3 axes each; the neck chain is not posed: no rows
+    assert p.gaussian.sqrt_precision.shape == (12 + 6, 12)
+    assert "spine05-spine03-spine01" in p.source and "neck01" not in p.source
+    assert p.source.startswith(plain.source)
+    np.testing.assert_array_equal(p.lo, plain.lo)
+
+    def cost(prior, theta):
+        return float(np.sum(prior.gaussian.residual(theta) ** 2))
+
+    even = np.zeros(12)
+    even[[0, 6, 9]] = 0.2  # the same bend about x at each spine joint
+    assert cost(p, even) == pytest.approx(cost(plain, even))
+    kink = np.zeros(12)
+    kink[0] = 0.6  # the whole bend at the lowest joint
+    # one pair differs by 0.6 rad about x
+    assert cost(p, kink) - cost(plain, kink) == pytest.approx((0.6 / sigma) ** 2)
+    elbow = np.zeros(12)
+    elbow[3:6] = 0.5  # not in a chain: unchanged
+    assert cost(p, elbow) == pytest.approx(cost(plain, elbow))
+    # the minimum-norm way to make a given total bend is the even one, and the coupling makes
+    # the kink dearer than the plain prior alone does
+    assert cost(p, kink) / cost(p, even) > cost(plain, kink) / cost(plain, even)
+    assert priors.couple_chains(plain, (priors.SPINE_CHAIN,), 0.0) is plain
+
+
+def test_the_partner_fit_rejects_a_negative_spine_coupling():
+    from fitting.partner_fit import PartnerFitOptions
+
+    with pytest.raises(ValueError, match="spine_coupling_deg"):
+        PartnerFitOptions(spine_coupling_deg=-1.0)
+    assert PartnerFitOptions().spine_coupling_deg > 0

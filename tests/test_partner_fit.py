@@ -346,6 +346,7 @@ def test_stage_writes_fit_terms_report_and_plot(stage_files, tmp_path, scene):
     rep = json.loads((d / "report.json").read_text())
     assert rep["frames_valid"] == F_SYN and rep["contact"]["interval"] == [2, 4]
     assert rep["second_pass"] == {"run": False, "why_not": "precomputed keypoints"}
+    assert "chains bending together (spine05-spine03-spine01)" in rep["prior"]  # L_theta's coupling
     # clean keypoints: all of the partner's body keypoints given, none on the wearer, no warning
     assert rep["body_keypoints_detected"] == int((scene.kp[:, :, 1, :23, 2] > 0).sum())
     assert rep["keypoints_dropped_as_wearer"]["keypoints"] == 0 and rep["warnings"] == []

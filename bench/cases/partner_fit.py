@@ -46,7 +46,8 @@ The wearer's figures on the same frames beside them: ``partner_fit.wearer_mpjpe_
 
 Ablation (the paper's Table 3): the full method's row is the main run; every other row of
 ``VARIANTS`` (the reference ``first_pass``, without ``L_G``, without ``L_ic``, without the hand
-keypoints of ``L_2d``, without ``L_sil``, without the hand gate, without the temporal pass)
+keypoints of ``L_2d``, without ``L_sil``, without the hand gate, without the temporal pass, and ours: without the
+spine's coupling in ``L_theta``)
 runs the stage through the engine with ``second_pass`` off on the same upstream artifacts
 (hard-linked from the full run's outputs into ``outputs_<variant>``, so only partner_fit is
 recomputed): one fit on the first detection pass, so each row differs from the reference row
@@ -219,6 +220,7 @@ VARIANTS = {  # the paper's Table 3 ablation: stage option overrides of each row
     "no_L_sil": {"weights": {"L_sil": 0.0}},
     "no_hand_gate": {"hand_gate_px": 0.0},
     "no_temporal": {"temporal_passes": 0},
+    "no_spine_coupling": {"spine_coupling_deg": 0.0},  # not a row of the paper's table
 }
 DEFAULT_VARIANTS: tuple[str, ...] = ()  # the full method alone (see the module doc)
 TABLE_PREFIX = "partner_fit.table3."
@@ -425,7 +427,8 @@ ROWS = {"full": "full method (second detection pass: the main table)",
         "first_pass": "reference: full method, first detection pass only",
         "no_L_G": "without L_G (L_D, L_N)", "no_L_ic": "without L_ic",
         "no_hands": "without L_2d hands", "no_L_sil": "without L_sil (silhouettes)",
-        "no_hand_gate": "without the hand gate", "no_temporal": "without the temporal pass"}
+        "no_hand_gate": "without the hand gate", "no_temporal": "without the temporal pass",
+        "no_spine_coupling": "without the spine's coupling in L_theta"}
 
 
 def report(results: dict) -> str:
