@@ -61,7 +61,8 @@ class Options(PartnerFitOptions):
     sequences whose keypoints the stage detected itself, not precomputed ones), then fit again
     on the merged keypoints; pose_min_conf / hand_min_conf : its mediapipe thresholds;
     first_fit : the fit before the second pass, whose only use is to place its crops:
-    "light" (``LIGHT_FIRST_FIT``: one round per frame, without the temporal pass and the two costliest hooks,
+    "light" (``LIGHT_FIRST_FIT``: one round per frame, without the temporal pass, the second
+    forward pass of ``reliability_px`` and the two costliest hooks,
     ``L_sc`` and ``L_sil``; the final fit is always the full one, also when the pass improved
     no view) or "full" (the final fit's options: when the pass improves no view, the first
     fit is kept as the final one).
@@ -90,7 +91,8 @@ class Options(PartnerFitOptions):
 
 #: what the light first fit leaves out (``Options.first_fit``): the second pass needs only
 #: where the partner projects (crops of a few hundred pixels), not its last millimetres
-LIGHT_FIRST_FIT = {"temporal_passes": 0, "outer_rounds": 1, "weights": {"L_sc": 0.0, "L_sil": 0.0}}
+LIGHT_FIRST_FIT = {"temporal_passes": 0, "outer_rounds": 1, "reliability_px": 0.0,
+                   "weights": {"L_sc": 0.0, "L_sil": 0.0}}
 
 
 def first_fit_options(o: Options) -> Options:
@@ -101,6 +103,7 @@ def first_fit_options(o: Options) -> Options:
         return o
     return dataclasses.replace(o, temporal_passes=LIGHT_FIRST_FIT["temporal_passes"],
                                outer_rounds=LIGHT_FIRST_FIT["outer_rounds"],
+                               reliability_px=LIGHT_FIRST_FIT["reliability_px"],
                                weights={**o.weights, **LIGHT_FIRST_FIT["weights"]})
 
 
@@ -144,6 +147,7 @@ def run(ctx: StageContext) -> None:
         contact_figures,
         fit_partner,
         outlier_warnings,
+        unreliable_warnings,
         wearer_drop_warnings,
     )
 
@@ -200,6 +204,7 @@ def run(ctx: StageContext) -> None:
         (second or {}).get("keypoints_dropped_as_wearer", 0))
     report["warnings"] += outlier_warnings(report["keypoints_rejected_as_outliers"],
                                            [c.name for c in cams])
+    report["warnings"] += unreliable_warnings(report["detections_unreliable"])
     report["warnings"] += bystander_warnings(
         report["views_dropped_as_bystander_per_view"],
         report["keypoints_rejected_as_outliers"]["frames_solved"], [c.name for c in cams])
@@ -334,6 +339,7 @@ def run_markerless(ctx: StageContext, o: Options, model, cams) -> None:
         fit_partner,
         outlier_warnings,
         shape_from_views,
+        unreliable_warnings,
     )
 
     rv = ctx.recipe
@@ -397,7 +403,8 @@ def run_markerless(ctx: StageContext, o: Options, model, cams) -> None:
                         fits[p].frames[~ok], [_reason(c) for c in fits[p].invalid_reason[~ok]],
                         strict=True)}})
         rep["warnings"] = [f"{sid}: {w}" for w in outlier_warnings(
-            rep["keypoints_rejected_as_outliers"], [c.name for c in cams]) + bystander_warnings(
+            rep["keypoints_rejected_as_outliers"], [c.name for c in cams])
+            + unreliable_warnings(rep["detections_unreliable"]) + bystander_warnings(
             rep["views_dropped_as_bystander_per_view"],
             rep["keypoints_rejected_as_outliers"]["frames_solved"], [c.name for c in cams])]
         for w in rep["warnings"]:

@@ -586,7 +586,8 @@ def test_a_keypoint_the_fit_does_not_follow_is_not_ground_truth(scene):
     truth there (``keypoints_observed``, ``fit_points_observed``), although every joint it
     hangs on is observed through other keypoints (``observed``); the right wrist, agreed
     with in four views, stays. With ``observed_px`` above the offsets (and the outliers kept:
-    ``outlier_px`` 0) the elbow counts again."""
+    ``outlier_px`` 0) the elbow counts again. (``reliability_px`` 0: it would leave the three
+    views' elbow out of every frame, the first two as well.)"""
     from body.joints import regressor
     from fitting.marker_graph import fit_points_observed, observed_points
     from formats.skeletons import JOINTS3D_25, KP65
@@ -595,7 +596,7 @@ def test_a_keypoint_the_fit_does_not_follow_is_not_ground_truth(scene):
     el = KP65.index("r_elbow")
     for c, shift in zip((1, 2, 3), ((60.0, 0.0), (0.0, 60.0), (-45.0, -40.0)), strict=True):
         kp[c, 2:, 1, el, :2] += shift
-    fit, rep = _fit(scene, kp)
+    fit, rep = _fit(scene, kp, opts={"reliability_px": 0.0})
     ko = np.asarray(fit.keypoints_observed)
     assert ko.shape == (F_SYN, len(KP65))
     assert ko[:2, el].all() and not ko[2:, el].any()
@@ -607,7 +608,8 @@ def test_a_keypoint_the_fit_does_not_follow_is_not_ground_truth(scene):
     assert pts[:2, j["r_elbow"]].all() and not pts[2:, j["r_elbow"]].any()
     assert pts[:, j["r_wrist"]].all() and pts[:, j["l_elbow"]].all()
     assert rep["joints_observed"]["per_joint"]["r_elbow"] == pytest.approx(2 / F_SYN, abs=1e-3)
-    loose, _ = _fit(scene, kp, opts={"observed_px": 200.0, "outlier_px": 0.0})
+    loose, _ = _fit(scene, kp, opts={"observed_px": 200.0, "outlier_px": 0.0,
+                                     "reliability_px": 0.0})
     assert np.asarray(loose.keypoints_observed)[:, el].all()
 
 
@@ -615,20 +617,21 @@ def test_a_detection_far_from_the_solved_frame_is_left_out(scene):
     """The right wrist detected 80 px off in view 1 in every frame (the other views right):
     after each frame's solve it lies farther than ``outlier_px`` from the fitted wrist, so it
     is left out and the frame solved again (counted per frame and view); the fit is at least
-    as close to the truth as with it kept (outlier_px 0: nothing left out)."""
+    as close to the truth as with it kept (outlier_px 0: nothing left out). (``reliability_px``
+    0: that rule would leave the view's wrist out before any solve.)"""
     from formats.skeletons import KP65
 
     kp = scene.kp.copy()
     wr = KP65.index("r_wrist")
     kp[1, :, 1, wr, :2] += (80.0, 0.0)
-    fit, rep = _fit(scene, kp)
+    fit, rep = _fit(scene, kp, opts={"reliability_px": 0.0})
     n = rep["per_frame"]["keypoints_rejected"]  # (F, C)
     assert (n[:, 1] >= 1).all() and n[:, [0, 2, 3]].sum() == 0, n
     out = rep["keypoints_rejected_as_outliers"]
     assert out["keypoints"] == int(n.sum()) and out["outlier_px"] == 35.0
     # one keypoint of a view's many is not most of them: no view reported
     assert out["frames_view_lost_most"] == [0, 0, 0, 0] and out["frames_solved"] == F_SYN
-    kept, rep0 = _fit(scene, kp, opts={"outlier_px": 0.0})
+    kept, rep0 = _fit(scene, kp, opts={"outlier_px": 0.0, "reliability_px": 0.0})
     assert rep0["keypoints_rejected_as_outliers"]["keypoints"] == 0
     assert rep0["keypoints_rejected_as_outliers"]["outlier_px"] is None
     err, _ = _joint_err_mm(scene, fit)
@@ -640,12 +643,21 @@ def test_a_view_that_loses_most_of_its_keypoints_as_outliers_is_reported(scene):
     """View 2's detections all 55 px off in every frame (its calibration wrong; less than
     ``bystander_px``, which would drop the view whole): the other three views fit the body,
     view 2's keypoints lie farther than ``outlier_px`` from it and are left out, most of them
-    in every frame, so the report warns naming the view; the share threshold decides."""
-    from fitting.partner_fit import OUTLIER_WARN_SHARE, outlier_warnings
+    in every frame, so the report warns naming the view; the share threshold decides. With
+    ``reliability_px`` on (the default), the view's keypoints are left out as its bias before
+    the second forward pass, and the warning says so instead."""
+    from fitting.partner_fit import OUTLIER_WARN_SHARE, outlier_warnings, unreliable_warnings
+    from formats.skeletons import KP65
 
     kp = scene.kp.copy()
     kp[2, :, 1, :, :2] += (55.0, 0.0)
-    _, rep = _fit(scene, kp)
+    _, rel = _fit(scene, kp)
+    assert rel["detections_unreliable"]["per_view"] == {"cam2": list(KP65[:23])}
+    (w,) = unreliable_warnings(rel["detections_unreliable"])
+    assert w.startswith("view cam2: 23 of the partner's 23 body keypoints") and "25.0 px" in w
+    _, rep = _fit(scene, kp, opts={"reliability_px": 0.0})
+    assert rep["detections_unreliable"] == {"reliability_px": None, "pairs": 0,
+                                            "frames_kept_from_first_pass": 0, "per_view": {}}
     out = rep["keypoints_rejected_as_outliers"]
     lost = out["frames_view_lost_most"]
     assert lost[2] >= F_SYN - 1 and lost[0] == lost[1] == lost[3] == 0, out
@@ -659,6 +671,76 @@ def test_a_view_that_loses_most_of_its_keypoints_as_outliers_is_reported(scene):
     (w,) = outlier_warnings({**out, "frames_view_lost_most": [0, 3, 0, 0],
                              "frames_solved": 20}, names)
     assert w.startswith("view c1: in 3 of 20 solved frames (15 %")
+
+
+def test_a_views_persistent_keypoint_bias_is_found_over_the_sequence(scene):
+    """``unreliable_detections``: a (view, keypoint) is the view's bias where its detections
+    lie farther than ``max_px`` from the fitted keypoints in the median over the frames that
+    have both, judged on at least ``min_frames`` of them. View 1's right wrist 30 px off in
+    every frame is; view 2's left knee 30 px off in 2 of 6 frames is not (its median is the
+    noise); view 3's nose 30 px off but detected in 4 frames is not judged (5 needed), nor in
+    6 where only 4 are fitted (None)."""
+    from calib import project
+    from fitting.partner_fit import unreliable_detections
+    from formats.skeletons import KP65
+
+    rng = np.random.default_rng(0)
+    F, K = F_SYN, 23
+    pts = [scene.kp3[f, :K] for f in range(F)]
+    uv = np.stack([np.stack([project(c, pts[f]) for c in scene.cams]) for f in range(F)])
+    uv += rng.normal(0, 2.0, uv.shape)
+    conf = np.full((F, 4, K), 0.9)
+    wr, kn, no = KP65.index("r_wrist"), KP65.index("l_knee"), KP65.index("nose")
+    uv[:, 1, wr] += (30.0, 0.0)
+    uv[:2, 2, kn] += (0.0, 30.0)
+    uv[:, 3, no] += (30.0, 0.0)
+    conf[4:, 3, no] = 0.0
+    bad = unreliable_detections(scene.cams, pts, uv, conf, 25.0)
+    assert bad.shape == (4, K) and np.argwhere(bad).tolist() == [[1, wr]]
+    assert not unreliable_detections(scene.cams, pts, uv, conf, 35.0).any()  # 30 px < 35
+    conf[4:, 3, no] = 0.9
+    assert np.argwhere(unreliable_detections(scene.cams, pts, uv, conf, 25.0)).tolist() == [
+        [1, wr], [3, no]]
+    some = [p if f < 4 else None for f, p in enumerate(pts)]
+    assert not unreliable_detections(scene.cams, some, uv, conf, 25.0).any()
+    assert np.argwhere(unreliable_detections(scene.cams, some, uv, conf, 25.0, min_frames=4)
+                       ).tolist() == [[1, wr], [3, no]]
+
+
+def test_a_views_persistent_bias_below_outlier_px_is_left_out_and_fitted_without(scene):
+    """View 1 reads the right wrist 28 px off in every frame: closer than ``outlier_px`` (35),
+    so the per-frame rule keeps it and it pulls the wrist. Over the sequence it is the view's
+    bias (``reliability_px`` 25): left out, named in the report, and the fit's wrist is closer
+    to the truth than with the rule off; the three other views still make it observed."""
+    from body import forward
+    from body.joints import regressor
+    from formats.skeletons import KP65
+
+    kp = scene.kp.copy()
+    wr = KP65.index("r_wrist")
+    kp[1, :, 1, wr, :2] += (20.0, 19.0)
+    R = regressor(scene.model, "kp65")
+
+    def wrist_err_mm(fit):
+        est = forward(scene.model, scene.betas, fit.body_pose, fit.global_orient, fit.transl)
+        p = np.stack([(R @ np.concatenate([est.vertices[f], est.joints[f]]))[wr]
+                      for f in range(F_SYN)])
+        return float(np.linalg.norm(p - scene.kp3[:, wr], axis=-1).mean() * 1000)
+
+    fit, rep = _fit(scene, kp)
+    un = rep["detections_unreliable"]
+    assert un["reliability_px"] == 25.0 and un["pairs"] == 1 and un["per_view"] == {
+        "cam1": ["r_wrist"]}
+    assert 0 <= un["frames_kept_from_first_pass"] <= F_SYN
+    assert rep["keypoints_rejected_as_outliers"]["keypoints"] == 0
+    assert np.asarray(fit.keypoints_observed)[:, wr].all()
+    off, rep0 = _fit(scene, kp, opts={"reliability_px": 0.0})
+    assert rep0["detections_unreliable"]["pairs"] == 0
+    assert rep0["keypoints_rejected_as_outliers"]["keypoints"] == 0  # kept: it pulled
+    e, e0 = wrist_err_mm(fit), wrist_err_mm(off)
+    assert e < e0 - 1.0, (e, e0)
+    with pytest.raises(ValueError, match="reliability_px"):
+        _fit(scene, kp, opts={"reliability_px": -1.0})
 
 
 def test_a_view_dropped_whole_as_somebody_else_is_reported(scene):
@@ -720,7 +802,8 @@ def test_a_frame_seen_by_two_views_is_fitted_but_not_valid(scene):
 
 def test_the_light_first_fit_leaves_out_only_the_temporal_pass_rounds_and_costly_hooks():
     """The fit that places the second pass's crops (stages.partner_fit.first_fit_options):
-    "light" drops the temporal pass, the outer rounds after the first, L_sc and L_sil and
+    "light" drops the temporal pass, the outer rounds after the first, the second forward
+    pass of reliability_px, L_sc and L_sil and
     keeps every other option and weight as given; "full" is the final fit's options; anything
     else is refused."""
     import dataclasses
@@ -730,6 +813,7 @@ def test_the_light_first_fit_leaves_out_only_the_temporal_pass_rounds_and_costly
     o = Options(weights={"L_ic": 5e3}, temporal_passes=2, max_iters=7, outer_rounds=4)
     light = first_fit_options(o)
     assert light.temporal_passes == 0 and light.max_iters == 7 and light.outer_rounds == 1
+    assert light.reliability_px == 0 and o.reliability_px > 0  # no second forward pass
     assert light.weights["L_sc"] == 0 and light.weights["L_sil"] == 0
     kept = {k: v for k, v in o.weights.items() if k not in LIGHT_FIRST_FIT["weights"]}
     assert kept and all(light.weights[k] == v for k, v in kept.items())

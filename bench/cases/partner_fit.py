@@ -237,6 +237,7 @@ VARIANTS = {  # the paper's Table 3 ablation: stage option overrides of each row
     "no_hand_gate": {"hand_gate_px": 0.0},
     "no_temporal": {"temporal_passes": 0},
     "no_spine_coupling": {"spine_coupling_deg": 0.0},  # not a row of the paper's table
+    "no_reliability": {"reliability_px": 0.0},  # nor this one
 }
 DEFAULT_VARIANTS: tuple[str, ...] = ()  # the full method alone (see the module doc)
 TABLE_PREFIX = "partner_fit.table3."
@@ -444,7 +445,8 @@ ROWS = {"full": "full method (second detection pass: the main table)",
         "no_L_G": "without L_G (L_D, L_N)", "no_L_ic": "without L_ic",
         "no_hands": "without L_2d hands", "no_L_sil": "without L_sil (silhouettes)",
         "no_hand_gate": "without the hand gate", "no_temporal": "without the temporal pass",
-        "no_spine_coupling": "without the spine's coupling in L_theta"}
+        "no_spine_coupling": "without the spine's coupling in L_theta",
+        "no_reliability": "without leaving out a view's biased keypoints (reliability_px)"}
 
 
 def report(results: dict) -> str:
