@@ -40,7 +40,10 @@ LIMITS = {"pipeline.cpu_s_per_1000_frames": (
     "cheaper: compiled residuals for the partner fit (as the marker fit's CasADi graph) and "
     "the second detection pass only where the first needs it; the other stages together (qa "
     "~10 %, marker_fit ~5 %, export, convert, capture) are ~500 CPU-s per 1,000 frames. The "
-    "demo recipe runs no leave-one-out (marker_loo: not in the sum).")}
+    "demo recipe runs no leave-one-out (marker_loo: not in the sum). Session 34: 2084 -> "
+    "3168, the partner fit 121 -> 220 CPU-s on the demo sequence (share 0.58 -> 0.69): its "
+    "final fit runs the forward pass twice where a view's keypoint is left out as that "
+    "view's bias (reliability_px).")}
 PER_SEQUENCE = ("capture", "keypoints", "marker_fit", "marker_loo", "partner_fit", "convert",
                 "qa", "export")
 PER_SUBJECT = ("shape_fit",)
