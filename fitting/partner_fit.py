@@ -173,7 +173,12 @@ SPINE_COUPLING_DEG = 25.0
 #: 30.5 / 28.5 / 26.2; valid frames with a joint 10 cm off 34 / 30 / 30 of 151. Without the
 #: choice (the second pass kept whole): 25 px 22.9, 23.4, 25.9, 17.9, 26.4, 21.2, 124, 26.2
 #: (33 frames 10 cm off); 20 px 22.1, 24.4, 27.9, 17.9, 27.5, 21.6, 140, 26.3 (29). The
-#: fit's CPU: about 1.5x (the forward pass twice where a pair is left out).
+#: fit's CPU: 1.7x (the forward pass twice where a pair is left out, in 7 of the 8 bench
+#: sequences; the bench's fps_per_core 0.89 -> 0.52). Judging a view's bias also on the
+#: keypoints check_views dropped as the wearer's (Grab's wrist, used in 6 of 20 frames) or on
+#: every detection was measured on that store and not kept: it finds Grab's wrist (25.5 ->
+#: 24.3 mm) but leaves out more (Posing's legs: 28.7 -> 30.2): the seven classes without Hug
+#: 25.4 -> 25.5 mm (the bench's protocol, session 33's store).
 RELIABILITY_PX = 25.0
 # ... judged on at least this many fitted frames where the view detects the keypoint
 RELIABILITY_MIN_FRAMES = 5
@@ -887,6 +892,16 @@ def unreliable_warnings(unreliable: dict, share: float = 0.5) -> list[str]:
     return out
 
 
+def view_warnings(report: dict, views: list[str]) -> list[str]:
+    """The warnings a partner fit's ``report`` (:func:`fit_partner`) raises about single views:
+    :func:`outlier_warnings`, :func:`unreliable_warnings` and :func:`bystander_warnings`, in
+    that order. views : the cameras' names."""
+    rejected = report["keypoints_rejected_as_outliers"]
+    return (outlier_warnings(rejected, views) + unreliable_warnings(report["detections_unreliable"])
+            + bystander_warnings(report["views_dropped_as_bystander_per_view"],
+                                 rejected["frames_solved"], views))
+
+
 def bystander_warnings(dropped, solved: int, views: list[str],
                        share: float = BYSTANDER_WARN_SHARE) -> list[str]:
     """The report's warnings for a view whose partner detection was dropped whole as somebody
@@ -1491,8 +1506,9 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
                     # the detections left better (the second may have found a worse basin)
                     c1, c2 = (robust_px_cost(cams, slots(x), uv[f], conf[f],
                                              opts.sigma_keypoint_px) for x in (X1[f], X[f]))
-                    if c1 < c2:
-                        X[f] = X1[f]
+                    if c1 < c2:  # recorded again at that pose (tied to the frame before)
+                        ref = X[f - 1] if f > 0 and active[f - 1, 0] else None
+                        record(f, X1[f], solver.blocks(X1[f], f), ref)
                         kept_first.append(int(f))
         if opts.temporal_passes and F >= 3:  # both directions: each frame against both neighbours
             for _ in range(opts.temporal_passes):
@@ -1614,6 +1630,28 @@ def apply_min_valid_views(fit: BodyFit, report: dict, min_valid_views: int,
 # ---------------------------------------------------------------------------- figures
 
 
+def contact_regions(model: BodyModel, contact=None, rmap=None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The faces of each annotated region pair of ``contact`` (wearer region, partner region;
+    ``body.regions.region_map(model)`` unless ``rmap``); [] without a contact."""
+    if contact is None or not contact.has_contact:
+        return []
+    from body.regions import region_map
+
+    rm = region_map(model) if rmap is None else rmap
+    return [(rm.faces_of(int(a)), rm.faces_of(int(b))) for a, b in contact.region_pairs]
+
+
+def region_distance(V_wearer: np.ndarray, V_partner: np.ndarray, faces: np.ndarray,
+                    regions: list[tuple[np.ndarray, np.ndarray]]) -> float:
+    """The contact distance of two posed meshes (metres): the mean over the region pairs
+    (:func:`contact_regions`) of the smallest facet distance between the two regions
+    (``geometry.facet_distances``)."""
+    from geometry import facet_distances
+
+    return float(np.mean([facet_distances(V_wearer, faces, a, V_partner, faces, b).a_to_b.min()
+                          for a, b in regions]))
+
+
 def contact_figures(model: BodyModel, partner: BodyFit, wearer: BodyFit | None, contact=None,
                     ground=None, rmap=None) -> dict[str, np.ndarray]:
     """Per-frame figures of a fit (metres): ``penetration_m (F,)`` deepest interpenetration
@@ -1622,7 +1660,7 @@ def contact_figures(model: BodyModel, partner: BodyFit, wearer: BodyFit | None, 
     pairs of the smallest facet distance between the two regions (wearer region, partner
     region; ``geometry.facet_distances``), ``ground_m (F,)`` depth of the lowest partner
     vertex below the ground plane (0 above; NaN without a plane)."""
-    from geometry import facet_distances, interpenetration
+    from geometry import interpenetration
 
     F = partner.num_frames
     VP = forward(model, np.asarray(partner.betas, float), partner.body_pose,
@@ -1632,18 +1670,12 @@ def contact_figures(model: BodyModel, partner: BodyFit, wearer: BodyFit | None, 
     con = np.full(F, np.nan)
     gnd = np.full(F, np.nan)
     WV = wearer_vertices(model, wearer, partner.frames) if wearer is not None else [None] * F
-    sel = []
-    if contact is not None and contact.has_contact:
-        from body.regions import region_map
-
-        rm = region_map(model) if rmap is None else rmap
-        sel = [(rm.faces_of(int(a)), rm.faces_of(int(b))) for a, b in contact.region_pairs]
+    sel = contact_regions(model, contact, rmap)
     for i, f in enumerate(np.asarray(partner.frames)):
         if WV[i] is not None:
             pen[i] = interpenetration(VP[i], WV[i], faces).depth
             if sel and contact.interval[0] <= f <= contact.interval[1]:
-                con[i] = float(np.mean([facet_distances(WV[i], faces, a, VP[i], faces, b).a_to_b.min()
-                                        for a, b in sel]))
+                con[i] = region_distance(WV[i], VP[i], faces, sel)
         if ground is not None:
             d = VP[i] @ np.asarray(ground[0], float) - float(ground[1])
             gnd[i] = max(0.0, -float(d.min()))

@@ -143,11 +143,9 @@ def run(ctx: StageContext) -> None:
     from fitting.contact_signature import load_contact
     from fitting.partner_fit import (
         apply_min_valid_views,
-        bystander_warnings,
         contact_figures,
         fit_partner,
-        outlier_warnings,
-        unreliable_warnings,
+        view_warnings,
         wearer_drop_warnings,
     )
 
@@ -202,12 +200,7 @@ def run(ctx: StageContext) -> None:
     report["warnings"] = wearer_drop_warnings(
         report["body_keypoints_detected"], report["keypoints_dropped_as_wearer"]["keypoints"],
         (second or {}).get("keypoints_dropped_as_wearer", 0))
-    report["warnings"] += outlier_warnings(report["keypoints_rejected_as_outliers"],
-                                           [c.name for c in cams])
-    report["warnings"] += unreliable_warnings(report["detections_unreliable"])
-    report["warnings"] += bystander_warnings(
-        report["views_dropped_as_bystander_per_view"],
-        report["keypoints_rejected_as_outliers"]["frames_solved"], [c.name for c in cams])
+    report["warnings"] += view_warnings(report, [c.name for c in cams])
     for w in report["warnings"]:
         log(f"WARNING {w}")
     fig = contact_figures(model, fit, wearer, contact, ground)
@@ -334,12 +327,10 @@ def run_markerless(ctx: StageContext, o: Options, model, cams) -> None:
     from drawing.plots import partner_fit_plot
     from fitting.contact_signature import load_contact
     from fitting.partner_fit import (
-        bystander_warnings,
         contact_figures,
         fit_partner,
-        outlier_warnings,
         shape_from_views,
-        unreliable_warnings,
+        view_warnings,
     )
 
     rv = ctx.recipe
@@ -402,11 +393,7 @@ def run_markerless(ctx: StageContext, o: Options, model, cams) -> None:
                     "frames_not_valid_list": {str(int(f)): r for f, r in zip(
                         fits[p].frames[~ok], [_reason(c) for c in fits[p].invalid_reason[~ok]],
                         strict=True)}})
-        rep["warnings"] = [f"{sid}: {w}" for w in outlier_warnings(
-            rep["keypoints_rejected_as_outliers"], [c.name for c in cams])
-            + unreliable_warnings(rep["detections_unreliable"]) + bystander_warnings(
-            rep["views_dropped_as_bystander_per_view"],
-            rep["keypoints_rejected_as_outliers"]["frames_solved"], [c.name for c in cams])]
+        rep["warnings"] = [f"{sid}: {w}" for w in view_warnings(rep, [c.name for c in cams])]
         for w in rep["warnings"]:
             ctx.log(f"{ctx.unit}: WARNING {w}")
         writer.save_json("report", rep)

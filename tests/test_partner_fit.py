@@ -646,7 +646,12 @@ def test_a_view_that_loses_most_of_its_keypoints_as_outliers_is_reported(scene):
     in every frame, so the report warns naming the view; the share threshold decides. With
     ``reliability_px`` on (the default), the view's keypoints are left out as its bias before
     the second forward pass, and the warning says so instead."""
-    from fitting.partner_fit import OUTLIER_WARN_SHARE, outlier_warnings, unreliable_warnings
+    from fitting.partner_fit import (
+        OUTLIER_WARN_SHARE,
+        outlier_warnings,
+        unreliable_warnings,
+        view_warnings,
+    )
     from formats.skeletons import KP65
 
     kp = scene.kp.copy()
@@ -665,6 +670,10 @@ def test_a_view_that_loses_most_of_its_keypoints_as_outliers_is_reported(scene):
     (w,) = outlier_warnings(out, names)
     assert w.startswith("view c2:") and "35.0 px" in w
     assert outlier_warnings(out, names, share=1.0) == []  # no view loses most in > all frames
+    assert view_warnings(rep, names) == [w]  # what the stage's reports carry, both kinds
+    both = view_warnings(rel, names)
+    assert both == outlier_warnings(rel["keypoints_rejected_as_outliers"], names) + \
+        unreliable_warnings(rel["detections_unreliable"]) and both[-1].startswith("view cam2:")
     assert OUTLIER_WARN_SHARE == 0.10
     assert outlier_warnings({**out, "frames_view_lost_most": [0, 2, 0, 0],
                              "frames_solved": 20}, names) == []  # 10 %: not more than 10 %
@@ -741,6 +750,36 @@ def test_a_views_persistent_bias_below_outlier_px_is_left_out_and_fitted_without
     assert e < e0 - 1.0, (e, e0)
     with pytest.raises(ValueError, match="reliability_px"):
         _fit(scene, kp, opts={"reliability_px": -1.0})
+
+
+def test_a_frame_that_keeps_its_first_pass_is_recorded_at_that_pose(scene):
+    """``reliability_px``: view 1's left elbow read 28 px off in every frame is left out and
+    the forward pass runs again; a frame whose first pass explains the detections left better
+    keeps that pose (here one). Its records (the per-view reprojection error, and what makes
+    joints observed) are of the pose it keeps, against the detections left: with no temporal
+    pass to record it again, every solved frame's ``reproj_px`` is the fitted body's own."""
+    from body import forward
+    from body.joints import regressor
+    from calib import project
+    from formats.skeletons import KP65
+
+    kp = scene.kp.copy()
+    el = KP65.index("l_elbow")
+    kp[1, :, 1, el, :2] += (-20.0, -20.0)
+    fit, rep = _fit(scene, kp, opts={"temporal_passes": 0})
+    un = rep["detections_unreliable"]
+    assert un["per_view"] == {"cam1": ["l_elbow"]} and un["frames_kept_from_first_pass"] >= 1
+    est = forward(scene.model, scene.betas, fit.body_pose, fit.global_orient, fit.transl)
+    R = regressor(scene.model, "kp65")[:23]
+    used = kp[:, :, 1, :23].copy()
+    used[1, :, el, 2] = 0.0  # left out
+    err = rep["per_frame"]["reproj_px"]
+    for f in range(F_SYN):
+        p = R @ np.concatenate([est.vertices[f], est.joints[f]])
+        for c, cam in enumerate(scene.cams):
+            ok = used[c, f, :, 2] > 0
+            d = np.linalg.norm(project(cam, p[ok]) - used[c, f, ok, :2], axis=-1)
+            assert abs(np.median(d) - err[f, c]) < 1e-3, (f, c, np.median(d), err[f, c])
 
 
 def test_a_view_dropped_whole_as_somebody_else_is_reported(scene):
