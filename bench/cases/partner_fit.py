@@ -190,7 +190,11 @@ _HUG = ("the partner is hidden behind the wearer: in each frame one or two views
         "everywhere (0.1 / 0.2 / 0.3 / 0.4 m) gave Hug 122 / 105 / 100 / 145 mm (which basin "
         "the hug lands in changes with anything) and cost Handshake (26 -> 32 at 0.1-0.2 m), "
         "Push (23 -> 33 at 0.1) or Posing (26 -> 29-30 at 0.3-0.4), whose fits need the pull "
-        "from farther away: not kept. The hug itself (frames 48-96) stays 60-200 mm off either way.")
+        "from farther away: not kept. Nor does the fit without L_G tell the two apart: its "
+        "regions lie 213-377 mm apart in Hug's frames 0-30 and 102-119 (the truth 256-386), "
+        "but also 40-314 mm in Handshake's frames 36-90, where the true hands touch (1-10 mm). "
+        "The interval must hold only frames where its regions touch (the annotation's job), "
+        "or other evidence (the masks) must say where they part. The hug itself (frames 48-96) stays 60-200 mm off either way.")
 # what limits the classes without a mechanism of their own (session 30, on session 29's bench
 # store, code 0049c16; H36M-17 joints of the valid frames, centred at the pelvis)
 _ARMS_AND_SPINE = (
