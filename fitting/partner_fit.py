@@ -1632,13 +1632,14 @@ def apply_min_valid_views(fit: BodyFit, report: dict, min_valid_views: int,
 
 def contact_regions(model: BodyModel, contact=None, rmap=None) -> list[tuple[np.ndarray, np.ndarray]]:
     """The faces of each annotated region pair of ``contact`` (wearer region, partner region;
-    ``body.regions.region_map(model)`` unless ``rmap``); [] without a contact."""
+    ``body.regions.region_map(model)`` unless ``rmap``): ``psi_D`` in mode "all"
+    (``fitting.contact_signature.select_facets``); [] without a contact."""
     if contact is None or not contact.has_contact:
         return []
     from body.regions import region_map
+    from fitting.contact_signature import select_facets
 
-    rm = region_map(model) if rmap is None else rmap
-    return [(rm.faces_of(int(a)), rm.faces_of(int(b))) for a, b in contact.region_pairs]
+    return select_facets(contact, region_map(model) if rmap is None else rmap, "all")
 
 
 def region_distance(V_wearer: np.ndarray, V_partner: np.ndarray, faces: np.ndarray,

@@ -1179,8 +1179,9 @@ def sequence_metrics(model, wearer, partner, keypoints, cams, contact, ground, f
             "contact": contact, "sel": [], "lo": None, "hi": None}
     if len(verts) == 2:
         if contact is not None and contact.has_contact:
-            rm = qa_region_map(model)
-            geom["sel"] = [(rm.faces_of(int(a)), rm.faces_of(int(b))) for a, b in contact.region_pairs]
+            from fitting.contact_signature import select_facets
+
+            geom["sel"] = select_facets(contact, qa_region_map(model), "all")
         if contact is not None:
             geom["lo"] = contact.interval[0] - opts.contact_margin_frames
             geom["hi"] = contact.interval[1] + opts.contact_margin_frames
