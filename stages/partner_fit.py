@@ -32,7 +32,8 @@ and the partner is fitted again on the merged keypoints. Writes
   keypoints of the found person left out as the wearer's: ``detect.refine.on_wearer``),
   ``warnings`` (more than ``fitting.partner_fit.WEARER_DROP_WARN_SHARE`` of the partner's body
   keypoints left out as the wearer's, by the second pass and ``check_views`` together: the
-  QA report lists it at its top), summary figures of penetration, contact distance and
+  QA report lists it at its top; contact frames fitted without ``L_G`` because the images
+  held the annotated regions apart: ``fitting.partner_fit.contact_warnings``), summary figures of penetration, contact distance and
   ground penetration (mm), speed;
 - ``partner_fit.png``: those curves over the sequence (``drawing.plots.partner_fit_plot``).
 """
@@ -144,6 +145,7 @@ def run(ctx: StageContext) -> None:
     from fitting.partner_fit import (
         apply_min_valid_views,
         contact_figures,
+        contact_warnings,
         fit_partner,
         view_warnings,
         wearer_drop_warnings,
@@ -200,7 +202,7 @@ def run(ctx: StageContext) -> None:
     report["warnings"] = wearer_drop_warnings(
         report["body_keypoints_detected"], report["keypoints_dropped_as_wearer"]["keypoints"],
         (second or {}).get("keypoints_dropped_as_wearer", 0))
-    report["warnings"] += view_warnings(report, [c.name for c in cams])
+    report["warnings"] += view_warnings(report, [c.name for c in cams]) + contact_warnings(report)
     for w in report["warnings"]:
         log(f"WARNING {w}")
     fig = contact_figures(model, fit, wearer, contact, ground)
@@ -328,6 +330,7 @@ def run_markerless(ctx: StageContext, o: Options, model, cams) -> None:
     from fitting.contact_signature import load_contact
     from fitting.partner_fit import (
         contact_figures,
+        contact_warnings,
         fit_partner,
         shape_from_views,
         view_warnings,
@@ -393,7 +396,8 @@ def run_markerless(ctx: StageContext, o: Options, model, cams) -> None:
                     "frames_not_valid_list": {str(int(f)): r for f, r in zip(
                         fits[p].frames[~ok], [_reason(c) for c in fits[p].invalid_reason[~ok]],
                         strict=True)}})
-        rep["warnings"] = [f"{sid}: {w}" for w in view_warnings(rep, [c.name for c in cams])]
+        rep["warnings"] = [f"{sid}: {w}" for w in view_warnings(rep, [c.name for c in cams])
+                           + contact_warnings(rep)]
         for w in rep["warnings"]:
             ctx.log(f"{ctx.unit}: WARNING {w}")
         writer.save_json("report", rep)

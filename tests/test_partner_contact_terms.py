@@ -387,3 +387,78 @@ def test_fit_partner_reports_the_contact_terms(anny, body, touch):
     d = [facet_distances(touch.VW, touch.F, touch.rm.faces_of(touch.rw), est[f], touch.F,
                          touch.rm.faces_of(touch.rp)).a_to_b.min() for f in range(Fn)]
     assert max(d[1:]) < 5e-3, d
+
+
+def test_a_contact_frame_the_images_hold_apart_is_fitted_without_L_G(anny, body, touch):
+    """The annotation says the hand touches the back in video frames 10..20, but in frame 15
+    the detections are those of the partner 15 cm back (the annotated interval holds a frame
+    whose regions are apart, as the studio's Hug does): with L_G, the fit ends there with the
+    regions apart by more than ``contact_release_m``, so that frame is fitted again without it
+    (``contact_terms.frames_released``, L_D / L_N not active there, a warning that names it)
+    and lands where the images put it; frame 10, which touches, keeps L_G. With the release off, L_G pulls frame 15's
+    hand toward the back, off its detections. (L_D at 1e2: one region pair, the hand, which
+    the arm can reach at the cost of two or three saturated keypoints, is pulled all the way
+    at the default weight; the studio's Hug, four pairs over the body, is held off at it.)"""
+    from artifacts import BodyFit
+    from artifacts.keypoints import Keypoints2D
+    from body import forward
+    from body.joints import regressor
+    from calib import look_at, project
+    from fitting.marker_graph import template_placement, to_shape_fit
+    from fitting.partner_fit import contact_warnings, fit_partner
+
+    frames = np.array([5, 10, 15])
+    Fn = len(frames)
+    cams = [look_at(f"cam{k}", [4 * np.cos(a), 4 * np.sin(a), 1.0], [0, 0, 0.0], (1100, 1100),
+                    (450, 450), 900, 900) for k, a in enumerate([0.5, 2.1, 3.7, 5.3])]
+    n_p = face_normals(body.posed_vertices(touch.x_true), touch.F)[touch.fp0]
+    X = np.repeat(touch.x_true[None], Fn, 0)
+    X[2, 3:6] -= 0.15 * n_p  # frame 15: 15 cm back along the hand's normal
+    J0 = forward(anny, np.zeros(0), np.zeros((1, anny.num_joints, 3)), np.eye(3)[None],
+                 np.zeros((1, 3))).joints[0]
+    R65 = regressor(anny, "kp65")
+    kp = np.zeros((4, Fn, 2, 65, 3))
+    for f in range(Fn):
+        VP = body.posed_vertices(X[f])
+        kp3 = R65 @ np.concatenate([VP, J0 + (X[f, 3:6] - touch.x_true[3:6])])
+        for c, cam in enumerate(cams):
+            kp[c, f, 1, :, :2] = project(cam, kp3)
+            kp[c, f, 1, :, 2] = 0.9
+    keypoints = Keypoints2D(kp=kp.astype(np.float32), boxes=np.full((4, Fn, 2, 4), np.nan, np.float32),
+                            hand_boxes=np.full((4, Fn, 2, 2, 4), np.nan, np.float32), frames=frames,
+                            wearer_retry=np.zeros((4, Fn), bool), partner_mode=np.ones((4, Fn), np.int8),
+                            cross_view_outlier=np.zeros((4, Fn, 2, 65), bool),
+                            conf_raw=kp[..., 2].astype(np.float32),
+                            cameras=np.array([c.name for c in cams]))
+    R = np.repeat(touch.R[None], Fn, 0)
+    pose = np.zeros((Fn, anny.num_joints, 3))
+    T0 = forward(anny, np.zeros(0), pose[:1], R[:1], np.zeros((1, 3))).vertices[0, 0]
+    wearer = BodyFit(body_pose=pose, global_orient=R, transl=np.tile(touch.VW[0] - T0, (Fn, 1)),
+                     betas=np.zeros(0), frames=frames, valid=np.ones(Fn, bool),
+                     invalid_reason=np.zeros(Fn, np.int8))
+    shape = to_shape_fit(np.zeros(0), template_placement(anny, "plug-in-gait"), "given", "given")
+    gaps, reps = {}, {}
+    for release in (PartnerFitOptions().contact_release_m, 0.0):
+        fit, rep = fit_partner(anny, shape, keypoints, cams, wearer, touch.ann,
+                               opts=PartnerFitOptions(use_hands=False, contact_release_m=release,
+                                                      weights={"L_D": 1e2, "L_N": 10.0}))
+        est = forward(anny, np.zeros(0), fit.body_pose, fit.global_orient, fit.transl).vertices
+        gaps[release] = [facet_distances(touch.VW, touch.F, touch.rm.faces_of(touch.rw), est[f],
+                                         touch.F, touch.rm.faces_of(touch.rp)).a_to_b.min()
+                         for f in range(Fn)]
+        reps[release] = rep
+    on, off = PartnerFitOptions().contact_release_m, 0.0
+    assert reps[on]["contact_terms"]["frames_released"] == [15]
+    assert reps[off]["contact_terms"]["frames_released"] == []
+    assert reps[on]["contact_terms"]["released_gap_m"][0] > on
+    (w,) = contact_warnings(reps[on])  # the lab is told, with the frames
+    assert "1 of the 2 fitted frames" in w and "video frames 15" in w, w
+    assert contact_warnings(reps[off]) == []
+    j = reps[on]["terms"].index("L_D")
+    assert reps[on]["per_frame"]["term_active"][:, j].tolist() == [False, True, False]
+    true_gap = facet_distances(touch.VW, touch.F, touch.rm.faces_of(touch.rw),
+                               body.posed_vertices(X[2]), touch.F,
+                               touch.rm.faces_of(touch.rp)).a_to_b.min()
+    assert abs(gaps[on][2] - true_gap) < 0.01, (gaps[on], true_gap)
+    assert gaps[on][1] < 5e-3 and gaps[off][1] < 5e-3, (gaps[on], gaps[off])
+    assert gaps[off][2] < true_gap - 0.02, (gaps[off], true_gap)  # pulled off the images
