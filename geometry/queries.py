@@ -134,7 +134,64 @@ def inside_points(V0: np.ndarray, V1: np.ndarray, faces0: np.ndarray,
     bodies of one model). Returns [vertices of mesh 0 inside mesh 1, vertices of mesh 1 inside
     mesh 0] as :class:`Inside` (index = vertex id, face = the other mesh's nearest face)."""
     faces1 = faces0 if faces1 is None else faces1
+    if apart(V0, faces0, V1, faces1):
+        none = Inside(np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64))
+        return [none, none]
     return [points_inside(V0, V1, faces1), points_inside(V1, V0, faces0)]
+
+
+_CLOSED: dict[str, bool] = {}
+
+
+def is_closed(faces: np.ndarray) -> bool:
+    """Every edge of ``faces`` (T, 3) is shared by exactly two faces (a closed surface, maybe
+    of several components); remembered per faces array content."""
+    import hashlib
+
+    f = np.ascontiguousarray(faces, dtype=np.int64)
+    key = hashlib.sha1(f.tobytes()).hexdigest() + str(f.shape)
+    if key not in _CLOSED:
+        e = np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        _, counts = np.unique(e, axis=0, return_counts=True)
+        _CLOSED[key] = bool(len(f)) and bool(np.all(counts == 2))
+    return _CLOSED[key]
+
+
+def max_edge(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """The longest edge of the mesh (metres)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces)
+    return float(max(np.linalg.norm(v[f[:, i]] - v[f[:, (i + 1) % 3]], axis=1).max()
+                     for i in range(3)))
+
+
+def apart(V0: np.ndarray, faces0: np.ndarray, V1: np.ndarray, faces1: np.ndarray) -> bool:
+    """True when two closed meshes provably neither cross nor hold one another: every vertex
+    of one lies farther than the sum of their longest edges from every vertex of the other (a
+    point where the surfaces cross lies within an edge's length of a vertex of each), so the
+    surfaces do not cross, and then no vertex of one is inside the other unless one mesh is
+    nested in the other, which needs its bounding box inside the other's. A broad phase: it
+    spares the winding numbers of frames where two bodies are apart; False (do the exact
+    test) for nested boxes and for a mesh that is not closed, whose winding number can pass
+    0.5 without a crossing."""
+    if not (len(V0) and len(V1) and is_closed(faces0) and is_closed(faces1)):
+        return False
+    from scipy.spatial import cKDTree
+
+    v0, v1 = np.asarray(V0, np.float64), np.asarray(V1, np.float64)
+    b0, b1 = (v0.min(0), v0.max(0)), (v1.min(0), v1.max(0))
+    if np.all(b0[0] >= b1[0]) and np.all(b0[1] <= b1[1]) or (
+            np.all(b1[0] >= b0[0]) and np.all(b1[1] <= b0[1])):
+        return False
+    reach = max_edge(v0, faces0) + max_edge(v1, faces1)
+    lo, hi = np.maximum(v0.min(0), v1.min(0)), np.minimum(v0.max(0), v1.max(0))
+    if np.any(lo - hi > reach):  # the bounding boxes are farther apart than that
+        return True
+    box = [np.all((v >= lo - reach) & (v <= hi + reach), axis=1) for v in (v0, v1)]
+    if not box[0].any() or not box[1].any():
+        return True
+    d, _ = cKDTree(v1[box[1]]).query(v0[box[0]], distance_upper_bound=reach)
+    return bool(np.all(np.isinf(d)))
 
 
 class Deepest(NamedTuple):

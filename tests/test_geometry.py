@@ -203,6 +203,32 @@ def test_penetration_apart_and_across_topologies():
     assert per[0] == 0 and per[1] == pytest.approx(0.5, abs=0.02)
 
 
+def test_broad_phase_spares_only_meshes_that_cannot_hold_each_other(monkeypatch):
+    """geometry.apart: two closed spheres farther apart than their edges are spared the
+    winding numbers; spheres a hair apart, crossing, nested (a small one inside a big one, no
+    crossing) or open (a hole) are not, and inside_points gives what the exact test gives."""
+    from geometry import queries as Q
+
+    V, F = _sphere(3)
+    edge = Q.max_edge(V, F)
+    assert Q.is_closed(F) and not Q.is_closed(F[1:])
+    assert Q.apart(V, F, V + [2.0 + 2.5 * edge, 0, 0], F)  # gap wider than two edges
+    assert not Q.apart(V, F, V + [2.0 + 0.5 * edge, 0, 0], F)  # vertices within reach
+    assert not Q.apart(V, F, V + [1.5, 0, 0], F)  # crossing
+    assert not Q.apart(V, F[1:], V + [3.0, 0, 0], F)  # open: winding numbers can lie
+    small = 0.2 * V + [0.1, 0, 0]  # nested: no vertex near the big sphere's
+    assert not Q.apart(V, F, small, F)
+    ins = G.inside_points(V, small, F)
+    assert len(ins[1].index) == len(small)  # every vertex of the small sphere is inside
+    # the spared case gives what the winding numbers give: nothing inside
+    far = V + [2.0 + 2.5 * edge, 0, 0]
+    spared = G.inside_points(V, far, F)
+    monkeypatch.setattr(Q, "apart", lambda *a: False)
+    exact = G.inside_points(V, far, F)
+    for a, b in zip(spared, exact, strict=True):
+        assert len(a.index) == len(b.index) == 0
+
+
 # ------------------------------------------------------------------------------ facet distances
 def test_facet_distances_between_two_squares():
     """Unit squares at z = 0 (A) and z = h shifted by 2 in x (B): from each A facet centroid
