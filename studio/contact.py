@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from geometry import VertexNormals, face_centroids, interpenetration_per_frame, nearest_surface
+from geometry import VertexNormals, deepest_inside, face_centroids, inside_points, nearest_surface
 from studio import constants as C
 from studio.motion import pair_distances
 
@@ -135,20 +135,33 @@ class MotionCheck:
 def check_motion(model, motion, verts: list[np.ndarray] | None = None) -> MotionCheck:
     """Measure a :class:`studio.session.SequenceMotion` on its video frames: interpenetration of
     the two bodies and, for each contact of its scene, the gap while it is held. verts: the two
-    bodies' vertices (F, V, 3) at the video frames, if already skinned."""
+    bodies' vertices (F, V, 3) at the video frames, if already skinned.
+
+    A gap is the smallest signed distance from the effector region's vertices to the other
+    body: unsigned to its surface (libigl's AABB), negative for the vertices the depth test
+    found inside the other body (its winding numbers, :func:`geometry.inside_points`), so each
+    frame's winding numbers are computed once, and not at all where the bodies are apart."""
     import igl
 
     vs = motion.video_samples
     V = verts if verts is not None else [o.vertices for o in motion.skin(model)]
     faces = np.asarray(model.faces)
-    depth = interpenetration_per_frame(V[0], V[1], faces)
+    inside = [inside_points(V[0][f], V[1][f], faces) for f in range(len(V[0]))]
+    depth = np.array([deepest_inside(ins).depth for ins in inside])
     cast_people = motion.cast.people
     person_of_role = [next(i for i, s in enumerate(motion.order) if s.person is p) for p in cast_people]
     gaps = {}
+    f64 = np.ascontiguousarray(faces, dtype=np.int64)
     for k, c in enumerate(motion.scene.contacts):
         held = np.flatnonzero(c.weight[vs] > 0.98)
         me, other = person_of_role[c.who], person_of_role[1 - c.who]
-        g = [igl.signed_distance(V[me][f][c.region].astype(float), V[other][f].astype(float),
-                                 faces)[0].min() for f in held]
+        g = []
+        for f in held:
+            d2, _, _ = igl.point_mesh_squared_distance(
+                np.ascontiguousarray(V[me][f][c.region], dtype=np.float64),
+                np.ascontiguousarray(V[other][f], dtype=np.float64), f64)
+            d = np.sqrt(np.maximum(d2, 0.0))
+            d[np.isin(c.region, inside[f][me].index)] *= -1.0
+            g.append(d.min())
         gaps[c.name if c.name not in gaps else f"{c.name}#{k}"] = np.array(g)
     return MotionCheck(depth, gaps)
