@@ -48,10 +48,13 @@ Keys:
   ``keypoints.somebody_else_partner_clip``: the stage at its
   defaults (stride 1, chunks of 32, ``video_mode`` auto = on) on the first CLIP_FRAMES
   frames of every second sequence (``CLIP_SEQUENCES``: Grab, Hit, Hug, Posing; 256 frames;
-  all eight sequences before, 512, for ~200 CPU-s more), one detector per sequence in this
-  process (two chunks; a worker's pool task on a full sequence runs about four, so the
-  detector's warm-up weighs a little more here): the figure the
-  5-CPU-minutes-per-770-frames goal is about. The stride keys above have mediapipe's
+  all eight sequences before, 512, for ~200 CPU-s more), one detector per sequence in a
+  process of its own, two sequences at once (``CLIP_WORKERS``; one after the other in this
+  process before session 37; two chunks; a worker's pool task on a full sequence runs about
+  four, so the detector's warm-up weighs a little more here): the figure the
+  5-CPU-minutes-per-770-frames goal is about. Each process's CPU counts its own work; with
+  both cores busy, mediapipe's waiting threads find no free core to spin on (the
+  ``fps_per_core_clip`` LIMITS), as in a dataset build that keeps every core busy. The stride keys above have mediapipe's
   tracking off (people move too far between kept frames).
 
 Per-sequence details go to ``bench/work/keypoints/sequences.json``.
@@ -62,6 +65,7 @@ import json
 import os
 import warnings
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -69,6 +73,7 @@ REPO = Path(__file__).resolve().parents[2]
 STRIDE = 10  # BENCH_KEYPOINTS_RECIPE only: the bench session's stride is partner_fit's
 CLIP_FRAMES = 64
 CLIP_SEQUENCES = slice(0, None, 2)  # of the recipe's sequences, in order
+CLIP_WORKERS = 2  # clip sequences detected at once, one process each (one per core here)
 AFTER = ("partner_fit",)  # reads that case's keypoints artifacts: runs after it (bench.run_order)
 GOALS = {
     "keypoints.identity_swaps": ("<=", 0),
@@ -250,8 +255,10 @@ def run(work: Path) -> dict[str, float]:
 
 def _clip(recipe, recipe_path, reg, per_seq: dict) -> dict[str, float]:
     """The stage at its defaults (stride 1, chunk 32, video mode on) on the first CLIP_FRAMES
-    frames of ``CLIP_SEQUENCES``, in this process (one detector per sequence, as a worker's
-    pool task of a few chunks): speed, median error, swaps and flips."""
+    frames of ``CLIP_SEQUENCES``, each sequence in a worker process (``CLIP_WORKERS`` at once;
+    one detector per sequence, as a worker's pool task of a few chunks): speed, median error,
+    swaps and flips."""
+    from bench.cases._keypoints_clip import clip_one
     from detect.metrics import (
         group_summary,
         identity_swaps,
@@ -259,17 +266,16 @@ def _clip(recipe, recipe_path, reg, per_seq: dict) -> dict[str, float]:
         lr_flips,
         somebody_else,
     )
-    from stages import view_for
-    from stages.capture import capture_of
-    from stages.keypoints import Options, compute, raw_inputs
+    from pipeline.procs import process_pool
 
     frames = cpu = setup = 0.0
     errs, swaps, flips, others = [], 0, np.zeros(2, int), np.zeros(2, int)
-    for sid, seq in list(recipe.sequences.items())[CLIP_SEQUENCES]:
-        o = Options(stride=1, start=0, stop=CLIP_FRAMES, workers=1)
-        mk, cams, _ = capture_of(recipe, sid)
-        c = compute(view_for(recipe, "keypoints", sid), raw_inputs(recipe, sid), o, unit=sid,
-                    recipe_path=recipe_path, markers=mk, cams=cams)
+    chosen = list(recipe.sequences.items())[CLIP_SEQUENCES]
+    with process_pool(min(CLIP_WORKERS, max(1, len(chosen)))) as pool:
+        futs = [pool.submit(clip_one, str(recipe_path), sid, CLIP_FRAMES) for sid, _ in chosen]
+        done = [f.result() for f in futs]
+    for (sid, seq), (kps, report) in zip(chosen, done, strict=True):
+        c = SimpleNamespace(keypoints=kps, report=report)
         truth = _truth_uv(recipe, sid, seq, c.keypoints.frames, reg)
         inside = (truth[..., 0] >= 0) & (truth[..., 0] < 900) & (truth[..., 1] >= 0) & (truth[..., 1] < 900)
         e = keypoint_errors(c.keypoints.kp, truth, inside)

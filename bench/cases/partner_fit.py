@@ -11,7 +11,7 @@ paths and these stage options). ``BENCH_PARTNER_STRIDE`` overrides the stride;
 ``BENCH_PARTNER_VARIANTS`` (comma-separated names of ``VARIANTS``) runs those ablation rows
 beside the full method and the reference row; ``all`` every row of the paper's Table 3,
 ``none`` (the default, ``DEFAULT_VARIANTS`` empty) the full method alone: a row costs ~150 s of
-wall on top of the full method's ~10 minutes, and ``make bench`` has 45 minutes for every case
+wall on top of the full method's ~6 minutes, and ``make bench`` has 45 minutes for every case
 (issue #29), so the table's rows are measured on request and otherwise say which code measured
 them.
 
@@ -59,12 +59,17 @@ second detector pass also cut a row's cost ~2.5x.) Its figures are the keys
 ``partner_fit.table3.<variant>.<figure>[_<class>]``, shown in the RESULTS.md section of
 :func:`report` rather than in the main table.
 
-Executor: the full method runs on the serial executor, alone on the machine, because its
-reports give ``fps_per_core``: two fits at once on this machine's two vCPUs take ~1.5x the
-thread CPU each (bench Grab 1's published fit: 19.4 CPU-s alone, 30.3 beside another), so a
-figure measured beside another fit is not comparable. The ablation rows, whose CPU is not
-reported, run with ``--executor dask --workers 2`` (``BENCH_PARTNER_EXECUTOR=serial`` for the
-serial executor): ~1.3x less wall.
+Executor: every row, the full method's too, runs with ``--executor dask --workers 2`` (two
+sequences at once, one per core; ``BENCH_PARTNER_EXECUTOR=serial`` for the serial executor):
+the fits are the same on either executor (one BLAS thread per stage), and the serial full
+method took ~11 of the benchmark's 45 minutes (its upstream stages included). ``fps_per_core``
+counts each fit's own thread CPU (and the second detection pass's process CPU), so a fit beside
+another on the other core is counted for its own work: on this 2-core EPYC VM (one thread per
+core) two such processes at once each took the CPU one took alone (5.36 / 5.34 s, session 37).
+On a host whose two vCPUs are hyperthreads of one core it is not so: there (an earlier
+session's machine) a fit beside another took ~1.5x the thread CPU (bench Grab 1: 19.4 CPU-s
+alone, 30.3 beside another), and ``fps_per_core`` reads low; ``BENCH_PARTNER_EXECUTOR=serial``
+measures it alone.
 """
 from __future__ import annotations
 
@@ -444,7 +449,7 @@ def _figures(pooled: dict, prefix: str) -> dict[str, float]:
 
 
 def executor_args() -> list[str]:
-    """The engine's executor for the ablation rows (``BENCH_PARTNER_EXECUTOR``: dask or serial)."""
+    """The engine's executor for every row (``BENCH_PARTNER_EXECUTOR``: dask or serial)."""
     kind = os.environ.get("BENCH_PARTNER_EXECUTOR", "dask")
     if kind not in ("dask", "serial"):
         raise ValueError(f"BENCH_PARTNER_EXECUTOR: dask or serial, got {kind!r}")
@@ -498,7 +503,7 @@ def run(work: Path) -> dict[str, float]:
             vpath.write_text(yaml.safe_dump(rec, sort_keys=False))
         run_engine(["sequence", *recipe.sequences, "--recipe", str(vpath), "--outputs",
                     str(outputs), "--until", "partner_fit",
-                    *(["--executor", "serial"] if name == "full" else executor_args())], name)
+                    *executor_args()], name)
         pooled, per_seq, cpu, fitted = _score(recipe, outputs, model, h36)
         if name == "full":
             (work / "sequences.json").write_text(json.dumps(per_seq, indent=1))
