@@ -332,31 +332,31 @@ def test_extra_terms_builds_what_the_weights_and_inputs_allow(anny, touch):
     assert [t.name for t in extra] == ["L_ic", "L_D"] and info["terms"] == ["L_D"]
 
 
-def test_fit_partner_reports_the_contact_terms(anny, body, touch):
-    """fit_partner on projections of the touching partner (4 views, 3 frames, the contact
-    interval covering video frames 10..20 = fit frames 1, 2): L_sc, L_D and L_N are in the
-    report's terms, active (with points and cost) in the contact frames only, and the hand
-    stays on the back."""
+def _touch_scene(anny, body, touch, X):
+    """Video frames 5, 10, 15 of ``touch``'s wearer, four views of the partner at unknowns
+    ``X (3, n)`` (``touch.x_true``'s pose, any translation) projected as clean keypoints:
+    ``(frames, cams, Keypoints2D, the wearer's BodyFit, the partner's ShapeFit)``."""
     from artifacts import BodyFit
     from artifacts.keypoints import Keypoints2D
     from body import forward
     from body.joints import regressor
     from calib import look_at, project
     from fitting.marker_graph import template_placement, to_shape_fit
-    from fitting.partner_fit import fit_partner
 
     frames = np.array([5, 10, 15])
     Fn = len(frames)
     cams = [look_at(f"cam{k}", [4 * np.cos(a), 4 * np.sin(a), 1.0], [0, 0, 0.0], (1100, 1100),
                     (450, 450), 900, 900) for k, a in enumerate([0.5, 2.1, 3.7, 5.3])]
-    VP = body.posed_vertices(touch.x_true)
-    J = forward(anny, np.zeros(0), np.zeros((1, anny.num_joints, 3)), np.eye(3)[None],
-                np.zeros((1, 3))).joints[0]
-    kp3 = regressor(anny, "kp65") @ np.concatenate([VP, J])
+    J0 = forward(anny, np.zeros(0), np.zeros((1, anny.num_joints, 3)), np.eye(3)[None],
+                 np.zeros((1, 3))).joints[0]
+    R65 = regressor(anny, "kp65")
     kp = np.zeros((4, Fn, 2, 65, 3))
-    for c, cam in enumerate(cams):
-        kp[c, :, 1, :, :2] = project(cam, kp3)[None]
-        kp[c, :, 1, :, 2] = 0.9
+    for f in range(Fn):
+        kp3 = R65 @ np.concatenate([body.posed_vertices(X[f]),
+                                    J0 + (X[f, 3:6] - touch.x_true[3:6])])
+        for c, cam in enumerate(cams):
+            kp[c, f, 1, :, :2] = project(cam, kp3)
+            kp[c, f, 1, :, 2] = 0.9
     keypoints = Keypoints2D(kp=kp.astype(np.float32), boxes=np.full((4, Fn, 2, 4), np.nan, np.float32),
                             hand_boxes=np.full((4, Fn, 2, 2, 4), np.nan, np.float32), frames=frames,
                             wearer_retry=np.zeros((4, Fn), bool), partner_mode=np.ones((4, Fn), np.int8),
@@ -370,6 +370,20 @@ def test_fit_partner_reports_the_contact_terms(anny, body, touch):
                      betas=np.zeros(0), frames=frames, valid=np.ones(Fn, bool),
                      invalid_reason=np.zeros(Fn, np.int8))
     shape = to_shape_fit(np.zeros(0), template_placement(anny, "plug-in-gait"), "given", "given")
+    return frames, cams, keypoints, wearer, shape
+
+
+def test_fit_partner_reports_the_contact_terms(anny, body, touch):
+    """fit_partner on projections of the touching partner (4 views, 3 frames, the contact
+    interval covering video frames 10..20 = fit frames 1, 2): L_sc, L_D and L_N are in the
+    report's terms, active (with points and cost) in the contact frames only, and the hand
+    stays on the back."""
+    from body import forward
+    from fitting.partner_fit import fit_partner
+
+    Fn = 3
+    frames, cams, keypoints, wearer, shape = _touch_scene(anny, body, touch,
+                                                          np.repeat(touch.x_true[None], Fn, 0))
     fit, rep = fit_partner(anny, shape, keypoints, cams, wearer, touch.ann,
                            opts=PartnerFitOptions(use_hands=False))
     names = rep["terms"]
@@ -395,48 +409,18 @@ def test_a_contact_frame_the_images_hold_apart_is_fitted_without_L_G(anny, body,
     whose regions are apart, as the studio's Hug does): with L_G, the fit ends there with the
     regions apart by more than ``contact_release_m``, so that frame is fitted again without it
     (``contact_terms.frames_released``, L_D / L_N not active there, a warning that names it)
-    and lands where the images put it; frame 10, which touches, keeps L_G. With the release off, L_G pulls frame 15's
-    hand toward the back, off its detections. (L_D at 1e2: one region pair, the hand, which
+    and lands where the images put it; frame 10, which touches, keeps L_G. With the release
+    off, L_G pulls frame 15's hand toward the back, off its detections. (L_D at 1e2: one region pair, the hand, which
     the arm can reach at the cost of two or three saturated keypoints, is pulled all the way
     at the default weight; the studio's Hug, four pairs over the body, is held off at it.)"""
-    from artifacts import BodyFit
-    from artifacts.keypoints import Keypoints2D
     from body import forward
-    from body.joints import regressor
-    from calib import look_at, project
-    from fitting.marker_graph import template_placement, to_shape_fit
     from fitting.partner_fit import contact_warnings, fit_partner
 
-    frames = np.array([5, 10, 15])
-    Fn = len(frames)
-    cams = [look_at(f"cam{k}", [4 * np.cos(a), 4 * np.sin(a), 1.0], [0, 0, 0.0], (1100, 1100),
-                    (450, 450), 900, 900) for k, a in enumerate([0.5, 2.1, 3.7, 5.3])]
+    Fn = 3
     n_p = face_normals(body.posed_vertices(touch.x_true), touch.F)[touch.fp0]
     X = np.repeat(touch.x_true[None], Fn, 0)
     X[2, 3:6] -= 0.15 * n_p  # frame 15: 15 cm back along the hand's normal
-    J0 = forward(anny, np.zeros(0), np.zeros((1, anny.num_joints, 3)), np.eye(3)[None],
-                 np.zeros((1, 3))).joints[0]
-    R65 = regressor(anny, "kp65")
-    kp = np.zeros((4, Fn, 2, 65, 3))
-    for f in range(Fn):
-        VP = body.posed_vertices(X[f])
-        kp3 = R65 @ np.concatenate([VP, J0 + (X[f, 3:6] - touch.x_true[3:6])])
-        for c, cam in enumerate(cams):
-            kp[c, f, 1, :, :2] = project(cam, kp3)
-            kp[c, f, 1, :, 2] = 0.9
-    keypoints = Keypoints2D(kp=kp.astype(np.float32), boxes=np.full((4, Fn, 2, 4), np.nan, np.float32),
-                            hand_boxes=np.full((4, Fn, 2, 2, 4), np.nan, np.float32), frames=frames,
-                            wearer_retry=np.zeros((4, Fn), bool), partner_mode=np.ones((4, Fn), np.int8),
-                            cross_view_outlier=np.zeros((4, Fn, 2, 65), bool),
-                            conf_raw=kp[..., 2].astype(np.float32),
-                            cameras=np.array([c.name for c in cams]))
-    R = np.repeat(touch.R[None], Fn, 0)
-    pose = np.zeros((Fn, anny.num_joints, 3))
-    T0 = forward(anny, np.zeros(0), pose[:1], R[:1], np.zeros((1, 3))).vertices[0, 0]
-    wearer = BodyFit(body_pose=pose, global_orient=R, transl=np.tile(touch.VW[0] - T0, (Fn, 1)),
-                     betas=np.zeros(0), frames=frames, valid=np.ones(Fn, bool),
-                     invalid_reason=np.zeros(Fn, np.int8))
-    shape = to_shape_fit(np.zeros(0), template_placement(anny, "plug-in-gait"), "given", "given")
+    frames, cams, keypoints, wearer, shape = _touch_scene(anny, body, touch, X)
     gaps, reps = {}, {}
     for release in (PartnerFitOptions().contact_release_m, 0.0):
         fit, rep = fit_partner(anny, shape, keypoints, cams, wearer, touch.ann,
