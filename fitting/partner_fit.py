@@ -1166,9 +1166,12 @@ def unreliable_detections(cams, pts: list, uv: np.ndarray, conf: np.ndarray, max
     return (n >= min_frames) & (med > max_px)
 
 
-def _too_far(extra, frames) -> dict:
-    """``pairs_too_far``: the fit frames (video numbers) where a region pair was farther than
-    ``contact_max_gap_m`` at the last evaluation and so not pulled, per region pair index."""
+def _contact_report(extra, frames) -> dict:
+    """The report's ``contact_terms`` from the contact matches: ``pairs_too_far``, the fit
+    frames (video numbers) where a region pair was farther than ``contact_max_gap_m`` at the
+    last evaluation and so not pulled, per region pair index;
+    ``frames_released`` and their ``released_gap_m``: the contact frames fitted without
+    ``L_G`` (``contact_release_m``)."""
     m = contact_matches(extra)
     if m is None:
         return {}
@@ -1334,7 +1337,12 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
         from fitting.silhouette import SilhouetteInput
 
         silhouettes = SilhouetteInput(silhouettes, list(cams))
-    extra, contact_info = extra_terms(model, frames, WV, contact, ground, opts,
+    rmap = None
+    if contact is not None and WV is not None:  # one region map for L_G and the release
+        from body.regions import region_map
+
+        rmap = region_map(model)
+    extra, contact_info = extra_terms(model, frames, WV, contact, ground, opts, rmap=rmap,
                                       silhouettes=silhouettes)
     t0 = time.perf_counter()
     reproj = Reprojection(skel, body.u, Hk, cams, body.sub)
@@ -1428,7 +1436,7 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
 
     matches = contact_matches(extra) if opts.contact_release_m > 0 else None
     faces = np.asarray(model.faces)
-    regions = contact_regions(model, contact) if matches is not None else []
+    regions = contact_regions(model, contact, rmap) if matches is not None else []
     per_frame_state = (flipped, dropped, far, halves, on_wearer_n, gated, hidden_n, rejected_n)
 
     def release_contact():
@@ -1630,7 +1638,7 @@ def fit_partner(model: BodyModel, shape: ShapeFit, keypoints: Keypoints2D, cams,
         "mean_rounds_temporal": float(np.mean(t_rounds)) if t_rounds else 0.0,
         "contact_frames": 0 if contact is None or not contact.has_contact else int(np.count_nonzero(
             (frames >= contact.interval[0]) & (frames <= contact.interval[1]))),
-        "contact_terms": {**contact_info, **_too_far(extra, frames)},
+        "contact_terms": {**contact_info, **_contact_report(extra, frames)},
         "frames_with": {n: int(active[:, i].sum()) for i, n in enumerate(names)},
         "views_mirrored_back": int(flipped.sum()), "views_dropped_as_wearer": int(dropped.sum()),
         "views_dropped_as_bystander": int(far.sum()),

@@ -23,7 +23,8 @@ and the partner is fitted again on the merged keypoints. Writes
   ``fitting.partner_fit.VIEW_MIN_KEYPOINTS`` of the partner's body keypoints, ``detections
   (F,)`` body keypoint detections over the views, ``term_cost (F, T)`` weighted cost of
   each term at the solution, ``term_active (F, T)`` the frames where each term was active,
-  ``term_points (F, T)`` offending points of the extra terms, ``terms (T,)`` their names, ``penetration_m (F,)``, ``contact_m (F,)``, ``ground_m (F,)``
+  ``term_points (F, T)`` offending points of the extra terms, ``terms (T,)`` their names,
+  ``penetration_m (F,)``, ``contact_m (F,)``, ``ground_m (F,)``
   (``fitting.partner_fit.contact_figures``), ``frames (F,)``;
 - ``keypoints.npz``: the keypoints the fit used (``artifacts.keypoints.Keypoints2D``, the
   partner refined by the second pass; only when it ran);
@@ -33,8 +34,8 @@ and the partner is fitted again on the merged keypoints. Writes
   ``warnings`` (more than ``fitting.partner_fit.WEARER_DROP_WARN_SHARE`` of the partner's body
   keypoints left out as the wearer's, by the second pass and ``check_views`` together: the
   QA report lists it at its top; contact frames fitted without ``L_G`` because the images
-  held the annotated regions apart: ``fitting.partner_fit.contact_warnings``), summary figures of penetration, contact distance and
-  ground penetration (mm), speed;
+  held the annotated regions apart: ``fitting.partner_fit.contact_warnings``), summary
+  figures of penetration, contact distance and ground penetration (mm), speed;
 - ``partner_fit.png``: those curves over the sequence (``drawing.plots.partner_fit_plot``).
 """
 from __future__ import annotations
