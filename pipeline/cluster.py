@@ -48,6 +48,16 @@ REPO = Path(__file__).resolve().parents[1]
 ALLOWED_FAILURES = 3          # a task whose worker dies this often is failed (KilledWorker)
 PLACEHOLDER_SCHEDULER = "tcp://SCHEDULER:8786"  # in a job script printed without a cluster
 WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+#: Variables Dask's nanny would set before spawning a worker (``distributed.nanny.
+#: pre-spawn-environ``, also in the nanny's own process: a LocalCluster's nannies live in ours,
+#: so every process we start afterwards inherits them) that we leave unset.
+#: ``MALLOC_TRIM_THRESHOLD_=65536`` turns off glibc's dynamic mmap threshold, so every array
+#: over 128 kB is mapped and unmapped afresh: the partner fit's Jacobian blocks took 2.8x the
+#: CPU in a Dask worker (demo Handshake, the same fit bit for bit: ``extra_jacobian_s`` 245
+#: against 89 s serial; session 37), a numpy loop of 2.5 MB temporaries 19.3 against 14.0 CPU-s.
+#: Set in this process's Dask config (:func:`_dask_config`): the local nannies read it; a
+#: SLURM/PBS job's own nanny reads its own config and still sets it (not unset there yet).
+NO_PRE_SPAWN = ("MALLOC_TRIM_THRESHOLD_",)
 # the lock backend of the workers (pipeline.store): on one host the kernel's flock holds and a
 # killed worker's lock goes at once; across hosts (a shared NFS/Lustre folder) only leases do
 LOCKS_BY_KIND = {"local": "flock", "slurm": "lease", "pbs": "lease", "scheduler": "lease"}
@@ -212,7 +222,8 @@ def _dask_config(config: ClusterConfig) -> None:
     import dask
 
     dask.config.set({"distributed.worker.daemon": False,
-                     "distributed.scheduler.allowed-failures": config.allowed_failures})
+                     "distributed.scheduler.allowed-failures": config.allowed_failures,
+                     **{f"distributed.nanny.pre-spawn-environ.{k}": None for k in NO_PRE_SPAWN}})
 
 
 def _jobqueue_kwargs(config: ClusterConfig) -> dict[str, Any]:

@@ -311,3 +311,23 @@ def test_workers_lock_with_flock_on_one_host_and_with_leases_across_hosts():
     for kind in ("slurm", "pbs", "scheduler"):
         assert env(kind)["PIPELINE_LOCKS"] == "lease", kind
     assert env("local", env={"PIPELINE_LOCKS": "lease"})["PIPELINE_LOCKS"] == "lease"
+
+
+def _worker_env(names):
+    import os
+
+    return {k: os.environ.get(k) for k in names}
+
+
+def test_workers_start_without_dask_s_malloc_trim_threshold(dask_client):
+    """Dask's nanny sets MALLOC_TRIM_THRESHOLD_=65536 before it spawns a worker (also in our own
+    process, where a LocalCluster's nannies live): glibc then maps and unmaps every array over
+    128 kB afresh (the partner fit's Jacobian blocks: 2.8x the CPU). Our clusters leave it
+    unset, in the workers and here; the thread limits still reach the workers."""
+    import os
+
+    got = dask_client.submit(_worker_env, ["MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS"],
+                             pure=False).result()
+    assert got["MALLOC_TRIM_THRESHOLD_"] is None, got
+    assert got["OMP_NUM_THREADS"] == "1"
+    assert os.environ.get("MALLOC_TRIM_THRESHOLD_") is None
