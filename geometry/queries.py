@@ -184,7 +184,7 @@ def apart(V0: np.ndarray, faces0: np.ndarray, V1: np.ndarray, faces1: np.ndarray
             np.all(b1[0] >= b0[0]) and np.all(b1[1] <= b0[1])):
         return False
     reach = max_edge(v0, faces0) + max_edge(v1, faces1)
-    lo, hi = np.maximum(v0.min(0), v1.min(0)), np.minimum(v0.max(0), v1.max(0))
+    lo, hi = np.maximum(b0[0], b1[0]), np.minimum(b0[1], b1[1])
     if np.any(lo - hi > reach):  # the bounding boxes are farther apart than that
         return True
     box = [np.all((v >= lo - reach) & (v <= hi + reach), axis=1) for v in (v0, v1)]

@@ -138,11 +138,9 @@ def check_motion(model, motion, verts: list[np.ndarray] | None = None) -> Motion
     bodies' vertices (F, V, 3) at the video frames, if already skinned.
 
     A gap is the smallest signed distance from the effector region's vertices to the other
-    body: unsigned to its surface (libigl's AABB), negative for the vertices the depth test
+    body: unsigned to its surface (:func:`geometry.nearest_surface`), negative for the vertices the depth test
     found inside the other body (its winding numbers, :func:`geometry.inside_points`), so each
     frame's winding numbers are computed once, and not at all where the bodies are apart."""
-    import igl
-
     vs = motion.video_samples
     V = verts if verts is not None else [o.vertices for o in motion.skin(model)]
     faces = np.asarray(model.faces)
@@ -151,16 +149,12 @@ def check_motion(model, motion, verts: list[np.ndarray] | None = None) -> Motion
     cast_people = motion.cast.people
     person_of_role = [next(i for i, s in enumerate(motion.order) if s.person is p) for p in cast_people]
     gaps = {}
-    f64 = np.ascontiguousarray(faces, dtype=np.int64)
     for k, c in enumerate(motion.scene.contacts):
         held = np.flatnonzero(c.weight[vs] > 0.98)
         me, other = person_of_role[c.who], person_of_role[1 - c.who]
         g = []
         for f in held:
-            d2, _, _ = igl.point_mesh_squared_distance(
-                np.ascontiguousarray(V[me][f][c.region], dtype=np.float64),
-                np.ascontiguousarray(V[other][f], dtype=np.float64), f64)
-            d = np.sqrt(np.maximum(d2, 0.0))
+            d = nearest_surface(V[me][f][c.region], V[other][f], faces).distance
             d[np.isin(c.region, inside[f][me].index)] *= -1.0
             g.append(d.min())
         gaps[c.name if c.name not in gaps else f"{c.name}#{k}"] = np.array(g)

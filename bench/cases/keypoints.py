@@ -54,8 +54,8 @@ Keys:
   four, so the detector's warm-up weighs a little more here): the figure the
   5-CPU-minutes-per-770-frames goal is about. Each process's CPU counts its own work; with
   both cores busy, mediapipe's waiting threads find no free core to spin on (the
-  ``fps_per_core_clip`` LIMITS), as in a dataset build that keeps every core busy. The stride keys above have mediapipe's
-  tracking off (people move too far between kept frames).
+  ``fps_per_core_clip`` LIMITS), as in a dataset build that keeps every core busy. The
+  stride keys above have mediapipe's tracking off (people move too far between kept frames).
 
 Per-sequence details go to ``bench/work/keypoints/sequences.json``.
 """
@@ -65,7 +65,6 @@ import json
 import os
 import warnings
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 
@@ -275,27 +274,26 @@ def _clip(recipe, recipe_path, reg, per_seq: dict) -> dict[str, float]:
         futs = [pool.submit(clip_one, str(recipe_path), sid, CLIP_FRAMES) for sid, _ in chosen]
         done = [f.result() for f in futs]
     for (sid, seq), (kps, report) in zip(chosen, done, strict=True):
-        c = SimpleNamespace(keypoints=kps, report=report)
-        truth = _truth_uv(recipe, sid, seq, c.keypoints.frames, reg)
+        truth = _truth_uv(recipe, sid, seq, kps.frames, reg)
         inside = (truth[..., 0] >= 0) & (truth[..., 0] < 900) & (truth[..., 1] >= 0) & (truth[..., 1] < 900)
-        e = keypoint_errors(c.keypoints.kp, truth, inside)
-        sw = identity_swaps(c.keypoints.kp, truth)
-        fl = lr_flips(c.keypoints.kp, truth)
-        others += somebody_else(c.keypoints.kp, truth).sum(axis=(0, 1))
+        e = keypoint_errors(kps.kp, truth, inside)
+        sw = identity_swaps(kps.kp, truth)
+        fl = lr_flips(kps.kp, truth)
+        others += somebody_else(kps.kp, truth).sum(axis=(0, 1))
         errs.append(e[np.isfinite(e)])
         swaps += int(sw.any(axis=0).sum())
         flips += fl.sum(axis=(0, 1))
-        frames += len(c.keypoints.frames)
-        cpu += c.report["cpu_s"]
-        setup += c.report["detector_calls"].get("setup_cpu_s", 0.0)
+        frames += len(kps.frames)
+        cpu += report["cpu_s"]
+        setup += report["detector_calls"].get("setup_cpu_s", 0.0)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
-            per_seq[f"clip {sid}"] = {"frames": len(c.keypoints.frames),
+            per_seq[f"clip {sid}"] = {"frames": len(kps.frames),
                                       "swapped_frames": int(sw.any(axis=0).sum()),
                                       "lr_flipped_views": fl.sum(axis=(0, 1)).tolist(),
                                       "wearer": group_summary(e[:, :, 0], inside[:, :, 0]),
                                       "partner": group_summary(e[:, :, 1], inside[:, :, 1]),
-                                      "report": c.report}
+                                      "report": report}
     if not frames:
         return {}
     allv = np.concatenate(errs)
